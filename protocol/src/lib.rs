@@ -1,0 +1,21 @@
+//! The one home of brickcast's data layout, shared by server and client.
+//!
+//! * [`brick`], [`colour`]: the 8×8×8 brick (512-bit mask + compact RGB565 colours).
+//! * [`map`]: the sparse three-level brick map, its edits, versions and memory accounting.
+//! * [`trace`]: the CPU DDA tracer (the GPU shader's twin) and its flat reference.
+//! * [`render`]: camera, shading and the multi-threaded CPU renderer.
+//! * [`wire`]: the websocket messages and their compact, compressed brick payloads.
+//! * [`demo`]: the built-in procedural demo scene.
+
+pub mod brick;
+pub mod colour;
+pub mod demo;
+pub mod map;
+pub mod render;
+pub mod trace;
+
+pub use brick::{BrickData, EMPTY, Mask};
+pub use colour::Colour;
+pub use map::{BrickMap, BrushMode, MemoryStats};
+pub use render::{Camera, Frame, Lighting, Projection};
+pub use trace::{Hit, Ray, trace};

@@ -1,0 +1,1280 @@
+//! The brick map: the scene as both sides hold it.
+//!
+//! Three levels, each a flat array so the GPU can hold byte-for-byte the same layout:
+//!
+//! * `regions`: one `u32` per region of 4×4×4 coarse cells (32³ voxels), pointing to a cell block
+//!   or [`EMPTY`]. This is the paper's "grid above the top level": a ray crosses an empty region in
+//!   one step, and empty regions cost 4 bytes instead of 256, which keeps the coarse level sparse
+//!   (a dense 512³ coarse grid for a 4096³ scene would alone be 512 MiB).
+//! * `cells`: cell blocks of 64 `u32`s, each a brick slot or [`EMPTY`] (the paper's brick grid).
+//! * per brick slot: a 512-bit `mask` and a `colour_base` into the shared `colours` pool, which holds
+//!   only the colours of solid voxels (see [`crate::brick`]).
+//!
+//! Colour chunks are allocated in size classes (at most 1/8 slack) with a free list per class, so
+//! bricks can grow and shrink under edits without leaking: a brick that becomes empty frees its
+//! slot and chunk, a cell block whose last brick goes frees the block, and later allocations reuse
+//! them first.
+//!
+//! Every brick carries the sequence number of the last edit that touched it, and removed bricks
+//! leave a tombstone, so "what changed since sequence S" is answerable for a reconnecting client.
+
+use std::collections::HashMap;
+
+use crate::brick::{
+    BRICK_EDGE, BrickData, EMPTY, EMPTY_MASK, Mask, for_each_bit, mask_get, mask_is_empty,
+    mask_set, popcount, rank, voxel_bit,
+};
+use crate::colour::Colour;
+
+/// Coarse cells along one edge of a region.
+pub const REGION_CELLS: u32 = 4;
+/// Voxels along one edge of a region.
+pub const REGION_EDGE: u32 = REGION_CELLS * BRICK_EDGE;
+/// Cells in one cell block.
+pub const CELLS_PER_BLOCK: u32 = REGION_CELLS * REGION_CELLS * REGION_CELLS;
+/// Largest scene edge in voxels. Keeps every coordinate exact in `f32` (< 2^24) and the region
+/// array at most 256³ entries (64 MiB).
+pub const MAX_SCENE_EDGE: u32 = 8192;
+
+/// Why a map could not be built or a brick not stored.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum MapError {
+    #[error("scene size {0:?} is invalid: every axis must be 1..={MAX_SCENE_EDGE} voxels")]
+    BadSize([u32; 3]),
+    #[error("brick cell {cell:?} lies outside the scene's coarse grid {cells:?}")]
+    CellOutOfBounds { cell: [u32; 3], cells: [u32; 3] },
+    #[error("brick at cell {0:?} has solid voxels outside the scene bounds")]
+    VoxelsOutOfBounds([u32; 3]),
+    #[error(
+        "brick at cell {0:?} is inconsistent: empty mask or colour count differs from its solid voxels"
+    )]
+    InconsistentBrick([u32; 3]),
+}
+
+/// What an edit does to the voxels it covers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum BrushMode {
+    /// Make every covered voxel solid with the colour.
+    Fill,
+    /// Make every covered voxel empty.
+    Erase,
+    /// Recolour the covered voxels that are already solid.
+    Paint,
+}
+
+/// GPU-side changes since the last [`BrickMap::take_gpu_changes`]: indices into each array whose
+/// contents must be re-uploaded. Lists may repeat an index; `grew` says an array got longer.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct GpuChanges {
+    pub regions: Vec<u32>,
+    pub cell_blocks: Vec<u32>,
+    pub slots: Vec<u32>,
+    /// `(first colour, count)` ranges of the colour pool.
+    pub colours: Vec<(u32, u32)>,
+}
+
+impl GpuChanges {
+    pub fn is_empty(&self) -> bool {
+        self.regions.is_empty()
+            && self.cell_blocks.is_empty()
+            && self.slots.is_empty()
+            && self.colours.is_empty()
+    }
+}
+
+/// Bytes used by each component of the map, as laid out on the GPU, and the paper's figure.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MemoryStats {
+    pub size: [u32; 3],
+    pub bricks: u64,
+    pub solid_voxels: u64,
+    pub cell_blocks: u64,
+    pub region_bytes: u64,
+    pub cell_bytes: u64,
+    pub mask_bytes: u64,
+    pub colour_base_bytes: u64,
+    /// Colour pool including free chunks and per-chunk slack.
+    pub colour_bytes: u64,
+    /// Colour bytes that hold a live voxel's colour.
+    pub colour_used_bytes: u64,
+    pub total_bytes: u64,
+    /// The paper's M = 4·(grid cells) + 20·bricks + 2048·textures for the same scene, with a dense
+    /// coarse grid and one RGBA texture per brick.
+    pub paper_formula_bytes: u64,
+    pub bytes_per_solid_voxel: f64,
+}
+
+/// A scene as a sparse three-level brick map. See the module docs for the layout.
+#[derive(Clone)]
+pub struct BrickMap {
+    size: [u32; 3],
+    cell_dims: [u32; 3],
+    region_dims: [u32; 3],
+
+    // GPU-mirrored arrays.
+    pub(crate) regions: Vec<u32>,
+    pub(crate) cells: Vec<u32>,
+    pub(crate) masks: Vec<Mask>,
+    pub(crate) colour_base: Vec<u32>,
+    pub(crate) colours: Vec<Colour>,
+
+    // CPU bookkeeping, per slot.
+    slot_cell: Vec<u32>,
+    slot_version: Vec<u64>,
+    slot_capacity: Vec<u16>,
+    free_slots: Vec<u32>,
+    // Per cell block: how many of its cells hold a brick, and which region owns it.
+    block_fill: Vec<u16>,
+    block_region: Vec<u32>,
+    free_blocks: Vec<u32>,
+    /// Free colour chunks, indexed by capacity.
+    free_chunks: Vec<Vec<u32>>,
+
+    /// Linear cell index → sequence at which its brick was removed.
+    tombstones: HashMap<u32, u64>,
+    /// Tombstones at or below this sequence have been dropped: a resume from before it needs a
+    /// full resync.
+    tombstone_horizon: u64,
+
+    sequence: u64,
+    solid_voxels: u64,
+    bricks: u64,
+    touched: Vec<u32>,
+    track_touched: bool,
+    gpu: Option<GpuChanges>,
+}
+
+/// Colour capacity given to a brick with `n` solid voxels: rounded up to a multiple of 2 (one
+/// `u32` on the GPU), then to 1/8 of its power of two, which bounds slack at 12.5% and keeps the
+/// number of classes (and so free lists) small.
+pub const fn colour_capacity(n: u32) -> u32 {
+    if n <= 16 {
+        let even = n.div_ceil(2) * 2;
+        if even == 0 { 2 } else { even }
+    } else {
+        let granule = 1 << (31 - n.leading_zeros() - 3);
+        n.div_ceil(granule) * granule
+    }
+}
+
+impl BrickMap {
+    /// An empty scene of `size` voxels.
+    pub fn new(size: [u32; 3]) -> Result<BrickMap, MapError> {
+        if size.iter().any(|&s| s == 0 || s > MAX_SCENE_EDGE) {
+            return Err(MapError::BadSize(size));
+        }
+        let cell_dims = size.map(|s| s.div_ceil(BRICK_EDGE));
+        let region_dims = cell_dims.map(|c| c.div_ceil(REGION_CELLS));
+        let region_count = region_dims.iter().map(|&d| d as usize).product();
+        Ok(BrickMap {
+            size,
+            cell_dims,
+            region_dims,
+            regions: vec![EMPTY; region_count],
+            cells: Vec::new(),
+            masks: Vec::new(),
+            colour_base: Vec::new(),
+            colours: Vec::new(),
+            slot_cell: Vec::new(),
+            slot_version: Vec::new(),
+            slot_capacity: Vec::new(),
+            free_slots: Vec::new(),
+            block_fill: Vec::new(),
+            block_region: Vec::new(),
+            free_blocks: Vec::new(),
+            free_chunks: vec![Vec::new(); 513],
+            tombstones: HashMap::new(),
+            tombstone_horizon: 0,
+            sequence: 0,
+            solid_voxels: 0,
+            bricks: 0,
+            touched: Vec::new(),
+            track_touched: false,
+            gpu: None,
+        })
+    }
+
+    pub fn size(&self) -> [u32; 3] {
+        self.size
+    }
+    pub fn cell_dims(&self) -> [u32; 3] {
+        self.cell_dims
+    }
+    pub fn region_dims(&self) -> [u32; 3] {
+        self.region_dims
+    }
+    pub fn brick_count(&self) -> u64 {
+        self.bricks
+    }
+    pub fn solid_voxels(&self) -> u64 {
+        self.solid_voxels
+    }
+
+    /// The sequence number stamped on bricks by the following edits.
+    pub fn sequence(&self) -> u64 {
+        self.sequence
+    }
+
+    /// Sets the sequence number that edits stamp on the bricks they change. The scene owner calls
+    /// this once per edit batch; it never goes backwards.
+    pub fn set_sequence(&mut self, sequence: u64) {
+        debug_assert!(sequence >= self.sequence, "sequence went backwards");
+        self.sequence = sequence;
+    }
+
+    /// Starts (or stops) recording which cells edits touch, for delta streaming.
+    pub fn record_touched(&mut self, on: bool) {
+        self.track_touched = on;
+        self.touched.clear();
+    }
+
+    /// Linear cell indices touched since the last call, each once, in ascending order.
+    pub fn take_touched(&mut self) -> Vec<u32> {
+        let mut touched = std::mem::take(&mut self.touched);
+        touched.sort_unstable();
+        touched.dedup();
+        touched
+    }
+
+    /// Starts recording which parts of the GPU arrays change; the client's uploader drains them.
+    pub fn record_gpu_changes(&mut self, on: bool) {
+        self.gpu = on.then(GpuChanges::default);
+    }
+
+    /// The GPU changes since the last call (empty when not recording).
+    pub fn take_gpu_changes(&mut self) -> GpuChanges {
+        match &mut self.gpu {
+            Some(changes) => std::mem::take(changes),
+            None => GpuChanges::default(),
+        }
+    }
+
+    // ---- the raw arrays, for GPU upload -------------------------------------------------------
+
+    pub fn regions(&self) -> &[u32] {
+        &self.regions
+    }
+    pub fn cells(&self) -> &[u32] {
+        &self.cells
+    }
+    pub fn masks(&self) -> &[Mask] {
+        &self.masks
+    }
+    pub fn colour_bases(&self) -> &[u32] {
+        &self.colour_base
+    }
+    pub fn colour_pool(&self) -> &[Colour] {
+        &self.colours
+    }
+
+    // ---- addressing ---------------------------------------------------------------------------
+
+    /// Whether a voxel coordinate lies inside the scene.
+    #[inline]
+    pub fn in_bounds(&self, pos: [u32; 3]) -> bool {
+        pos[0] < self.size[0] && pos[1] < self.size[1] && pos[2] < self.size[2]
+    }
+
+    /// Linear index of a coarse cell.
+    #[inline]
+    pub fn cell_index(&self, cell: [u32; 3]) -> u32 {
+        cell[0] + self.cell_dims[0] * (cell[1] + self.cell_dims[1] * cell[2])
+    }
+
+    /// Coarse cell of a linear index.
+    #[inline]
+    pub fn cell_coords(&self, index: u32) -> [u32; 3] {
+        let x = index % self.cell_dims[0];
+        let rest = index / self.cell_dims[0];
+        [x, rest % self.cell_dims[1], rest / self.cell_dims[1]]
+    }
+
+    #[inline]
+    pub(crate) fn region_index(&self, region: [u32; 3]) -> usize {
+        (region[0] + self.region_dims[0] * (region[1] + self.region_dims[1] * region[2])) as usize
+    }
+
+    /// Index of a cell inside its block.
+    #[inline]
+    pub(crate) const fn cell_in_block(cell: [u32; 3]) -> u32 {
+        (cell[0] & 3) | ((cell[1] & 3) << 2) | ((cell[2] & 3) << 4)
+    }
+
+    /// Brick slot of a coarse cell, or `None` if the cell is empty or outside the grid.
+    #[inline]
+    pub fn slot_of_cell(&self, cell: [u32; 3]) -> Option<u32> {
+        if cell[0] >= self.cell_dims[0]
+            || cell[1] >= self.cell_dims[1]
+            || cell[2] >= self.cell_dims[2]
+        {
+            return None;
+        }
+        let block = self.regions[self.region_index(cell.map(|c| c / REGION_CELLS))];
+        if block == EMPTY {
+            return None;
+        }
+        let slot = self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize];
+        (slot != EMPTY).then_some(slot)
+    }
+
+    /// Colour of a voxel, `None` where it is empty or outside the scene.
+    pub fn get(&self, pos: [u32; 3]) -> Option<Colour> {
+        if !self.in_bounds(pos) {
+            return None;
+        }
+        let slot = self.slot_of_cell(pos.map(|p| p / BRICK_EDGE))? as usize;
+        let bit = voxel_bit(pos[0], pos[1], pos[2]);
+        let mask = &self.masks[slot];
+        mask_get(mask, bit)
+            .then(|| self.colours[(self.colour_base[slot] + rank(mask, bit)) as usize])
+    }
+
+    /// Whether a voxel is solid.
+    pub fn is_solid(&self, pos: [u32; 3]) -> bool {
+        self.get(pos).is_some()
+    }
+
+    // ---- single-voxel edits -------------------------------------------------------------------
+
+    /// Makes a voxel solid with `colour`. Returns whether anything changed. Out of bounds: no-op
+    /// returning false (callers validate ops before applying them).
+    pub fn set(&mut self, pos: [u32; 3], colour: Colour) -> bool {
+        self.edit_voxel(pos, BrushMode::Fill, colour)
+    }
+
+    /// Makes a voxel empty. Returns whether anything changed.
+    pub fn clear(&mut self, pos: [u32; 3]) -> bool {
+        self.edit_voxel(pos, BrushMode::Erase, Colour::BLACK)
+    }
+
+    /// Recolours a voxel if it is solid. Returns whether anything changed.
+    pub fn paint(&mut self, pos: [u32; 3], colour: Colour) -> bool {
+        self.edit_voxel(pos, BrushMode::Paint, colour)
+    }
+
+    fn edit_voxel(&mut self, pos: [u32; 3], mode: BrushMode, colour: Colour) -> bool {
+        if !self.in_bounds(pos) {
+            return false;
+        }
+        let cell = pos.map(|p| p / BRICK_EDGE);
+        let bit = voxel_bit(pos[0], pos[1], pos[2]);
+        let Some(slot) = self.slot_of_cell(cell) else {
+            if mode != BrushMode::Fill {
+                return false;
+            }
+            let mut mask = EMPTY_MASK;
+            mask_set(&mut mask, bit, true);
+            self.insert_brick(cell, mask, &[colour]);
+            return true;
+        };
+        let s = slot as usize;
+        let solid = mask_get(&self.masks[s], bit);
+        let at = self.colour_base[s] + rank(&self.masks[s], bit);
+        match (mode, solid) {
+            (BrushMode::Fill | BrushMode::Paint, true) => {
+                if self.colours[at as usize] == colour {
+                    return false;
+                }
+                self.colours[at as usize] = colour;
+                self.mark_colours(at, 1);
+            }
+            (BrushMode::Paint | BrushMode::Erase, false) => return false,
+            (BrushMode::Fill, false) => {
+                let len = popcount(&self.masks[s]);
+                if len + 1 > u32::from(self.slot_capacity[s]) {
+                    // Grow through the general path, which moves the chunk.
+                    let mut mask = self.masks[s];
+                    mask_set(&mut mask, bit, true);
+                    let mut scratch = [Colour::BLACK; 512];
+                    let old = self.brick_colours(slot);
+                    let r = rank(&self.masks[s], bit) as usize;
+                    scratch[..r].copy_from_slice(&old[..r]);
+                    scratch[r] = colour;
+                    scratch[r + 1..=len as usize].copy_from_slice(&old[r..]);
+                    self.replace_brick(slot, mask, &scratch[..=len as usize]);
+                    return true;
+                }
+                let base = self.colour_base[s];
+                let end = (base + len) as usize;
+                self.colours.copy_within(at as usize..end, at as usize + 1);
+                self.colours[at as usize] = colour;
+                mask_set(&mut self.masks[s], bit, true);
+                self.solid_voxels += 1;
+                self.mark_colours(at, base + len + 1 - at);
+                self.mark_slot(slot);
+            }
+            (BrushMode::Erase, true) => {
+                let len = popcount(&self.masks[s]);
+                if len == 1 {
+                    self.remove_slot(slot);
+                    return true;
+                }
+                let base = self.colour_base[s];
+                let end = (base + len) as usize;
+                self.colours.copy_within(at as usize + 1..end, at as usize);
+                mask_set(&mut self.masks[s], bit, false);
+                self.solid_voxels -= 1;
+                self.mark_colours(at, base + len - 1 - at);
+                self.mark_slot(slot);
+                if colour_capacity(len - 1) * 2 <= u32::from(self.slot_capacity[s]) {
+                    let mask = self.masks[s];
+                    let colours: Vec<Colour> = self.brick_colours(slot).to_vec();
+                    self.replace_brick(slot, mask, &colours);
+                }
+            }
+        }
+        self.stamp(slot);
+        true
+    }
+
+    // ---- brushes ------------------------------------------------------------------------------
+
+    /// Applies `mode` to every voxel whose centre lies within `radius` of `centre`, clipped to the
+    /// scene. Returns the number of voxels whose solidity or colour changed.
+    pub fn sphere(
+        &mut self,
+        centre: [f32; 3],
+        radius: f32,
+        mode: BrushMode,
+        colour: Colour,
+    ) -> u64 {
+        if !(radius > 0.0) || centre.iter().any(|c| !c.is_finite()) || !radius.is_finite() {
+            return 0;
+        }
+        let lo = centre.map(|c| (c - radius - 0.5).floor().max(0.0));
+        let hi = std::array::from_fn::<f32, 3, _>(|i| {
+            (centre[i] + radius - 0.5)
+                .ceil()
+                .min(self.size[i] as f32 - 1.0)
+        });
+        if (0..3).any(|i| lo[i] > hi[i]) {
+            return 0;
+        }
+        let lo = lo.map(|v| v as u32);
+        let hi = hi.map(|v| v as u32);
+        let r2 = radius * radius;
+        self.for_bricks_in(lo, hi, mode, colour, |base, mask| {
+            for z in 0..8u32 {
+                let dz = (base[2] + z) as f32 + 0.5 - centre[2];
+                for y in 0..8u32 {
+                    let dy = (base[1] + y) as f32 + 0.5 - centre[1];
+                    let rest = r2 - dy * dy - dz * dz;
+                    if rest < 0.0 {
+                        continue;
+                    }
+                    let half = rest.sqrt();
+                    // Voxel x is inside when |x + 0.5 - cx| <= half.
+                    let x0 = (centre[0] - half - 0.5).ceil() - base[0] as f32;
+                    let x1 = (centre[0] + half - 0.5).floor() - base[0] as f32;
+                    let x0 = x0.max(0.0);
+                    let x1 = x1.min(7.0);
+                    if x0 > x1 {
+                        continue;
+                    }
+                    let (x0, x1) = (x0 as u32, x1 as u32);
+                    let row = ((0xFFu32 >> (7 - (x1 - x0))) << x0) as u64;
+                    mask[z as usize] |= row << (y * 8);
+                }
+            }
+        })
+    }
+
+    /// Applies `mode` to every voxel in the inclusive box `min..=max`, clipped to the scene.
+    /// Returns the number of voxels whose solidity or colour changed.
+    pub fn fill_box(
+        &mut self,
+        min: [u32; 3],
+        max: [u32; 3],
+        mode: BrushMode,
+        colour: Colour,
+    ) -> u64 {
+        let hi = std::array::from_fn::<u32, 3, _>(|i| max[i].min(self.size[i].saturating_sub(1)));
+        if (0..3).any(|i| min[i] > hi[i]) {
+            return 0;
+        }
+        self.for_bricks_in(min, hi, mode, colour, |base, mask| {
+            *mask = box_mask(base, min, hi)
+        })
+    }
+
+    /// Runs a brush over every brick overlapping the voxel box `lo..=hi` (inside the scene):
+    /// `shape` fills the brush mask of one brick given the brick's first voxel.
+    fn for_bricks_in(
+        &mut self,
+        lo: [u32; 3],
+        hi: [u32; 3],
+        mode: BrushMode,
+        colour: Colour,
+        mut shape: impl FnMut([u32; 3], &mut Mask),
+    ) -> u64 {
+        let mut changed = 0;
+        let clo = lo.map(|v| v / BRICK_EDGE);
+        let chi = hi.map(|v| v / BRICK_EDGE);
+        for cz in clo[2]..=chi[2] {
+            for cy in clo[1]..=chi[1] {
+                for cx in clo[0]..=chi[0] {
+                    let cell = [cx, cy, cz];
+                    let base = cell.map(|c| c * BRICK_EDGE);
+                    let mut brush = EMPTY_MASK;
+                    shape(base, &mut brush);
+                    // Shapes may spill past the box (and so past the scene edge): clip them.
+                    let clip = box_mask(base, lo, hi);
+                    for w in 0..8 {
+                        brush[w] &= clip[w];
+                    }
+                    if !mask_is_empty(&brush) {
+                        changed += self.apply_brush(cell, &brush, mode, colour);
+                    }
+                }
+            }
+        }
+        changed
+    }
+
+    /// Applies a brush mask to one brick. The brush must not cover voxels outside the scene.
+    /// Returns the number of voxels whose solidity or colour changed.
+    pub fn apply_brush(
+        &mut self,
+        cell: [u32; 3],
+        brush: &Mask,
+        mode: BrushMode,
+        colour: Colour,
+    ) -> u64 {
+        let slot = self.slot_of_cell(cell);
+        let (old_mask, old_colours): (Mask, &[Colour]) = match slot {
+            Some(s) => (self.masks[s as usize], self.brick_colours(s)),
+            None => (EMPTY_MASK, &[]),
+        };
+        let new_mask: Mask = std::array::from_fn(|w| match mode {
+            BrushMode::Fill => old_mask[w] | brush[w],
+            BrushMode::Erase => old_mask[w] & !brush[w],
+            BrushMode::Paint => old_mask[w],
+        });
+        let mut scratch = [Colour::BLACK; 512];
+        let mut n = 0usize;
+        let mut changed = 0u64;
+        let mut old_i = 0usize;
+        // Walk the union of old and new solid voxels in bit order, carrying the old colour index.
+        for w in 0..8 {
+            let mut bits = old_mask[w] | new_mask[w];
+            while bits != 0 {
+                let b = bits.trailing_zeros();
+                bits &= bits - 1;
+                let was = (old_mask[w] >> b) & 1 == 1;
+                let is = (new_mask[w] >> b) & 1 == 1;
+                let old_colour = if was {
+                    old_i += 1;
+                    Some(old_colours[old_i - 1])
+                } else {
+                    None
+                };
+                if is {
+                    let covered = (brush[w] >> b) & 1 == 1;
+                    let c = match old_colour {
+                        Some(c) if !covered || mode == BrushMode::Erase => c,
+                        _ => colour,
+                    };
+                    if old_colour != Some(c) {
+                        changed += 1;
+                    }
+                    scratch[n] = c;
+                    n += 1;
+                } else {
+                    changed += 1;
+                }
+            }
+        }
+        if changed == 0 {
+            return 0;
+        }
+        match slot {
+            None => self.insert_brick(cell, new_mask, &scratch[..n]),
+            Some(s) if n == 0 => self.remove_slot(s),
+            Some(s) => self.replace_brick(s, new_mask, &scratch[..n]),
+        }
+        changed
+    }
+
+    // ---- whole bricks -------------------------------------------------------------------------
+
+    /// Stores a whole brick (as received from the server or loaded from a snapshot), replacing
+    /// whatever the cell held. Validates it against the scene first; on error nothing changes.
+    pub fn put_brick(&mut self, brick: &BrickData) -> Result<(), MapError> {
+        self.check_brick(brick)?;
+        match self.slot_of_cell(brick.cell) {
+            Some(slot) => self.replace_brick(slot, brick.mask, &brick.colours),
+            None => self.insert_brick(brick.cell, brick.mask, &brick.colours),
+        }
+        Ok(())
+    }
+
+    /// Checks that a brick fits this scene: inside the coarse grid, consistent, and with no solid
+    /// voxel beyond the scene's edge (the last brick on an axis may be partial).
+    pub fn check_brick(&self, brick: &BrickData) -> Result<(), MapError> {
+        let cell = brick.cell;
+        if (0..3).any(|i| cell[i] >= self.cell_dims[i]) {
+            return Err(MapError::CellOutOfBounds {
+                cell,
+                cells: self.cell_dims,
+            });
+        }
+        if !brick.is_consistent() {
+            return Err(MapError::InconsistentBrick(cell));
+        }
+        let mut outside = false;
+        for_each_bit(&brick.mask, |b| {
+            let l = crate::brick::bit_voxel(b);
+            outside |= (0..3).any(|i| cell[i] * BRICK_EDGE + l[i] >= self.size[i]);
+        });
+        if outside {
+            return Err(MapError::VoxelsOutOfBounds(cell));
+        }
+        Ok(())
+    }
+
+    /// Removes the brick at a cell, if any. Returns whether there was one.
+    pub fn remove_brick(&mut self, cell: [u32; 3]) -> bool {
+        match self.slot_of_cell(cell) {
+            Some(slot) => {
+                self.remove_slot(slot);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// The brick at a cell in compact form.
+    pub fn brick(&self, cell: [u32; 3]) -> Option<BrickData> {
+        self.slot_of_cell(cell).map(|slot| self.slot_brick(slot))
+    }
+
+    /// Version (sequence of the last edit) of the brick at a cell.
+    pub fn brick_version(&self, cell: [u32; 3]) -> Option<u64> {
+        self.slot_of_cell(cell)
+            .map(|slot| self.slot_version[slot as usize])
+    }
+
+    fn slot_brick(&self, slot: u32) -> BrickData {
+        BrickData {
+            cell: self.cell_coords(self.slot_cell[slot as usize]),
+            mask: self.masks[slot as usize],
+            colours: self.brick_colours(slot).to_vec(),
+        }
+    }
+
+    fn brick_colours(&self, slot: u32) -> &[Colour] {
+        let s = slot as usize;
+        let base = self.colour_base[s] as usize;
+        &self.colours[base..base + popcount(&self.masks[s]) as usize]
+    }
+
+    /// Every brick, in slot order, with its version.
+    pub fn bricks(&self) -> impl Iterator<Item = (BrickData, u64)> + '_ {
+        (0..self.slot_cell.len() as u32)
+            .filter(|&s| self.slot_cell[s as usize] != EMPTY)
+            .map(|s| (self.slot_brick(s), self.slot_version[s as usize]))
+    }
+
+    /// Cells of every brick, with version, without copying brick contents.
+    pub fn brick_cells(&self) -> impl Iterator<Item = ([u32; 3], u64)> + '_ {
+        self.slot_cell
+            .iter()
+            .zip(&self.slot_version)
+            .filter(|(c, _)| **c != EMPTY)
+            .map(|(&c, &v)| (self.cell_coords(c), v))
+    }
+
+    /// What a client that has seen everything up to `since` is missing: the cells of bricks
+    /// changed after it and the cells whose bricks were removed after it. `None` when tombstones
+    /// that old were already dropped: such a client needs a full resync.
+    pub fn changes_since(&self, since: u64) -> Option<(Vec<[u32; 3]>, Vec<[u32; 3]>)> {
+        if since < self.tombstone_horizon {
+            return None;
+        }
+        let changed = self
+            .brick_cells()
+            .filter(|&(_, v)| v > since)
+            .map(|(c, _)| c)
+            .collect();
+        let mut removed: Vec<[u32; 3]> = self
+            .tombstones
+            .iter()
+            .filter(|&(_, &v)| v > since)
+            .map(|(&c, _)| self.cell_coords(c))
+            .collect();
+        removed.sort_unstable();
+        Some((changed, removed))
+    }
+
+    /// Drops tombstones at or below `sequence`; resumes from before it will need a full resync.
+    pub fn prune_tombstones(&mut self, sequence: u64) {
+        self.tombstones.retain(|_, v| *v > sequence);
+        self.tombstone_horizon = self.tombstone_horizon.max(sequence);
+    }
+
+    pub fn tombstone_count(&self) -> usize {
+        self.tombstones.len()
+    }
+
+    /// An order-independent 64-bit hash of the whole scene (cells, masks, colours): two maps with
+    /// equal hashes hold the same voxels, whatever their slot layout.
+    pub fn content_hash(&self) -> u64 {
+        let mut total = mix(u64::from(self.size[0])
+            | u64::from(self.size[1]) << 21
+            | u64::from(self.size[2]) << 42);
+        for slot in 0..self.slot_cell.len() as u32 {
+            let cell = self.slot_cell[slot as usize];
+            if cell != EMPTY {
+                total = total.wrapping_add(brick_hash(
+                    cell,
+                    &self.masks[slot as usize],
+                    self.brick_colours(slot),
+                ));
+            }
+        }
+        total
+    }
+
+    /// Bytes per component as laid out on the GPU.
+    pub fn memory(&self) -> MemoryStats {
+        let region_bytes = self.regions.len() as u64 * 4;
+        let cell_bytes = self.cells.len() as u64 * 4;
+        let mask_bytes = self.masks.len() as u64 * 64;
+        let colour_base_bytes = self.colour_base.len() as u64 * 4;
+        let colour_bytes = self.colours.len() as u64 * 2;
+        let total_bytes = region_bytes + cell_bytes + mask_bytes + colour_base_bytes + colour_bytes;
+        let dense_cells: u64 = self.cell_dims.iter().map(|&d| u64::from(d)).product();
+        MemoryStats {
+            size: self.size,
+            bricks: self.bricks,
+            solid_voxels: self.solid_voxels,
+            cell_blocks: (self.block_fill.len() - self.free_blocks.len()) as u64,
+            region_bytes,
+            cell_bytes,
+            mask_bytes,
+            colour_base_bytes,
+            colour_bytes,
+            colour_used_bytes: self.solid_voxels * 2,
+            total_bytes,
+            paper_formula_bytes: 4 * dense_cells + 20 * self.bricks + 2048 * self.bricks,
+            bytes_per_solid_voxel: if self.solid_voxels == 0 {
+                0.0
+            } else {
+                total_bytes as f64 / self.solid_voxels as f64
+            },
+        }
+    }
+
+    // ---- allocation ---------------------------------------------------------------------------
+
+    fn insert_brick(&mut self, cell: [u32; 3], mask: Mask, colours: &[Colour]) {
+        debug_assert_eq!(popcount(&mask) as usize, colours.len());
+        let region = self.region_index(cell.map(|c| c / REGION_CELLS));
+        let mut block = self.regions[region];
+        if block == EMPTY {
+            block = self.alloc_block(region as u32);
+            self.regions[region] = block;
+            if let Some(g) = &mut self.gpu {
+                g.regions.push(region as u32);
+            }
+        }
+        let slot = match self.free_slots.pop() {
+            Some(s) => s,
+            None => {
+                self.masks.push(EMPTY_MASK);
+                self.colour_base.push(0);
+                self.slot_cell.push(EMPTY);
+                self.slot_version.push(0);
+                self.slot_capacity.push(0);
+                self.masks.len() as u32 - 1
+            }
+        };
+        let cap = colour_capacity(colours.len() as u32);
+        let base = self.alloc_chunk(cap);
+        let s = slot as usize;
+        self.masks[s] = mask;
+        self.colour_base[s] = base;
+        self.slot_capacity[s] = cap as u16;
+        let cell_index = self.cell_index(cell);
+        self.slot_cell[s] = cell_index;
+        self.colours[base as usize..base as usize + colours.len()].copy_from_slice(colours);
+        self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize] = slot;
+        self.block_fill[block as usize] += 1;
+        self.tombstones.remove(&cell_index);
+        self.bricks += 1;
+        self.solid_voxels += colours.len() as u64;
+        if let Some(g) = &mut self.gpu {
+            g.cell_blocks.push(block);
+        }
+        self.mark_slot(slot);
+        self.mark_colours(base, colours.len() as u32);
+        self.stamp(slot);
+    }
+
+    /// Rewrites an existing brick, moving its colours to a chunk of the right class if needed.
+    fn replace_brick(&mut self, slot: u32, mask: Mask, colours: &[Colour]) {
+        debug_assert_eq!(popcount(&mask) as usize, colours.len());
+        let s = slot as usize;
+        let n = colours.len() as u32;
+        let old_n = popcount(&self.masks[s]);
+        let cap = u32::from(self.slot_capacity[s]);
+        // Shrink only when far below capacity, so a brick edited back and forth does not thrash.
+        if n > cap || colour_capacity(n) * 2 <= cap {
+            self.free_chunk(self.colour_base[s], cap);
+            let new_cap = colour_capacity(n);
+            self.colour_base[s] = self.alloc_chunk(new_cap);
+            self.slot_capacity[s] = new_cap as u16;
+        }
+        let base = self.colour_base[s];
+        self.colours[base as usize..(base + n) as usize].copy_from_slice(colours);
+        self.masks[s] = mask;
+        self.solid_voxels = self.solid_voxels + u64::from(n) - u64::from(old_n);
+        self.mark_slot(slot);
+        self.mark_colours(base, n);
+        self.stamp(slot);
+    }
+
+    fn remove_slot(&mut self, slot: u32) {
+        let s = slot as usize;
+        let cell_index = self.slot_cell[s];
+        let cell = self.cell_coords(cell_index);
+        let region = self.region_index(cell.map(|c| c / REGION_CELLS));
+        let block = self.regions[region];
+        self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize] = EMPTY;
+        self.block_fill[block as usize] -= 1;
+        if let Some(g) = &mut self.gpu {
+            g.cell_blocks.push(block);
+        }
+        if self.block_fill[block as usize] == 0 {
+            self.regions[region] = EMPTY;
+            self.free_blocks.push(block);
+            if let Some(g) = &mut self.gpu {
+                g.regions.push(region as u32);
+            }
+        }
+        self.solid_voxels -= u64::from(popcount(&self.masks[s]));
+        self.free_chunk(self.colour_base[s], u32::from(self.slot_capacity[s]));
+        self.masks[s] = EMPTY_MASK;
+        self.slot_cell[s] = EMPTY;
+        self.slot_capacity[s] = 0;
+        self.free_slots.push(slot);
+        self.bricks -= 1;
+        self.tombstones.insert(cell_index, self.sequence);
+        if self.track_touched {
+            self.touched.push(cell_index);
+        }
+        self.mark_slot(slot);
+    }
+
+    fn alloc_block(&mut self, region: u32) -> u32 {
+        match self.free_blocks.pop() {
+            Some(b) => {
+                self.block_region[b as usize] = region;
+                b
+            }
+            None => {
+                self.cells
+                    .extend(std::iter::repeat_n(EMPTY, CELLS_PER_BLOCK as usize));
+                self.block_fill.push(0);
+                self.block_region.push(region);
+                self.block_fill.len() as u32 - 1
+            }
+        }
+    }
+
+    fn alloc_chunk(&mut self, cap: u32) -> u32 {
+        match self.free_chunks[cap as usize].pop() {
+            Some(base) => base,
+            None => {
+                let base = self.colours.len() as u32;
+                self.colours
+                    .resize(self.colours.len() + cap as usize, Colour::BLACK);
+                base
+            }
+        }
+    }
+
+    fn free_chunk(&mut self, base: u32, cap: u32) {
+        if cap > 0 {
+            self.free_chunks[cap as usize].push(base);
+        }
+    }
+
+    fn stamp(&mut self, slot: u32) {
+        self.slot_version[slot as usize] = self.sequence;
+        if self.track_touched {
+            self.touched.push(self.slot_cell[slot as usize]);
+        }
+    }
+
+    fn mark_slot(&mut self, slot: u32) {
+        if let Some(g) = &mut self.gpu {
+            g.slots.push(slot);
+        }
+    }
+
+    fn mark_colours(&mut self, first: u32, count: u32) {
+        if count > 0
+            && let Some(g) = &mut self.gpu
+        {
+            g.colours.push((first, count));
+        }
+    }
+
+    /// Internal consistency check used by tests: every counter and free list agrees with the
+    /// arrays. Returns a description of the first problem found.
+    pub fn check_invariants(&self) -> Result<(), String> {
+        let mut bricks = 0u64;
+        let mut voxels = 0u64;
+        for (s, &cell) in self.slot_cell.iter().enumerate() {
+            if cell == EMPTY {
+                if !self.free_slots.contains(&(s as u32)) {
+                    return Err(format!("slot {s} is neither used nor free"));
+                }
+                continue;
+            }
+            let coords = self.cell_coords(cell);
+            if self.slot_of_cell(coords) != Some(s as u32) {
+                return Err(format!("slot {s} not reachable from its cell {coords:?}"));
+            }
+            let n = popcount(&self.masks[s]);
+            if n == 0 {
+                return Err(format!("slot {s} holds an empty brick"));
+            }
+            if n > u32::from(self.slot_capacity[s]) {
+                return Err(format!("slot {s} overflows its colour chunk"));
+            }
+            bricks += 1;
+            voxels += u64::from(n);
+        }
+        if bricks != self.bricks || voxels != self.solid_voxels {
+            return Err(format!(
+                "counters {} bricks / {} voxels, arrays {bricks} / {voxels}",
+                self.bricks, self.solid_voxels
+            ));
+        }
+        for (b, &fill) in self.block_fill.iter().enumerate() {
+            let used = self.cells[b * 64..b * 64 + 64]
+                .iter()
+                .filter(|&&c| c != EMPTY)
+                .count();
+            if used != fill as usize {
+                return Err(format!("block {b} fill {fill} but {used} cells used"));
+            }
+        }
+        // Chunks must not overlap: live ones plus free ones tile at most the pool.
+        let mut spans: Vec<(u32, u32)> = Vec::new();
+        for (s, &cell) in self.slot_cell.iter().enumerate() {
+            if cell != EMPTY {
+                spans.push((self.colour_base[s], u32::from(self.slot_capacity[s])));
+            }
+        }
+        for (cap, list) in self.free_chunks.iter().enumerate() {
+            spans.extend(list.iter().map(|&b| (b, cap as u32)));
+        }
+        spans.sort_unstable();
+        for pair in spans.windows(2) {
+            if pair[0].0 + pair[0].1 > pair[1].0 {
+                return Err(format!(
+                    "colour chunks overlap: {:?} and {:?}",
+                    pair[0], pair[1]
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Mask of the voxels of the brick starting at `base` that lie in the inclusive box `lo..=hi`.
+fn box_mask(base: [u32; 3], lo: [u32; 3], hi: [u32; 3]) -> Mask {
+    let mut mask = EMPTY_MASK;
+    if (0..3).any(|i| hi[i] < base[i] || lo[i] > base[i] + 7) {
+        return mask;
+    }
+    let lo_l: [u32; 3] = std::array::from_fn(|i| lo[i].max(base[i]) - base[i]);
+    let hi_l: [u32; 3] = std::array::from_fn(|i| hi[i].min(base[i] + 7) - base[i]);
+    let row = u64::from((0xFFu32 >> (7 - (hi_l[0] - lo_l[0]))) << lo_l[0]);
+    for z in lo_l[2]..=hi_l[2] {
+        for y in lo_l[1]..=hi_l[1] {
+            mask[z as usize] |= row << (y * 8);
+        }
+    }
+    mask
+}
+
+/// splitmix64 finaliser: cheap, well-mixed, stable across platforms.
+#[inline]
+fn mix(mut x: u64) -> u64 {
+    x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    x ^ (x >> 31)
+}
+
+/// Hash of one brick, combined by addition in [`BrickMap::content_hash`].
+pub fn brick_hash(cell_index: u32, mask: &Mask, colours: &[Colour]) -> u64 {
+    let mut h = mix(u64::from(cell_index));
+    for &w in mask {
+        h = mix(h ^ w);
+    }
+    for chunk in colours.chunks(4) {
+        let mut word = 0u64;
+        for (i, c) in chunk.iter().enumerate() {
+            word |= u64::from(c.0) << (16 * i);
+        }
+        h = mix(h ^ word);
+    }
+    h
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn red() -> Colour {
+        Colour::from_rgb8(255, 0, 0)
+    }
+
+    #[test]
+    fn capacity_classes_bound_slack() {
+        for n in 1..=512 {
+            let c = colour_capacity(n);
+            assert!(c >= n && c <= 512 && c % 2 == 0, "{n} -> {c}");
+            assert!((c - n) as f64 <= (n as f64 / 8.0).max(1.0), "{n} -> {c}");
+            assert_eq!(colour_capacity(c), c, "classes are fixed points");
+        }
+    }
+
+    #[test]
+    fn set_get_clear_paint() {
+        let mut map = BrickMap::new([100, 50, 30]).unwrap();
+        assert!(map.set([1, 2, 3], red()));
+        assert!(!map.set([1, 2, 3], red()), "same colour is no change");
+        assert_eq!(map.get([1, 2, 3]), Some(red()));
+        assert_eq!(map.get([1, 2, 4]), None);
+        assert!(map.paint([1, 2, 3], Colour::WHITE));
+        assert!(
+            !map.paint([9, 9, 9], Colour::WHITE),
+            "painting air does nothing"
+        );
+        assert_eq!(map.get([1, 2, 3]), Some(Colour::WHITE));
+        assert!(!map.set([100, 0, 0], red()), "out of bounds");
+        assert!(map.clear([1, 2, 3]));
+        assert_eq!(map.brick_count(), 0);
+        assert_eq!(
+            map.regions.iter().filter(|&&r| r != EMPTY).count(),
+            0,
+            "block freed"
+        );
+        map.check_invariants().unwrap();
+    }
+
+    #[test]
+    fn filling_a_brick_voxel_by_voxel_keeps_colours_in_order() {
+        let mut map = BrickMap::new([16, 16, 16]).unwrap();
+        // Insert in a scrambled order so every insert shifts colours.
+        for i in 0..512u32 {
+            let b = (i * 37) % 512;
+            let [x, y, z] = crate::brick::bit_voxel(b);
+            map.set([x, y, z], Colour(b as u16));
+            map.check_invariants().unwrap();
+        }
+        for b in 0..512u32 {
+            let [x, y, z] = crate::brick::bit_voxel(b);
+            assert_eq!(map.get([x, y, z]), Some(Colour(b as u16)));
+        }
+        for i in 0..512u32 {
+            let b = (i * 91) % 512;
+            let [x, y, z] = crate::brick::bit_voxel(b);
+            assert!(map.clear([x, y, z]));
+            map.check_invariants().unwrap();
+        }
+        assert_eq!(map.solid_voxels(), 0);
+    }
+
+    #[test]
+    fn freed_slots_and_chunks_are_reused() {
+        let mut map = BrickMap::new([256, 256, 256]).unwrap();
+        for round in 0..20u32 {
+            map.sphere(
+                [128.0, 128.0, 128.0],
+                40.0,
+                BrushMode::Fill,
+                Colour(round as u16),
+            );
+            map.sphere([128.0, 128.0, 128.0], 40.0, BrushMode::Erase, Colour::BLACK);
+            map.check_invariants().unwrap();
+        }
+        assert_eq!(map.solid_voxels(), 0);
+        let after_churn = map.memory();
+        map.sphere([128.0, 128.0, 128.0], 40.0, BrushMode::Fill, Colour::WHITE);
+        let m = map.memory();
+        assert_eq!(
+            m.mask_bytes, after_churn.mask_bytes,
+            "slots reused, arrays did not grow"
+        );
+        assert_eq!(m.colour_bytes, after_churn.colour_bytes, "chunks reused");
+    }
+
+    #[test]
+    fn sphere_matches_per_voxel_definition() {
+        let mut map = BrickMap::new([64, 64, 40]).unwrap();
+        let (c, r) = ([20.3, 30.7, 19.5], 11.2f32);
+        let changed = map.sphere(c, r, BrushMode::Fill, red());
+        let mut expect = 0;
+        for z in 0..40u32 {
+            for y in 0..64u32 {
+                for x in 0..64u32 {
+                    let d = [
+                        x as f32 + 0.5 - c[0],
+                        y as f32 + 0.5 - c[1],
+                        z as f32 + 0.5 - c[2],
+                    ];
+                    let inside = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= r * r;
+                    // Row-wise sqrt can differ from the squared test by one ulp right at the edge.
+                    if inside != map.is_solid([x, y, z]) {
+                        let err = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - r * r).abs();
+                        assert!(
+                            err < 1e-3,
+                            "voxel {x},{y},{z} mismatch far from the surface"
+                        );
+                    }
+                    expect += inside as u64;
+                }
+            }
+        }
+        assert!((changed as i64 - expect as i64).abs() <= 4);
+        assert_eq!(changed, map.solid_voxels());
+        map.check_invariants().unwrap();
+    }
+
+    #[test]
+    fn sphere_clips_at_scene_edge() {
+        let mut map = BrickMap::new([20, 20, 20]).unwrap();
+        map.sphere([19.0, 19.0, 19.0], 6.0, BrushMode::Fill, red());
+        for (b, _) in map.bricks() {
+            map.check_brick(&b).unwrap();
+        }
+        map.check_invariants().unwrap();
+    }
+
+    #[test]
+    fn box_fill_erase_paint() {
+        let mut map = BrickMap::new([40, 40, 40]).unwrap();
+        assert_eq!(
+            map.fill_box([3, 4, 5], [20, 9, 30], BrushMode::Fill, red()),
+            18 * 6 * 26
+        );
+        assert_eq!(
+            map.fill_box([0, 0, 0], [39, 39, 10], BrushMode::Paint, Colour::WHITE),
+            18 * 6 * 6
+        );
+        assert_eq!(map.get([3, 4, 5]), Some(Colour::WHITE));
+        assert_eq!(map.get([3, 4, 11]), Some(red()));
+        assert_eq!(
+            map.fill_box([0, 0, 0], [39, 39, 39], BrushMode::Erase, red()),
+            18 * 6 * 26
+        );
+        assert_eq!(map.brick_count(), 0);
+        map.check_invariants().unwrap();
+    }
+
+    #[test]
+    fn versions_and_tombstones_answer_changes_since() {
+        let mut map = BrickMap::new([64, 64, 64]).unwrap();
+        map.set_sequence(1);
+        map.set([1, 1, 1], red());
+        map.set([20, 1, 1], red());
+        map.set_sequence(2);
+        map.set([40, 1, 1], red());
+        map.clear([1, 1, 1]);
+        let (changed, removed) = map.changes_since(1).unwrap();
+        assert_eq!(changed, vec![[5, 0, 0]]);
+        assert_eq!(removed, vec![[0, 0, 0]]);
+        let (changed, _) = map.changes_since(0).unwrap();
+        assert_eq!(changed.len(), 2);
+        map.prune_tombstones(2);
+        assert!(map.changes_since(1).is_none(), "too old: full resync");
+        map.set_sequence(3);
+        map.set([1, 1, 1], red());
+        assert_eq!(map.brick_version([0, 0, 0]), Some(3));
+    }
+
+    #[test]
+    fn content_hash_ignores_layout() {
+        let mut a = BrickMap::new([64, 64, 64]).unwrap();
+        let mut b = BrickMap::new([64, 64, 64]).unwrap();
+        a.set([1, 1, 1], red());
+        a.set([50, 1, 1], Colour::WHITE);
+        b.set([50, 1, 1], Colour::WHITE);
+        b.set([9, 9, 9], red());
+        b.clear([9, 9, 9]);
+        b.set([1, 1, 1], red());
+        assert_eq!(a.content_hash(), b.content_hash());
+        b.paint([1, 1, 1], Colour::WHITE);
+        assert_ne!(a.content_hash(), b.content_hash());
+    }
+
+    #[test]
+    fn put_brick_rejects_bad_bricks_and_changes_nothing() {
+        let mut map = BrickMap::new([12, 12, 12]).unwrap();
+        let mut mask = EMPTY_MASK;
+        mask_set(&mut mask, voxel_bit(7, 0, 0), true);
+        let outside = BrickData {
+            cell: [1, 0, 0],
+            mask,
+            colours: vec![red()],
+        };
+        assert_eq!(
+            map.put_brick(&outside),
+            Err(MapError::VoxelsOutOfBounds([1, 0, 0]))
+        );
+        let far = BrickData {
+            cell: [2, 0, 0],
+            mask,
+            colours: vec![red()],
+        };
+        assert!(matches!(
+            map.put_brick(&far),
+            Err(MapError::CellOutOfBounds { .. })
+        ));
+        let wrong = BrickData {
+            cell: [0, 0, 0],
+            mask,
+            colours: vec![],
+        };
+        assert_eq!(
+            map.put_brick(&wrong),
+            Err(MapError::InconsistentBrick([0, 0, 0]))
+        );
+        assert_eq!(map.brick_count(), 0);
+        let good = BrickData {
+            cell: [0, 0, 0],
+            mask,
+            colours: vec![red()],
+        };
+        map.put_brick(&good).unwrap();
+        assert_eq!(map.get([7, 0, 0]), Some(red()));
+        assert_eq!(map.brick([0, 0, 0]), Some(good));
+    }
+
+    #[test]
+    fn gpu_changes_are_recorded() {
+        let mut map = BrickMap::new([64, 64, 64]).unwrap();
+        map.record_gpu_changes(true);
+        map.set([1, 1, 1], red());
+        let g = map.take_gpu_changes();
+        assert_eq!(g.regions, vec![0]);
+        assert!(g.slots.contains(&0) && g.cell_blocks.contains(&0));
+        assert_eq!(g.colours, vec![(0, 1)]);
+        assert!(map.take_gpu_changes().is_empty());
+    }
+
+    #[test]
+    fn bad_sizes_are_errors() {
+        assert!(BrickMap::new([0, 1, 1]).is_err());
+        assert!(BrickMap::new([MAX_SCENE_EDGE + 1, 1, 1]).is_err());
+        let big = BrickMap::new([4096, 4096, 4096]).unwrap();
+        assert_eq!(big.memory().region_bytes, 128 * 128 * 128 * 4);
+    }
+}

@@ -1,0 +1,368 @@
+//! Camera, shading and the multi-threaded CPU renderer.
+//!
+//! This is the oracle for the GPU tracer and the fallback renderer for machines without one.
+//! Everything a pixel depends on (the camera basis, per-pixel steps, the light) is computed once
+//! here and handed to the shader as uniforms, so CPU and GPU do the same float operations per
+//! pixel; only the few pixels exactly on a voxel edge can differ.
+
+use std::sync::atomic::{AtomicU32, Ordering};
+
+use crate::map::BrickMap;
+use crate::trace::{Hit, Ray, trace};
+
+/// Marks a pixel whose primary ray missed, in [`Frame::hits`].
+pub const MISS: u32 = u32::MAX;
+
+/// A pinhole camera in voxel units, y up.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    pub eye: [f32; 3],
+    pub target: [f32; 3],
+    /// Vertical field of view in degrees.
+    pub fov_y: f32,
+}
+
+/// The per-frame constants of a camera at a resolution: what the shader receives.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Projection {
+    pub eye: [f32; 3],
+    pub forward: [f32; 3],
+    /// Right vector scaled to the width of one pixel at unit distance.
+    pub right: [f32; 3],
+    /// Up vector scaled to the height of one pixel at unit distance.
+    pub up: [f32; 3],
+    pub width: u32,
+    pub height: u32,
+}
+
+fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+fn scale(a: [f32; 3], s: f32) -> [f32; 3] {
+    a.map(|c| c * s)
+}
+fn normalize(a: [f32; 3]) -> Option<[f32; 3]> {
+    let len = dot(a, a).sqrt();
+    (len > 1e-12 && len.is_finite()).then(|| scale(a, 1.0 / len))
+}
+
+impl Camera {
+    /// Per-frame constants for a `width`×`height` image; `None` for a degenerate camera (eye on
+    /// target, non-finite values, zero-sized image).
+    pub fn project(&self, width: u32, height: u32) -> Option<Projection> {
+        if width == 0 || height == 0 || !(self.fov_y > 0.0 && self.fov_y < 180.0) {
+            return None;
+        }
+        let forward = normalize(sub(self.target, self.eye))?;
+        // Looking straight up or down: pick another reference so the basis stays defined.
+        let reference = if forward[1].abs() > 0.999 {
+            [0.0, 0.0, 1.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
+        let right = normalize(cross(forward, reference))?;
+        let up = cross(right, forward);
+        let half_h = (self.fov_y.to_radians() * 0.5).tan();
+        let pixel = 2.0 * half_h / height as f32;
+        Some(Projection {
+            eye: self.eye,
+            forward,
+            right: scale(right, pixel),
+            up: scale(up, pixel),
+            width,
+            height,
+        })
+    }
+}
+
+impl Projection {
+    /// The primary ray through the centre of pixel `(x, y)` (y down).
+    #[inline]
+    pub fn ray(&self, x: u32, y: u32) -> Ray {
+        let u = x as f32 + 0.5 - self.width as f32 * 0.5;
+        let v = self.height as f32 * 0.5 - (y as f32 + 0.5);
+        let dir = std::array::from_fn(|i| self.forward[i] + self.right[i] * u + self.up[i] * v);
+        Ray {
+            origin: self.eye,
+            dir,
+        }
+    }
+}
+
+/// Lighting shared with the shader.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Lighting {
+    /// Unit vector towards the light.
+    pub sun: [f32; 3],
+    pub ambient: f32,
+    /// Trace a second ray towards the sun from the empty voxel in front of each hit.
+    pub shadows: bool,
+}
+
+impl Default for Lighting {
+    fn default() -> Self {
+        let sun = normalize([0.45, 0.8, 0.35]).unwrap_or([0.0, 1.0, 0.0]);
+        Lighting {
+            sun,
+            ambient: 0.35,
+            shadows: true,
+        }
+    }
+}
+
+/// Sky colour for a missed ray: a vertical gradient on the ray direction.
+pub fn sky(dir: [f32; 3]) -> [f32; 3] {
+    let len = dot(dir, dir).sqrt();
+    let up = if len > 0.0 { dir[1] / len } else { 0.0 };
+    let t = (up * 0.5 + 0.5).clamp(0.0, 1.0);
+    [0.80 - 0.35 * t, 0.87 - 0.25 * t, 0.95 - 0.05 * t]
+}
+
+/// Shaded colour of a hit in linear 0..1 floats. `in_shadow` comes from the shadow ray.
+pub fn shade(hit: &Hit, lighting: &Lighting, in_shadow: bool) -> [f32; 3] {
+    let n = hit.normal.map(|c| c as f32);
+    let diffuse = if in_shadow {
+        0.0
+    } else {
+        dot(n, lighting.sun).max(0.0)
+    };
+    let light = lighting.ambient + (1.0 - lighting.ambient) * diffuse;
+    hit.colour.to_f32().map(|c| c * light)
+}
+
+/// Whether the sun is blocked from the empty voxel in front of a hit. Starting from that voxel's
+/// centre keeps the shadow ray off the hit surface without any epsilon.
+pub fn shadowed(map: &BrickMap, hit: &Hit, lighting: &Lighting) -> bool {
+    if !lighting.shadows || hit.normal == [0; 3] {
+        return false;
+    }
+    let from = std::array::from_fn(|i| (hit.voxel[i] as i32 + hit.normal[i]) as f32 + 0.5);
+    trace(
+        map,
+        &Ray {
+            origin: from,
+            dir: lighting.sun,
+        },
+    )
+    .is_some()
+}
+
+/// Converts a linear 0..1 channel to a byte, rounding to nearest.
+#[inline]
+pub fn to_byte(c: f32) -> u8 {
+    (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+/// One rendered image plus what each pixel hit, for comparing renderers.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    /// RGBA8, row-major, top row first.
+    pub pixels: Vec<[u8; 4]>,
+    /// Linear voxel index (`x + sx·(y + sy·z)`) of each pixel's primary hit, or [`MISS`].
+    pub hits: Vec<u32>,
+}
+
+/// Linear index of a voxel, as used in [`Frame::hits`].
+pub fn voxel_index(size: [u32; 3], v: [u32; 3]) -> u32 {
+    v[0] + size[0] * (v[1] + size[1] * v[2])
+}
+
+/// Renders one pixel: shaded colour and primary hit.
+pub fn render_pixel(
+    map: &BrickMap,
+    projection: &Projection,
+    lighting: &Lighting,
+    x: u32,
+    y: u32,
+) -> ([u8; 4], u32) {
+    let ray = projection.ray(x, y);
+    match trace(map, &ray) {
+        Some(hit) => {
+            let rgb = shade(&hit, lighting, shadowed(map, &hit, lighting));
+            (
+                [to_byte(rgb[0]), to_byte(rgb[1]), to_byte(rgb[2]), 255],
+                voxel_index(map.size(), hit.voxel),
+            )
+        }
+        None => {
+            let rgb = sky(ray.dir);
+            (
+                [to_byte(rgb[0]), to_byte(rgb[1]), to_byte(rgb[2]), 255],
+                MISS,
+            )
+        }
+    }
+}
+
+/// Renders a frame on `threads` threads (0 = all cores). Rows are handed out one at a time from
+/// a shared counter, so a thread that draws sky does not sit idle while another draws terrain.
+pub fn render(
+    map: &BrickMap,
+    projection: &Projection,
+    lighting: &Lighting,
+    threads: usize,
+) -> Frame {
+    let (w, h) = (projection.width, projection.height);
+    let threads = if threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        threads
+    }
+    .min(h as usize)
+    .max(1);
+    let next_row = AtomicU32::new(0);
+    let mut pixels = vec![[0u8; 4]; (w * h) as usize];
+    let mut hits = vec![MISS; (w * h) as usize];
+    let rows: Vec<(u32, Vec<[u8; 4]>, Vec<u32>)> = std::thread::scope(|scope| {
+        let workers: Vec<_> = (0..threads)
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut done = Vec::new();
+                    loop {
+                        let y = next_row.fetch_add(1, Ordering::Relaxed);
+                        if y >= h {
+                            break done;
+                        }
+                        let (mut px, mut hx) = (
+                            Vec::with_capacity(w as usize),
+                            Vec::with_capacity(w as usize),
+                        );
+                        for x in 0..w {
+                            let (p, hit) = render_pixel(map, projection, lighting, x, y);
+                            px.push(p);
+                            hx.push(hit);
+                        }
+                        done.push((y, px, hx));
+                    }
+                })
+            })
+            .collect();
+        workers
+            .into_iter()
+            .flat_map(|w| w.join().unwrap_or_default())
+            .collect()
+    });
+    for (y, px, hx) in rows {
+        let at = (y * w) as usize;
+        pixels[at..at + w as usize].copy_from_slice(&px);
+        hits[at..at + w as usize].copy_from_slice(&hx);
+    }
+    Frame {
+        width: w,
+        height: h,
+        pixels,
+        hits,
+    }
+}
+
+/// Traces just the primary rays of a frame on `threads` threads, without shading: the tracer's
+/// throughput figure. Returns the number of rays that hit.
+pub fn trace_frame(map: &BrickMap, projection: &Projection, threads: usize) -> u64 {
+    let h = projection.height;
+    let next_row = AtomicU32::new(0);
+    std::thread::scope(|scope| {
+        let workers: Vec<_> = (0..threads.max(1))
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut hits = 0u64;
+                    loop {
+                        let y = next_row.fetch_add(1, Ordering::Relaxed);
+                        if y >= h {
+                            break hits;
+                        }
+                        for x in 0..projection.width {
+                            hits += u64::from(trace(map, &projection.ray(x, y)).is_some());
+                        }
+                    }
+                })
+            })
+            .collect();
+        workers.into_iter().map(|w| w.join().unwrap_or(0)).sum()
+    })
+}
+
+/// Mean absolute difference of two colours, used by renderer comparisons.
+pub fn colour_distance(a: [u8; 4], b: [u8; 4]) -> u32 {
+    (0..3)
+        .map(|i| (a[i] as i32 - b[i] as i32).unsigned_abs())
+        .max()
+        .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::colour::Colour;
+    use crate::map::BrushMode;
+
+    #[test]
+    fn centre_pixel_looks_at_target() {
+        let cam = Camera {
+            eye: [0.0, 0.0, 0.0],
+            target: [0.0, 0.0, 10.0],
+            fov_y: 60.0,
+        };
+        let p = cam.project(3, 3).unwrap();
+        let ray = p.ray(1, 1);
+        assert_eq!(ray.dir, [0.0, 0.0, 1.0]);
+        // Top row looks up, left column looks left (right-handed, y up, looking +z: right is -x).
+        assert!(p.ray(1, 0).dir[1] > 0.0);
+        assert!(p.ray(0, 1).dir[0] > 0.0);
+        assert!(
+            Camera {
+                eye: [1.0; 3],
+                target: [1.0; 3],
+                fov_y: 60.0
+            }
+            .project(3, 3)
+            .is_none()
+        );
+        assert!(cam.project(0, 3).is_none());
+        let down = Camera {
+            eye: [0.0, 10.0, 0.0],
+            target: [0.0, 0.0, 0.0],
+            fov_y: 60.0,
+        };
+        assert!(down.project(4, 4).is_some(), "looking straight down works");
+    }
+
+    #[test]
+    fn renders_lit_and_shadowed_faces() {
+        let mut map = BrickMap::new([64, 64, 64]).unwrap();
+        map.fill_box([0, 0, 0], [63, 3, 63], BrushMode::Fill, Colour::WHITE);
+        map.fill_box([28, 4, 28], [35, 30, 35], BrushMode::Fill, Colour::WHITE);
+        let cam = Camera {
+            eye: [32.0, 60.0, -20.0],
+            target: [32.0, 0.0, 32.0],
+            fov_y: 50.0,
+        };
+        let p = cam.project(64, 48).unwrap();
+        let frame = render(&map, &p, &Lighting::default(), 2);
+        assert_eq!(frame.pixels.len(), 64 * 48);
+        assert!(frame.hits.iter().any(|&h| h == MISS) || frame.hits.iter().all(|&h| h != MISS));
+        let serial = render(&map, &p, &Lighting::default(), 1);
+        assert_eq!(frame, serial, "thread count does not change the image");
+        // Floor pixels in shadow are darker than lit floor pixels.
+        let floor: Vec<u8> = frame
+            .pixels
+            .iter()
+            .zip(&frame.hits)
+            .filter(|(_, h)| **h != MISS && (**h / 64) % 64 == 3)
+            .map(|(p, _)| p[0])
+            .collect();
+        let (lo, hi) = (floor.iter().min().copied(), floor.iter().max().copied());
+        assert!(hi > lo, "some floor in shadow: {lo:?}..{hi:?}");
+    }
+}
