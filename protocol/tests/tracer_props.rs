@@ -1,0 +1,204 @@
+//! Property tests of the CPU tracer.
+//!
+//! Two oracles: (1) the same DDA over a flat voxel array, voxel by voxel, which the hierarchical
+//! tracer must match exactly (same voxel, normal, previous cell and distance) on every ray; and
+//! (2) brute-force slab intersection against every solid voxel, which checks the DDA itself
+//! against geometry (the hit is where the ray first enters solid space, up to float tolerance).
+
+use brickcast_protocol::Colour;
+use brickcast_protocol::map::{BrickMap, BrushMode};
+use brickcast_protocol::trace::{Ray, trace, trace_flat};
+use proptest::prelude::*;
+
+#[derive(Debug, Clone)]
+enum Shape {
+    Voxel([u32; 3]),
+    Box([u32; 3], [u32; 3]),
+    Sphere([f32; 3], f32),
+}
+
+fn scene(size: [u32; 3], shapes: &[Shape]) -> BrickMap {
+    let mut map = BrickMap::new(size).unwrap();
+    for (i, shape) in shapes.iter().enumerate() {
+        let colour = Colour(i as u16 * 97 + 1);
+        match *shape {
+            Shape::Voxel(p) => {
+                map.set(p, colour);
+            }
+            Shape::Box(a, b) => {
+                let lo = [a[0].min(b[0]), a[1].min(b[1]), a[2].min(b[2])];
+                let hi = [a[0].max(b[0]), a[1].max(b[1]), a[2].max(b[2])];
+                map.fill_box(lo, hi, BrushMode::Fill, colour);
+            }
+            Shape::Sphere(c, r) => {
+                map.sphere(c, r, BrushMode::Fill, colour);
+            }
+        }
+    }
+    map
+}
+
+fn shape(size: [u32; 3]) -> impl Strategy<Value = Shape> {
+    let p = (0..size[0], 0..size[1], 0..size[2]).prop_map(|(x, y, z)| [x, y, z]);
+    let f = (
+        0.0..size[0] as f32,
+        0.0..size[1] as f32,
+        0.0..size[2] as f32,
+    )
+        .prop_map(|(x, y, z)| [x, y, z]);
+    prop_oneof![
+        4 => p.clone().prop_map(Shape::Voxel),
+        2 => (p.clone(), p).prop_map(|(a, b)| {
+            // Keep boxes small so rays see structure, not one solid block.
+            let b = std::array::from_fn(|i| a[i] + b[i] % 6);
+            Shape::Box(a, b)
+        }),
+        1 => (f, 0.5f32..6.0).prop_map(|(c, r)| Shape::Sphere(c, r)),
+    ]
+}
+
+/// Rays of every troublesome kind: random, axis-parallel, along exact voxel planes and edges,
+/// through exact corners (integer origins, diagonal directions), from inside the grid.
+fn ray(size: [u32; 3]) -> impl Strategy<Value = Ray> {
+    let s = size.map(|c| c as f32);
+    let anywhere = (-30.0..s[0] + 30.0, -30.0..s[1] + 30.0, -30.0..s[2] + 30.0)
+        .prop_map(|(x, y, z)| [x, y, z]);
+    let lattice = (
+        -3i32..size[0] as i32 + 3,
+        -3i32..size[1] as i32 + 3,
+        -3i32..size[2] as i32 + 3,
+        0u8..2,
+    )
+        .prop_map(|(x, y, z, half)| {
+            let h = f32::from(half) * 0.5;
+            [x as f32 + h, y as f32, z as f32 + h]
+        });
+    let random_dir = (-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0).prop_map(|(x, y, z)| [x, y, z]);
+    let lattice_dir =
+        (-2i32..=2, -2i32..=2, -2i32..=2).prop_map(|(x, y, z)| [x as f32, y as f32, z as f32]);
+    prop_oneof![
+        3 => (anywhere.clone(), random_dir.clone()),
+        2 => (lattice.clone(), lattice_dir.clone()),
+        1 => (anywhere, lattice_dir),
+        1 => (lattice, random_dir),
+    ]
+    .prop_map(|(origin, dir)| Ray { origin, dir })
+}
+
+fn dims() -> impl Strategy<Value = [u32; 3]> {
+    prop_oneof![
+        3 => (1u32..48, 1u32..48, 1u32..48).prop_map(|(x, y, z)| [x, y, z]),
+        1 => (60u32..140, 1u32..20, 60u32..140).prop_map(|(x, y, z)| [x, y, z]),
+    ]
+}
+
+fn case() -> impl Strategy<Value = ([u32; 3], Vec<Shape>, Vec<Ray>)> {
+    dims().prop_flat_map(|size| {
+        (
+            Just(size),
+            prop::collection::vec(shape(size), 0..24),
+            prop::collection::vec(ray(size), 1..48),
+        )
+    })
+}
+
+/// Slab interval `(enter, exit)` of a ray against one voxel, in f64.
+fn slab(ray: &Ray, v: [u32; 3]) -> Option<(f64, f64)> {
+    let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
+    for i in 0..3 {
+        let (o, d) = (f64::from(ray.origin[i]), f64::from(ray.dir[i]));
+        let (lo, hi) = (f64::from(v[i]), f64::from(v[i]) + 1.0);
+        if d.abs() < 1e-30 {
+            if o < lo || o >= hi {
+                return None;
+            }
+            continue;
+        }
+        let (a, b) = ((lo - o) / d, (hi - o) / d);
+        t0 = t0.max(a.min(b));
+        t1 = t1.min(a.max(b));
+    }
+    (t1 >= t0.max(0.0)).then_some((t0.max(0.0), t1))
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 400, ..ProptestConfig::default() })]
+
+    #[test]
+    fn hierarchy_matches_flat_grid_exactly((size, shapes, rays) in case()) {
+        let map = scene(size, &shapes);
+        // An independent flat copy of the voxels, so the reference does not read the brick map.
+        let mut flat = vec![None; (size[0] * size[1] * size[2]) as usize];
+        for (brick, _) in map.bricks() {
+            for b in 0..512u32 {
+                if let Some(c) = brick.colour_at(b) {
+                    let l = brickcast_protocol::brick::bit_voxel(b);
+                    let v: [u32; 3] = std::array::from_fn(|i| brick.cell[i] * 8 + l[i]);
+                    flat[(v[0] + size[0] * (v[1] + size[1] * v[2])) as usize] = Some(c);
+                }
+            }
+        }
+        let lookup = |v: [u32; 3]| flat[(v[0] + size[0] * (v[1] + size[1] * v[2])) as usize];
+        for ray in &rays {
+            let fast = trace(&map, ray);
+            let reference = trace_flat(size, lookup, ray);
+            prop_assert_eq!(fast, reference, "ray {:?}", ray);
+        }
+    }
+
+    #[test]
+    fn hits_agree_with_brute_force_geometry((size, shapes, rays) in case()) {
+        let map = scene(size, &shapes);
+        let solids: Vec<[u32; 3]> = map
+            .bricks()
+            .flat_map(|(b, _)| {
+                (0..512u32).filter(move |&bit| brickcast_protocol::brick::mask_get(&b.mask, bit)).map(move |bit| {
+                    let l = brickcast_protocol::brick::bit_voxel(bit);
+                    std::array::from_fn(|i| b.cell[i] * 8 + l[i])
+                })
+            })
+            .collect();
+        for ray in &rays {
+            let hit = trace(&map, ray);
+            if ray.dir.iter().all(|c| c.abs() < 1e-30) {
+                prop_assert_eq!(hit, None, "a zero direction is not a ray");
+                continue;
+            }
+            // Brute force: the earliest entry into a voxel the ray really passes through (not
+            // one it only touches at an edge or corner, where either answer is right).
+            let len = f64::from(ray.dir.iter().map(|c| c * c).sum::<f32>().sqrt());
+            let eps = 1e-3 / len.max(1e-6);
+            let mut best: Option<(f64, [u32; 3])> = None;
+            for &v in &solids {
+                if let Some((t0, t1)) = slab(ray, v)
+                    && t1 - t0 > eps
+                    && best.is_none_or(|(b, _)| t0 < b)
+                {
+                    best = Some((t0, v));
+                }
+            }
+            let tol = eps + 1e-4 * best.map_or(0.0, |b| b.0);
+            match (hit, best) {
+                (Some(h), best) => {
+                    let (enter, exit) = slab(ray, h.voxel).unwrap_or((f64::NAN, f64::NAN));
+                    let t = f64::from(h.t);
+                    prop_assert!(
+                        enter <= t + tol && t <= exit + tol && best.is_none_or(|(b, _)| t <= b + tol),
+                        "ray {:?}: hit {:?} at {} (slab {}..{}), brute force enters solid at {:?}",
+                        ray, h.voxel, h.t, enter, exit, best
+                    );
+                    prop_assert!(map.is_solid(h.voxel));
+                    if let Some(p) = h.previous {
+                        prop_assert!(!map.is_solid(p), "previous cell must be empty");
+                        let d: i32 = (0..3).map(|i| (p[i] as i32 - h.voxel[i] as i32).abs()).sum();
+                        prop_assert_eq!(d, 1, "previous is a face neighbour");
+                    }
+                }
+                (None, Some((t0, v))) => {
+                    prop_assert!(false, "ray {:?} missed voxel {:?} entered at {}", ray, v, t0);
+                }
+                (None, None) => {}
+            }
+        }
+    }
+}
