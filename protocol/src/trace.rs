@@ -144,9 +144,18 @@ impl Dda {
         if dda.step == [0; 3] {
             return None;
         }
-        let inside = (0..3).all(|i| ray.origin[i] >= 0.0 && ray.origin[i] < n[i] as f32);
-        if inside {
-            dda.v = std::array::from_fn(|i| (ray.origin[i].floor() as i32).clamp(0, n[i] - 1));
+        // The start voxel is the one the ray occupies just after t = 0: every crossing at t <= 0
+        // has happened. On a plane that means floor() moving up and the voxel below moving down,
+        // which keeps the start consistent with the event order that block skips rely on.
+        let start: [i32; 3] = std::array::from_fn(|i| {
+            if dda.step[i] < 0 {
+                ray.origin[i].ceil() as i32 - 1
+            } else {
+                ray.origin[i].floor() as i32
+            }
+        });
+        if (0..3).all(|i| start[i] >= 0 && start[i] < n[i]) {
+            dda.v = start;
         } else {
             // Slab test with the same event order: the entry event is the last entry crossing
             // (ties to the later axis), the exit event the first exit crossing.
