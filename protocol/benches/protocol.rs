@@ -1,1 +1,115 @@
-fn main() {}
+//! Criterion benchmarks for the protocol crate; results and commands live in BENCHMARKS.md.
+//!
+//! `cargo bench -p brickcast-protocol --bench protocol`
+
+use std::hint::black_box;
+use std::time::Duration;
+
+use brickcast_protocol::Colour;
+use brickcast_protocol::demo::demo_scene;
+use brickcast_protocol::map::{BrickMap, BrushMode};
+use brickcast_protocol::render::{Camera, trace_frame};
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+
+/// xorshift: deterministic positions without pulling in a RNG crate.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0
+    }
+    fn below(&mut self, n: u32) -> u32 {
+        (self.next() % u64::from(n)) as u32
+    }
+}
+
+fn edits(c: &mut Criterion) {
+    let mut group = c.benchmark_group("edit");
+    group.measurement_time(Duration::from_secs(4));
+    let base = demo_scene([512, 256, 512]).expect("demo scene");
+
+    // Random single-voxel sets over the demo scene: a mix of recolouring existing voxels, growing
+    // existing bricks and creating new ones, which is what people's clicks do.
+    let mut map = base.clone();
+    let mut rng = Rng(0x9E37_79B9_7F4A_7C15);
+    group.throughput(Throughput::Elements(1));
+    group.bench_function("set_voxel", |b| {
+        b.iter(|| {
+            let p = [rng.below(512), rng.below(256), rng.below(512)];
+            black_box(map.set(p, Colour(rng.next() as u16)))
+        })
+    });
+    let mut map = base.clone();
+    group.bench_function("clear_voxel", |b| {
+        b.iter(|| {
+            let p = [rng.below(512), rng.below(96), rng.below(512)];
+            black_box(map.clear(p))
+        })
+    });
+
+    // Sphere brushes of radius 12 (about 7,200 voxels each), alternating fill and erase at random
+    // places so the map neither fills up nor empties.
+    let mut map = base.clone();
+    let radius = 12.0f32;
+    let per_sphere = (4.0 / 3.0 * std::f32::consts::PI * radius.powi(3)) as u64;
+    group.throughput(Throughput::Elements(per_sphere));
+    let mut flip = false;
+    group.bench_function("sphere_brush_r12", |b| {
+        b.iter(|| {
+            flip = !flip;
+            let c = [
+                rng.below(480) as f32 + 16.0,
+                rng.below(200) as f32 + 16.0,
+                rng.below(480) as f32 + 16.0,
+            ];
+            let mode = if flip {
+                BrushMode::Fill
+            } else {
+                BrushMode::Erase
+            };
+            black_box(map.sphere(c, radius, mode, Colour(0x7BEF)))
+        })
+    });
+    group.finish();
+}
+
+fn tracer(c: &mut Criterion) {
+    let mut group = c.benchmark_group("trace");
+    group.sample_size(20);
+    group.measurement_time(Duration::from_secs(8));
+    let map: BrickMap = demo_scene([1024, 1024, 1024]).expect("demo scene");
+    let cameras = [
+        (
+            "1024_overview",
+            Camera {
+                eye: [-80.0, 700.0, -80.0],
+                target: [512.0, 200.0, 512.0],
+                fov_y: 60.0,
+            },
+        ),
+        (
+            "1024_ground",
+            Camera {
+                eye: [300.0, 420.0, 200.0],
+                target: [700.0, 260.0, 800.0],
+                fov_y: 70.0,
+            },
+        ),
+    ];
+    let (w, h) = (640, 360);
+    group.throughput(Throughput::Elements(u64::from(w * h)));
+    for (name, camera) in cameras {
+        let projection = camera.project(w, h).expect("camera");
+        for threads in [1usize, 2] {
+            group.bench_function(format!("{name}_640x360_{threads}t"), |b| {
+                b.iter(|| black_box(trace_frame(&map, &projection, threads)))
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, edits, tracer);
+criterion_main!(benches);

@@ -70,6 +70,15 @@ struct Dda {
     axis: Option<usize>,
 }
 
+/// `floor` as an `i32`, inline. Baseline x86-64 has no rounding instruction, so `f32::floor` is a
+/// libm call that forces every float register to be spilled around it in the hot loop. Saturates
+/// like `as` for values beyond `i32`.
+#[inline(always)]
+pub fn floor_i32(x: f32) -> i32 {
+    let t = x as i32;
+    t - i32::from((t as f32) > x)
+}
+
 /// Whether crossing `(t, axis)` comes before event `(at, at_axis)` in the total order.
 #[inline(always)]
 fn before(t: f32, axis: usize, at: f32, at_axis: usize) -> bool {
@@ -97,9 +106,9 @@ impl Dda {
     #[inline(always)]
     fn settle(&self, i: usize, lo: i32, hi: i32, at: f32, k: usize) -> i32 {
         if self.step[i] == 0 {
-            return (self.o[i].floor() as i32).clamp(lo, hi);
+            return floor_i32(self.o[i]).clamp(lo, hi);
         }
-        let mut g = ((self.o[i] + self.d[i] * at).floor() as i32).clamp(lo, hi);
+        let mut g = floor_i32(self.o[i] + self.d[i] * at).clamp(lo, hi);
         if self.step[i] > 0 {
             while g < hi && before(self.plane_t(i, g + 1), i, at, k) {
                 g += 1;
@@ -200,48 +209,38 @@ impl Dda {
         Some(dda)
     }
 
-    /// Jumps to the exit event of the empty block `lo..=hi` (already clipped to the grid).
-    /// Returns false when that exit leaves the grid.
+    /// Time of the plane the ray crosses when leaving block `b` (of `scale` voxels) on axis
+    /// `i`. The far plane is clipped to the grid, as partial blocks end where the scene ends.
     #[inline(always)]
-    fn skip_block(&mut self, lo: [i32; 3], hi: [i32; 3]) -> bool {
-        let mut k = 0usize;
-        let mut at = f32::INFINITY;
-        for i in 0..3 {
-            if self.step[i] != 0 {
-                let te = self.exit_t(i, if self.step[i] > 0 { hi[i] } else { lo[i] });
-                if te < at {
-                    at = te;
-                    k = i;
-                }
-            }
-        }
-        for i in 0..3 {
-            if i != k {
-                self.v[i] = self.settle(i, lo[i], hi[i], at, k);
-                self.next[i] = self.exit_t(i, self.v[i]);
-            }
-        }
-        self.v[k] = if self.step[k] > 0 {
-            hi[k] + 1
+    fn block_exit_t(&self, i: usize, b: i32, scale: i32) -> f32 {
+        if self.step[i] > 0 {
+            self.plane_t(i, ((b + 1) * scale).min(self.n[i]))
+        } else if self.step[i] < 0 {
+            self.plane_t(i, b * scale)
         } else {
-            lo[k] - 1
-        };
-        self.next[k] = self.exit_t(k, self.v[k]);
-        self.t = at;
-        self.axis = Some(k);
-        self.v[k] >= 0 && self.v[k] < self.n[k]
+            f32::INFINITY
+        }
+    }
+
+    /// Voxel coordinates after the event that brought the ray into the block `lo..=hi`: the
+    /// event's axis is on the entry face, the others settle.
+    #[inline(always)]
+    fn enter_block(&mut self, lo: [i32; 3], hi: [i32; 3]) {
+        if let Some(k) = self.axis {
+            for i in 0..3 {
+                self.v[i] = if i == k {
+                    if self.step[k] > 0 { lo[k] } else { hi[k] }
+                } else {
+                    self.settle(i, lo[i], hi[i], self.t, k)
+                };
+            }
+        }
     }
 
     /// One voxel step along the earliest crossing. Returns false when it leaves the grid.
     #[inline(always)]
     fn step_voxel(&mut self) -> bool {
-        let k = if self.next[0] <= self.next[1] {
-            if self.next[0] <= self.next[2] { 0 } else { 2 }
-        } else if self.next[1] <= self.next[2] {
-            1
-        } else {
-            2
-        };
+        let k = earliest(&self.next);
         self.t = self.next[k];
         self.axis = Some(k);
         self.v[k] += self.step[k];
@@ -277,61 +276,118 @@ pub fn trace(map: &BrickMap, ray: &Ray) -> Option<Hit> {
     trace_with_stats(map, ray, &mut TraceStats::default())
 }
 
+/// Earliest of three crossing times, ties to the lowest axis: the event order.
+#[inline(always)]
+fn earliest(next: &[f32; 3]) -> usize {
+    // Written as selects rather than nested ifs: the axis changes unpredictably from step to
+    // step, and a mispredicted branch costs more than the whole comparison.
+    let a = usize::from(next[1] < next[0]);
+    let m = if a == 1 { next[1] } else { next[0] };
+    if next[2] < m { 2 } else { a }
+}
+
 /// [`trace`], counting the steps taken at each level.
+///
+/// One DDA per level, each stepping on its own planes (regions every 32 voxels, cells every 8,
+/// voxels every 1), so crossing an empty region or cell costs one plane time. Coarse planes are
+/// voxel planes with the same times, so each level visits exactly the blocks the flat DDA would.
+/// Voxel coordinates are only needed inside bricks: descending after a coarse step settles them
+/// at the entry event ([`Dda::settle`]); climbing back up needs nothing, as the brick's exit
+/// event is a coarse crossing too.
 pub fn trace_with_stats(map: &BrickMap, ray: &Ray, stats: &mut TraceStats) -> Option<Hit> {
-    let size = map.size();
-    let mut dda = Dda::start(size, ray)?;
+    const R: i32 = REGION_EDGE as i32;
+    const C: i32 = BRICK_EDGE as i32;
+    let mut dda = Dda::start(map.size(), ray)?;
     let n = dda.n;
-    let region_edge = REGION_EDGE as i32;
-    let brick_edge = BRICK_EDGE as i32;
-    // Each iteration leaves a region, a cell or a voxel behind, so this bounds a looping bug
-    // without ever cutting a real ray short.
-    let mut budget = 4 * (n[0] + n[1] + n[2]) + 16;
+    let rdims = map.region_dims().map(|d| d as i32);
+    let cdims = map.cell_dims().map(|d| d as i32);
+    let step = dda.step;
+    // Whether `dda.v` holds the voxel at the last event; false after a coarse step.
+    let mut v_valid = true;
+    let mut r = dda.v.map(|c| c / R);
+    let mut rnext: [f32; 3] = std::array::from_fn(|i| dda.block_exit_t(i, r[i], R));
     loop {
-        budget -= 1;
-        if budget < 0 {
-            debug_assert!(false, "DDA did not terminate for {ray:?}");
-            return None;
-        }
-        let v = dda.v;
-        let region = v.map(|c| (c / region_edge) as u32);
-        let block = map.regions[map.region_index(region)];
-        if block == EMPTY {
+        // Region level.
+        let block = loop {
+            let block = map.regions[(r[0] + rdims[0] * (r[1] + rdims[1] * r[2])) as usize];
+            if block != EMPTY {
+                break block;
+            }
             stats.region_skips += 1;
-            let lo = region.map(|r| r as i32 * region_edge);
-            let hi = std::array::from_fn(|i| (lo[i] + region_edge - 1).min(n[i] - 1));
-            if !dda.skip_block(lo, hi) {
+            let k = earliest(&rnext);
+            dda.t = rnext[k];
+            dda.axis = Some(k);
+            r[k] += step[k];
+            if r[k] < 0 || r[k] >= rdims[k] {
                 return None;
             }
-            continue;
+            rnext[k] = dda.block_exit_t(k, r[k], R);
+            v_valid = false;
+        };
+        if !v_valid {
+            let lo = r.map(|c| c * R);
+            dda.enter_block(lo, std::array::from_fn(|i| (lo[i] + R - 1).min(n[i] - 1)));
+            v_valid = true;
         }
-        let cell = v.map(|c| (c / brick_edge) as u32);
-        let slot = map.cells[(block * CELLS_PER_BLOCK + BrickMap::cell_in_block(cell)) as usize];
-        let lo = cell.map(|c| c as i32 * brick_edge);
-        let hi: [i32; 3] = std::array::from_fn(|i| (lo[i] + brick_edge - 1).min(n[i] - 1));
-        if slot == EMPTY {
-            stats.cell_skips += 1;
-            if !dda.skip_block(lo, hi) {
+        // Cell level, inside this region.
+        let mut c = dda.v.map(|v| v / C);
+        let mut cnext: [f32; 3] = std::array::from_fn(|i| dda.block_exit_t(i, c[i], C));
+        'cells: loop {
+            let local = ((c[0] & 3) | ((c[1] & 3) << 2) | ((c[2] & 3) << 4)) as u32;
+            let slot = map.cells[(block * CELLS_PER_BLOCK + local) as usize];
+            let k = if slot == EMPTY {
+                stats.cell_skips += 1;
+                let k = earliest(&cnext);
+                dda.t = cnext[k];
+                dda.axis = Some(k);
+                c[k] += step[k];
+                cnext[k] = dda.block_exit_t(k, c[k], C);
+                v_valid = false;
+                k
+            } else {
+                let lo = c.map(|v| v * C);
+                let hi: [i32; 3] = std::array::from_fn(|i| (lo[i] + C - 1).min(n[i] - 1));
+                if !v_valid {
+                    dda.enter_block(lo, hi);
+                    v_valid = true;
+                }
+                for i in 0..3 {
+                    dda.next[i] = dda.exit_t(i, dda.v[i]);
+                }
+                let mask = &map.masks[slot as usize];
+                // Voxel level, inside this brick.
+                loop {
+                    let bit = voxel_bit(dda.v[0] as u32, dda.v[1] as u32, dda.v[2] as u32);
+                    if mask_get(mask, bit) {
+                        let colour = map.colours
+                            [(map.colour_base[slot as usize] + rank(mask, bit)) as usize];
+                        return Some(dda.hit(colour));
+                    }
+                    stats.voxel_steps += 1;
+                    let k = earliest(&dda.next);
+                    dda.t = dda.next[k];
+                    dda.axis = Some(k);
+                    dda.v[k] += step[k];
+                    dda.next[k] = dda.exit_t(k, dda.v[k]);
+                    if dda.v[k] < lo[k] || dda.v[k] > hi[k] {
+                        // Left the brick: that crossing is a cell plane as well.
+                        c[k] += step[k];
+                        cnext[k] = dda.block_exit_t(k, c[k], C);
+                        break k;
+                    }
+                }
+            };
+            if c[k] < 0 || c[k] >= cdims[k] {
                 return None;
             }
-            continue;
-        }
-        let mask = &map.masks[slot as usize];
-        // Step inside the brick until a solid voxel or until the ray leaves the brick.
-        loop {
-            let bit = voxel_bit(dda.v[0] as u32, dda.v[1] as u32, dda.v[2] as u32);
-            if mask_get(mask, bit) {
-                let colour =
-                    map.colours[(map.colour_base[slot as usize] + rank(mask, bit)) as usize];
-                return Some(dda.hit(colour));
-            }
-            stats.voxel_steps += 1;
-            if !dda.step_voxel() {
-                return None;
-            }
-            let k = dda.axis.unwrap_or(0);
-            if dda.v[k] < lo[k] || dda.v[k] > hi[k] {
-                break;
+            if c[k].div_euclid(REGION_CELLS as i32) != r[k] {
+                // Left the region: that crossing is a region plane as well.
+                r[k] += step[k];
+                if r[k] < 0 || r[k] >= rdims[k] {
+                    return None;
+                }
+                rnext[k] = dda.block_exit_t(k, r[k], R);
+                break 'cells;
             }
         }
     }
