@@ -72,7 +72,7 @@ pub fn demo_scene(size: [u32; 3]) -> Result<BrickMap, MapError> {
     let mut map = BrickMap::new(size)?;
     let terrain = Terrain {
         size,
-        water: size[1] / 7,
+        water: size[1] * 3 / 16,
     };
     let cells = map.cell_dims();
     let mut heights = vec![0u32; 10 * 10];
