@@ -150,6 +150,7 @@ pub fn demo_scene(size: [u32; 3]) -> Result<BrickMap, MapError> {
         }
     }
     add_village(&mut map, &terrain);
+    map.rebuild_clearance();
     Ok(map)
 }
 

@@ -3,9 +3,10 @@
 //! Three levels, each a flat array so the GPU can hold byte-for-byte the same layout:
 //!
 //! * `regions`: one `u32` per region of 4×4×4 coarse cells (32³ voxels), pointing to a cell block
-//!   or [`EMPTY`]. This is the paper's "grid above the top level": a ray crosses an empty region in
-//!   one step, and empty regions cost 4 bytes instead of 256, which keeps the coarse level sparse
-//!   (a dense 512³ coarse grid for a 4096³ scene would alone be 512 MiB).
+//!   or, when empty, `0xFFFFFF00 | clearance` (see [`region_clearance`]). This is the paper's "grid
+//!   above the top level": a ray leaves an empty region, and the empty regions around it, in one
+//!   step, and empty regions cost 4 bytes instead of 256, which keeps the coarse level sparse (a
+//!   dense 512³ coarse grid for a 4096³ scene would alone be 512 MiB).
 //! * `cells`: cell blocks of 64 `u32`s, each a brick slot or [`EMPTY`] (the paper's brick grid).
 //! * per brick slot: a 512-bit `mask` and a `colour_base` into the shared `colours` pool, which holds
 //!   only the colours of solid voxels (see [`crate::brick`]).
@@ -35,6 +36,27 @@ pub const CELLS_PER_BLOCK: u32 = REGION_CELLS * REGION_CELLS * REGION_CELLS;
 /// Largest scene edge in voxels. Keeps every coordinate exact in `f32` (< 2^24) and the region
 /// array at most 256³ entries (64 MiB).
 pub const MAX_SCENE_EDGE: u32 = 8192;
+
+/// Largest clearance stored for an empty region. Allocating a region lowers the clearance of the
+/// (2·cap+1)³ regions around it, so the cap bounds that cost; 6 lets a ray leave up to 13 regions
+/// (416 voxels) in one step.
+pub const CLEARANCE_CAP: u32 = 6;
+/// Region entries at or above this are empty; the low byte is the clearance.
+pub const EMPTY_REGION: u32 = 0xFFFF_FF00;
+
+/// Whether a region entry is empty.
+#[inline(always)]
+pub const fn region_is_empty(entry: u32) -> bool {
+    entry >= EMPTY_REGION
+}
+
+/// Clearance of an empty region entry: every region within this Chebyshev distance (in regions)
+/// is empty or outside the grid, so a ray may leave that whole cube in one step. Conservative:
+/// edits only ever lower it; [`BrickMap::rebuild_clearance`] raises it back.
+#[inline(always)]
+pub const fn region_clearance(entry: u32) -> u32 {
+    entry & 0xFF
+}
 
 /// Why a map could not be built or a brick not stored.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -170,7 +192,7 @@ impl BrickMap {
             size,
             cell_dims,
             region_dims,
-            regions: vec![EMPTY; region_count],
+            regions: vec![EMPTY_REGION | CLEARANCE_CAP; region_count],
             cells: Vec::new(),
             masks: Vec::new(),
             colour_base: Vec::new(),
@@ -310,7 +332,7 @@ impl BrickMap {
             return None;
         }
         let block = self.regions[self.region_index(cell.map(|c| c / REGION_CELLS))];
-        if block == EMPTY {
+        if region_is_empty(block) {
             return None;
         }
         let slot = self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize];
@@ -771,12 +793,13 @@ impl BrickMap {
         debug_assert_eq!(popcount(&mask) as usize, colours.len());
         let region = self.region_index(cell.map(|c| c / REGION_CELLS));
         let mut block = self.regions[region];
-        if block == EMPTY {
+        if region_is_empty(block) {
             block = self.alloc_block(region as u32);
             self.regions[region] = block;
             if let Some(g) = &mut self.gpu {
                 g.regions.push(region as u32);
             }
+            self.lower_clearance_around(cell.map(|c| c / REGION_CELLS));
         }
         let slot = match self.free_slots.pop() {
             Some(s) => s,
@@ -846,7 +869,8 @@ impl BrickMap {
             g.cell_blocks.push(block);
         }
         if self.block_fill[block as usize] == 0 {
-            self.regions[region] = EMPTY;
+            // Clearance 0 is always safe; neighbours keep theirs (still conservative).
+            self.regions[region] = EMPTY_REGION;
             self.free_blocks.push(block);
             if let Some(g) = &mut self.gpu {
                 g.regions.push(region as u32);
@@ -864,6 +888,78 @@ impl BrickMap {
             self.touched.push(cell_index);
         }
         self.mark_slot(slot);
+    }
+
+    /// A region just became occupied: no empty region within distance D of it may claim a
+    /// clearance of D or more.
+    fn lower_clearance_around(&mut self, r: [u32; 3]) {
+        let cap = CLEARANCE_CAP as i64;
+        let dims = self.region_dims.map(i64::from);
+        let r = r.map(i64::from);
+        for z in (r[2] - cap).max(0)..=(r[2] + cap).min(dims[2] - 1) {
+            for y in (r[1] - cap).max(0)..=(r[1] + cap).min(dims[1] - 1) {
+                for x in (r[0] - cap).max(0)..=(r[0] + cap).min(dims[0] - 1) {
+                    let d = (x - r[0]).abs().max((y - r[1]).abs()).max((z - r[2]).abs());
+                    let i = (x + dims[0] * (y + dims[1] * z)) as usize;
+                    let entry = self.regions[i];
+                    if d > 0 && region_is_empty(entry) && i64::from(region_clearance(entry)) >= d {
+                        self.regions[i] = EMPTY_REGION | (d - 1) as u32;
+                        if let Some(g) = &mut self.gpu {
+                            g.regions.push(i as u32);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Recomputes every empty region's clearance exactly (edits only lower it). Cheap: three
+    /// separable passes of a capped Chebyshev distance transform over the region grid. The client
+    /// runs it after a full sync, the server after loading a scene.
+    pub fn rebuild_clearance(&mut self) {
+        let dims = self.region_dims.map(|d| d as usize);
+        let far = CLEARANCE_CAP + 1;
+        // Distance to the nearest occupied region, capped at `far`; out-of-grid counts as empty.
+        let mut dist: Vec<u32> = self
+            .regions
+            .iter()
+            .map(|&e| if region_is_empty(e) { far } else { 0 })
+            .collect();
+        let strides = [1, dims[0], dims[0] * dims[1]];
+        for axis in 0..3 {
+            let len = dims[axis];
+            let mut line = vec![0u32; len];
+            for start in 0..dist.len() {
+                // Visit each line along `axis` once, from its first element.
+                if (start / strides[axis]) % len != 0 {
+                    continue;
+                }
+                for (j, value) in line.iter_mut().enumerate() {
+                    *value = dist[start + j * strides[axis]];
+                }
+                for j in 0..len {
+                    // Chebyshev: the distance through neighbour j' is max(|j - j'|, its distance).
+                    let lo = j.saturating_sub(far as usize);
+                    let hi = (j + far as usize).min(len - 1);
+                    let best = (lo..=hi)
+                        .map(|jj| (j.abs_diff(jj) as u32).max(line[jj]))
+                        .min()
+                        .unwrap_or(far);
+                    dist[start + j * strides[axis]] = best.min(far);
+                }
+            }
+        }
+        for (i, &d) in dist.iter().enumerate() {
+            if region_is_empty(self.regions[i]) {
+                let entry = EMPTY_REGION | (d.max(1) - 1).min(CLEARANCE_CAP);
+                if self.regions[i] != entry {
+                    self.regions[i] = entry;
+                    if let Some(g) = &mut self.gpu {
+                        g.regions.push(i as u32);
+                    }
+                }
+            }
+        }
     }
 
     fn alloc_block(&mut self, region: u32) -> u32 {
@@ -960,6 +1056,31 @@ impl BrickMap {
                 .count();
             if used != fill as usize {
                 return Err(format!("block {b} fill {fill} but {used} cells used"));
+            }
+        }
+        // Clearance never claims an occupied region.
+        let rd = self.region_dims;
+        for (i, &entry) in self.regions.iter().enumerate() {
+            if !region_is_empty(entry) {
+                continue;
+            }
+            let c = region_clearance(entry) as i64;
+            let (x, y, z) = (
+                (i as u32 % rd[0]) as i64,
+                (i as u32 / rd[0] % rd[1]) as i64,
+                (i as u32 / rd[0] / rd[1]) as i64,
+            );
+            for zz in (z - c).max(0)..=(z + c).min(rd[2] as i64 - 1) {
+                for yy in (y - c).max(0)..=(y + c).min(rd[1] as i64 - 1) {
+                    for xx in (x - c).max(0)..=(x + c).min(rd[0] as i64 - 1) {
+                        let j = (xx + rd[0] as i64 * (yy + rd[1] as i64 * zz)) as usize;
+                        if !region_is_empty(self.regions[j]) {
+                            return Err(format!(
+                                "region {i} claims clearance {c} past occupied region {j}"
+                            ));
+                        }
+                    }
+                }
             }
         }
         // Chunks must not overlap: live ones plus free ones tile at most the pool.
@@ -1062,7 +1183,7 @@ mod tests {
         assert!(map.clear([1, 2, 3]));
         assert_eq!(map.brick_count(), 0);
         assert_eq!(
-            map.regions.iter().filter(|&&r| r != EMPTY).count(),
+            map.regions.iter().filter(|&&r| !region_is_empty(r)).count(),
             0,
             "block freed"
         );
@@ -1264,10 +1385,47 @@ mod tests {
         map.record_gpu_changes(true);
         map.set([1, 1, 1], red());
         let g = map.take_gpu_changes();
-        assert_eq!(g.regions, vec![0]);
+        assert!(g.regions.contains(&0));
         assert!(g.slots.contains(&0) && g.cell_blocks.contains(&0));
         assert_eq!(g.colours, vec![(0, 1)]);
         assert!(map.take_gpu_changes().is_empty());
+    }
+
+    #[test]
+    fn clearance_is_exact_after_rebuild_and_safe_after_edits() {
+        let mut map = BrickMap::new([640, 64, 320]).unwrap(); // 20 × 2 × 10 regions
+        let exact = |map: &BrickMap, occupied: &[[i64; 3]]| {
+            let rd = map.region_dims();
+            for (i, &e) in map.regions().iter().enumerate() {
+                if !region_is_empty(e) {
+                    continue;
+                }
+                let p = [
+                    (i as u32 % rd[0]) as i64,
+                    (i as u32 / rd[0] % rd[1]) as i64,
+                    (i as u32 / rd[0] / rd[1]) as i64,
+                ];
+                let d = occupied
+                    .iter()
+                    .map(|o| (0..3).map(|k| (p[k] - o[k]).abs()).max().unwrap_or(0))
+                    .min()
+                    .unwrap_or(i64::MAX);
+                assert_eq!(
+                    i64::from(region_clearance(e)),
+                    (d - 1).min(i64::from(CLEARANCE_CAP)),
+                    "region {p:?}"
+                );
+            }
+        };
+        map.set([5 * 32 + 3, 40, 4 * 32], red());
+        exact(&map, &[[5, 1, 4]]);
+        map.set([15 * 32, 0, 9 * 32 + 31], red());
+        exact(&map, &[[5, 1, 4], [15, 0, 9]]);
+        map.clear([5 * 32 + 3, 40, 4 * 32]);
+        map.check_invariants().unwrap();
+        map.rebuild_clearance();
+        exact(&map, &[[15, 0, 9]]);
+        map.check_invariants().unwrap();
     }
 
     #[test]

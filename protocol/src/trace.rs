@@ -17,7 +17,9 @@
 
 use crate::brick::{BRICK_EDGE, EMPTY, mask_get, rank, voxel_bit};
 use crate::colour::Colour;
-use crate::map::{BrickMap, CELLS_PER_BLOCK, REGION_CELLS, REGION_EDGE};
+use crate::map::{
+    BrickMap, CELLS_PER_BLOCK, REGION_CELLS, REGION_EDGE, region_clearance, region_is_empty,
+};
 
 /// Direction components smaller than this are treated as zero, so `1/d` stays finite (GPUs flush
 /// subnormals, and the CPU must do the same thing).
@@ -105,22 +107,31 @@ impl Dda {
     /// happened, knowing it lies in `lo..=hi`.
     #[inline(always)]
     fn settle(&self, i: usize, lo: i32, hi: i32, at: f32, k: usize) -> i32 {
+        self.settle_scaled(i, lo, hi, at, k, 1)
+    }
+
+    /// [`Dda::settle`] for blocks of `scale` voxels: the block coordinate on axis `i` after every
+    /// crossing ordered before `(at, k)`, knowing it lies in `lo..=hi`. Block planes are voxel
+    /// planes (`g · scale`), so this agrees with settling voxels and dividing.
+    #[inline(always)]
+    fn settle_scaled(&self, i: usize, lo: i32, hi: i32, at: f32, k: usize, scale: i32) -> i32 {
         if self.step[i] == 0 {
-            return floor_i32(self.o[i]).clamp(lo, hi);
+            return (floor_i32(self.o[i]) / scale).clamp(lo, hi);
         }
-        let mut g = floor_i32(self.o[i] + self.d[i] * at).clamp(lo, hi);
+        let guess = floor_i32(self.o[i] + self.d[i] * at);
+        let mut g = guess.div_euclid(scale).clamp(lo, hi);
         if self.step[i] > 0 {
-            while g < hi && before(self.plane_t(i, g + 1), i, at, k) {
+            while g < hi && before(self.plane_t(i, (g + 1) * scale), i, at, k) {
                 g += 1;
             }
-            while g > lo && !before(self.plane_t(i, g), i, at, k) {
+            while g > lo && !before(self.plane_t(i, g * scale), i, at, k) {
                 g -= 1;
             }
         } else {
-            while g > lo && before(self.plane_t(i, g), i, at, k) {
+            while g > lo && before(self.plane_t(i, g * scale), i, at, k) {
                 g -= 1;
             }
-            while g < hi && !before(self.plane_t(i, g + 1), i, at, k) {
+            while g < hi && !before(self.plane_t(i, (g + 1) * scale), i, at, k) {
                 g += 1;
             }
         }
@@ -309,20 +320,42 @@ pub fn trace_with_stats(map: &BrickMap, ray: &Ray, stats: &mut TraceStats) -> Op
     loop {
         // Region level.
         let block = loop {
-            let block = map.regions[(r[0] + rdims[0] * (r[1] + rdims[1] * r[2])) as usize];
-            if block != EMPTY {
-                break block;
+            let entry = map.regions[(r[0] + rdims[0] * (r[1] + rdims[1] * r[2])) as usize];
+            if !region_is_empty(entry) {
+                break entry;
             }
             stats.region_skips += 1;
-            let k = earliest(&rnext);
-            dda.t = rnext[k];
-            dda.axis = Some(k);
-            r[k] += step[k];
+            v_valid = false;
+            let clear = region_clearance(entry) as i32;
+            if clear >= 2 {
+                // Leave the whole empty cube of regions r ± clear in one event. Worth a settle
+                // only when it replaces several single steps.
+                let lo: [i32; 3] = std::array::from_fn(|i| (r[i] - clear).max(0));
+                let hi: [i32; 3] = std::array::from_fn(|i| (r[i] + clear).min(rdims[i] - 1));
+                let exit: [f32; 3] = std::array::from_fn(|i| {
+                    dda.block_exit_t(i, if step[i] > 0 { hi[i] } else { lo[i] }, R)
+                });
+                let k = earliest(&exit);
+                dda.t = exit[k];
+                dda.axis = Some(k);
+                for i in 0..3 {
+                    if i != k {
+                        r[i] = dda.settle_scaled(i, lo[i], hi[i], dda.t, k, R);
+                        rnext[i] = dda.block_exit_t(i, r[i], R);
+                    }
+                }
+                r[k] = if step[k] > 0 { hi[k] + 1 } else { lo[k] - 1 };
+            } else {
+                let k = earliest(&rnext);
+                dda.t = rnext[k];
+                dda.axis = Some(k);
+                r[k] += step[k];
+            }
+            let k = dda.axis.unwrap_or(0);
             if r[k] < 0 || r[k] >= rdims[k] {
                 return None;
             }
             rnext[k] = dda.block_exit_t(k, r[k], R);
-            v_valid = false;
         };
         if !v_valid {
             let lo = r.map(|c| c * R);
@@ -610,7 +643,8 @@ mod tests {
         assert_eq!(hit.map(|h| h.voxel), Some([0, 0, 0]));
         assert_eq!(hit, trace_flat(huge.size(), |v| huge.get(v), &across));
         assert!(
-            stats.region_skips > 100 && stats.voxel_steps < 64,
+            // 128 regions lie on the diagonal; clearance jumps cross them in far fewer steps.
+            stats.region_skips < 48 && stats.voxel_steps < 64,
             "{stats:?}"
         );
     }

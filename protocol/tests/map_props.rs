@@ -113,7 +113,7 @@ impl Mirror {
         let rd = map.region_dims();
         let r = cell.map(|c| c / 4);
         let block = self.regions[(r[0] + rd[0] * (r[1] + rd[1] * r[2])) as usize];
-        if block == EMPTY {
+        if brickcast_protocol::map::region_is_empty(block) {
             return None;
         }
         let local = (cell[0] & 3) | ((cell[1] & 3) << 2) | ((cell[2] & 3) << 4);

@@ -89,6 +89,8 @@ fn dims() -> impl Strategy<Value = [u32; 3]> {
     prop_oneof![
         3 => (1u32..48, 1u32..48, 1u32..48).prop_map(|(x, y, z)| [x, y, z]),
         1 => (60u32..140, 1u32..20, 60u32..140).prop_map(|(x, y, z)| [x, y, z]),
+        // Large and sparse: empty regions with wide clearance, so rays take the long jumps.
+        1 => (150u32..420, 8u32..100, 150u32..420).prop_map(|(x, y, z)| [x, y, z]),
     ]
 }
 
