@@ -5,14 +5,17 @@
 //! * [`trace`]: the CPU DDA tracer (the GPU shader's twin) and its flat reference.
 //! * [`render`]: camera, shading and the multi-threaded CPU renderer.
 //! * [`wire`]: the websocket messages and their compact, compressed brick payloads.
+//! * [`apply`]: what a wire edit op does to a brick map (shared by the server and log replay).
 //! * [`demo`]: the built-in procedural demo scene.
 
+pub mod apply;
 pub mod brick;
 pub mod colour;
 pub mod demo;
 pub mod map;
 pub mod render;
 pub mod trace;
+pub mod wire;
 
 pub use brick::{BrickData, EMPTY, Mask};
 pub use colour::Colour;

@@ -73,14 +73,18 @@ pub enum MapError {
     InconsistentBrick([u32; 3]),
 }
 
-/// What an edit does to the voxels it covers.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+/// What a brush does to the voxels it covers.
+///
+/// One enum for the single-voxel edits, the sphere and box brushes and the ray-placed sphere, so
+/// a client UI has one mode switch and the map one code path per shape. It travels on the wire
+/// inside edit ops.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub enum BrushMode {
-    /// Make every covered voxel solid with the colour.
+    /// Make every covered voxel solid with the brush colour.
     Fill,
     /// Make every covered voxel empty.
     Erase,
-    /// Recolour the covered voxels that are already solid.
+    /// Recolour the covered voxels that are already solid; empty ones stay empty.
     Paint,
 }
 
@@ -102,6 +106,16 @@ impl GpuChanges {
             && self.slots.is_empty()
             && self.colours.is_empty()
     }
+}
+
+/// What a client that saw everything up to some sequence is missing (see
+/// [`BrickMap::changes_since`]).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Changes {
+    /// Cells whose brick changed after that sequence (send the brick).
+    pub changed: Vec<[u32; 3]>,
+    /// Cells whose brick was removed after it, sorted (send a removal).
+    pub removed: Vec<[u32; 3]>,
 }
 
 /// Bytes used by each component of the map, as laid out on the GPU, and the paper's figure.
@@ -460,7 +474,7 @@ impl BrickMap {
         mode: BrushMode,
         colour: Colour,
     ) -> u64 {
-        if !(radius > 0.0) || centre.iter().any(|c| !c.is_finite()) || !radius.is_finite() {
+        if !radius.is_finite() || radius <= 0.0 || centre.iter().any(|c| !c.is_finite()) {
             return 0;
         }
         let lo = centre.map(|c| (c - radius - 0.5).floor().max(0.0));
@@ -709,7 +723,7 @@ impl BrickMap {
     /// What a client that has seen everything up to `since` is missing: the cells of bricks
     /// changed after it and the cells whose bricks were removed after it. `None` when tombstones
     /// that old were already dropped: such a client needs a full resync.
-    pub fn changes_since(&self, since: u64) -> Option<(Vec<[u32; 3]>, Vec<[u32; 3]>)> {
+    pub fn changes_since(&self, since: u64) -> Option<Changes> {
         if since < self.tombstone_horizon {
             return None;
         }
@@ -725,7 +739,7 @@ impl BrickMap {
             .map(|(&c, _)| self.cell_coords(c))
             .collect();
         removed.sort_unstable();
-        Some((changed, removed))
+        Some(Changes { changed, removed })
     }
 
     /// Drops tombstones at or below `sequence`; resumes from before it will need a full resync.
@@ -1160,7 +1174,7 @@ mod tests {
     fn capacity_classes_bound_slack() {
         for n in 1..=512 {
             let c = colour_capacity(n);
-            assert!(c >= n && c <= 512 && c % 2 == 0, "{n} -> {c}");
+            assert!(c >= n && c <= 512 && c.is_multiple_of(2), "{n} -> {c}");
             assert!((c - n) as f64 <= (n as f64 / 8.0).max(1.0), "{n} -> {c}");
             assert_eq!(colour_capacity(c), c, "classes are fixed points");
         }
@@ -1309,11 +1323,10 @@ mod tests {
         map.set_sequence(2);
         map.set([40, 1, 1], red());
         map.clear([1, 1, 1]);
-        let (changed, removed) = map.changes_since(1).unwrap();
-        assert_eq!(changed, vec![[5, 0, 0]]);
-        assert_eq!(removed, vec![[0, 0, 0]]);
-        let (changed, _) = map.changes_since(0).unwrap();
-        assert_eq!(changed.len(), 2);
+        let changes = map.changes_since(1).unwrap();
+        assert_eq!(changes.changed, vec![[5, 0, 0]]);
+        assert_eq!(changes.removed, vec![[0, 0, 0]]);
+        assert_eq!(map.changes_since(0).unwrap().changed.len(), 2);
         map.prune_tombstones(2);
         assert!(map.changes_since(1).is_none(), "too old: full resync");
         map.set_sequence(3);

@@ -351,7 +351,14 @@ mod tests {
         let p = cam.project(64, 48).unwrap();
         let frame = render(&map, &p, &Lighting::default(), 2);
         assert_eq!(frame.pixels.len(), 64 * 48);
-        assert!(frame.hits.iter().any(|&h| h == MISS) || frame.hits.iter().all(|&h| h != MISS));
+        assert!(
+            frame.hits.contains(&MISS),
+            "the top rows see sky past the scene"
+        );
+        assert!(
+            frame.hits.iter().filter(|&&h| h != MISS).count() > 64 * 24,
+            "most of the frame sees the floor"
+        );
         let serial = render(&map, &p, &Lighting::default(), 1);
         assert_eq!(frame, serial, "thread count does not change the image");
         // Floor pixels in shadow are darker than lit floor pixels.

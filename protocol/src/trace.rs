@@ -181,17 +181,17 @@ impl Dda {
             // (ties to the later axis), the exit event the first exit crossing.
             let (mut near, mut near_axis) = (f32::NEG_INFINITY, 0usize);
             let (mut far, mut far_axis) = (f32::INFINITY, 0usize);
-            for i in 0..3 {
+            for (i, &size) in n.iter().enumerate() {
                 if dda.step[i] == 0 {
-                    if ray.origin[i] < 0.0 || ray.origin[i] >= n[i] as f32 {
+                    if ray.origin[i] < 0.0 || ray.origin[i] >= size as f32 {
                         return None;
                     }
                     continue;
                 }
                 let (enter, leave) = if dda.step[i] > 0 {
-                    (dda.plane_t(i, 0), dda.plane_t(i, n[i]))
+                    (dda.plane_t(i, 0), dda.plane_t(i, size))
                 } else {
-                    (dda.plane_t(i, n[i]), dda.plane_t(i, 0))
+                    (dda.plane_t(i, size), dda.plane_t(i, 0))
                 };
                 if !before(enter, i, near, near_axis) {
                     (near, near_axis) = (enter, i);

@@ -107,9 +107,9 @@ fn case() -> impl Strategy<Value = ([u32; 3], Vec<Shape>, Vec<Ray>)> {
 /// Slab interval `(enter, exit)` of a ray against one voxel, in f64.
 fn slab(ray: &Ray, v: [u32; 3]) -> Option<(f64, f64)> {
     let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
-    for i in 0..3 {
-        let (o, d) = (f64::from(ray.origin[i]), f64::from(ray.dir[i]));
-        let (lo, hi) = (f64::from(v[i]), f64::from(v[i]) + 1.0);
+    for ((&o, &d), &corner) in ray.origin.iter().zip(&ray.dir).zip(&v) {
+        let (o, d) = (f64::from(o), f64::from(d));
+        let (lo, hi) = (f64::from(corner), f64::from(corner) + 1.0);
         if d.abs() < 1e-30 {
             if o < lo || o >= hi {
                 return None;

@@ -1,0 +1,177 @@
+//! Edit operations a client asks for, and why the server may refuse one.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use super::{Limits, MAX_REASON_BYTES, bounded, truncate_utf8};
+use crate::colour::Colour;
+
+pub use crate::map::BrushMode;
+
+/// What to do where a ray first hits a solid voxel.
+///
+/// Clicks are sent as rays rather than resolved voxel positions because the client's picture may
+/// be a few deltas behind: the server traces against the authoritative map, so two clients
+/// clicking the same spot cannot place two voxels in one cell or dig into a voxel that is gone.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum RayAction {
+    /// Empty the voxel that was hit.
+    Remove,
+    /// Fill the empty cell in front of the hit face (the last empty cell the ray crossed).
+    Place { colour: Colour },
+    /// Recolour the voxel that was hit.
+    Paint { colour: Colour },
+    /// Apply a sphere brush centred on the hit voxel.
+    Sphere {
+        mode: BrushMode,
+        radius: f32,
+        colour: Colour,
+    },
+}
+
+/// One requested change to the scene, in voxel coordinates.
+///
+/// Ops are small and self-contained so that a batch can be applied partially: each op either
+/// applies or earns an [`OpRejection`](super::OpRejection) with its index, and the client can
+/// tell the user which of its edits did not land.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum EditOp {
+    /// Make one voxel solid with a colour.
+    Set { pos: [u32; 3], colour: Colour },
+    /// Make one voxel empty.
+    Clear { pos: [u32; 3] },
+    /// Recolour one voxel if it is solid.
+    Paint { pos: [u32; 3], colour: Colour },
+    /// A sphere brush; the centre may be fractional so brushes follow the cursor smoothly.
+    Sphere {
+        centre: [f32; 3],
+        radius: f32,
+        mode: BrushMode,
+        colour: Colour,
+    },
+    /// A box brush; `min` and `max` are both inclusive.
+    Box {
+        min: [u32; 3],
+        max: [u32; 3],
+        mode: BrushMode,
+        colour: Colour,
+    },
+    /// Resolved by the server's own tracer, see [`RayAction`]. `dir` need not be normalised.
+    Ray {
+        origin: [f32; 3],
+        dir: [f32; 3],
+        action: RayAction,
+    },
+}
+
+impl EditOp {
+    /// Checks what can be checked without looking at the scene's contents: coordinates inside a
+    /// scene of `scene_size` voxels, finite numbers, and brush sizes within `limits`.
+    ///
+    /// Ray ops pass here even if they will miss; the tracer decides [`Rejection::RayMissed`] and
+    /// [`Rejection::NothingToPlace`]. Ray origins may lie outside the scene (a camera usually
+    /// does); the tracer clips the ray to the scene box.
+    pub fn validate(&self, scene_size: [u32; 3], limits: &Limits) -> Result<(), Rejection> {
+        match *self {
+            EditOp::Set { pos, .. } | EditOp::Clear { pos } | EditOp::Paint { pos, .. } => {
+                if per_axis(pos, scene_size, |p, s| p < s) {
+                    Ok(())
+                } else {
+                    Err(Rejection::OutOfBounds)
+                }
+            }
+            EditOp::Sphere { centre, radius, .. } => {
+                if !centre.iter().all(|c| c.is_finite()) {
+                    return Err(Rejection::InvalidNumber);
+                }
+                if !per_axis(centre, scene_size, |c, s| c >= 0.0 && c <= s as f32) {
+                    return Err(Rejection::OutOfBounds);
+                }
+                check_radius(radius, limits)
+            }
+            EditOp::Box { min, max, .. } => {
+                if !per_axis(min, max, |lo, hi| lo <= hi) {
+                    return Err(Rejection::malformed("box min is above max"));
+                }
+                if !per_axis(max, scene_size, |hi, s| hi < s) {
+                    return Err(Rejection::OutOfBounds);
+                }
+                // `max - min + 1 <= extent`, without the `+ 1` overflowing at u32::MAX.
+                let extent_ok = per_axis(min, max, |lo, hi| {
+                    hi.saturating_sub(lo) < limits.max_box_extent
+                });
+                if extent_ok {
+                    Ok(())
+                } else {
+                    Err(Rejection::TooLarge)
+                }
+            }
+            EditOp::Ray {
+                origin,
+                dir,
+                action,
+            } => {
+                if !origin.iter().chain(&dir).all(|v| v.is_finite()) {
+                    return Err(Rejection::InvalidNumber);
+                }
+                let len2: f64 = dir.iter().map(|&d| f64::from(d) * f64::from(d)).sum();
+                if len2 <= 1e-12 {
+                    return Err(Rejection::InvalidNumber);
+                }
+                match action {
+                    RayAction::Sphere { radius, .. } => check_radius(radius, limits),
+                    RayAction::Remove | RayAction::Place { .. } | RayAction::Paint { .. } => Ok(()),
+                }
+            }
+        }
+    }
+}
+
+/// Whether `f` holds on every axis.
+fn per_axis<A: Copy, B: Copy>(a: [A; 3], b: [B; 3], f: impl Fn(A, B) -> bool) -> bool {
+    a.into_iter().zip(b).all(|(a, b)| f(a, b))
+}
+
+fn check_radius(radius: f32, limits: &Limits) -> Result<(), Rejection> {
+    if !radius.is_finite() || radius <= 0.0 {
+        Err(Rejection::InvalidNumber)
+    } else if radius > limits.max_brush_radius {
+        Err(Rejection::TooLarge)
+    } else {
+        Ok(())
+    }
+}
+
+/// Why the server did not apply one edit op.
+///
+/// Rejections are per op and carried in `Ack` rather than being connection errors: a client with
+/// a stale picture or a slightly-too-big brush should see its other edits land and learn exactly
+/// which one failed. The display text is meant for the user.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Error)]
+pub enum Rejection {
+    #[error("the edit reaches outside the scene")]
+    OutOfBounds,
+    #[error("the edit contains a number that is not finite, or a zero-length direction or radius")]
+    InvalidNumber,
+    #[error("the edit is larger than this server allows")]
+    TooLarge,
+    #[error("the ray did not hit any voxel")]
+    RayMissed,
+    #[error("there is no empty cell in front of the hit to place a voxel in")]
+    NothingToPlace,
+    #[error("this connection may watch but not edit")]
+    NotAllowed,
+    #[error("too many edits; slow down")]
+    RateLimited,
+    /// Free text, at most [`MAX_REASON_BYTES`]; build it with [`Rejection::malformed`].
+    #[error("malformed edit: {0}")]
+    Malformed(#[serde(deserialize_with = "bounded::string::<_, MAX_REASON_BYTES>")] String),
+}
+
+impl Rejection {
+    /// A `Malformed` rejection whose text is cut to [`MAX_REASON_BYTES`], so that building one
+    /// from arbitrary detail can never make the `Ack` unencodable.
+    pub fn malformed(reason: impl Into<String>) -> Self {
+        Rejection::Malformed(truncate_utf8(reason.into(), MAX_REASON_BYTES))
+    }
+}

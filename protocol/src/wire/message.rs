@@ -1,0 +1,244 @@
+//! The two message enums, one per direction, and the checks a received message must pass.
+
+use serde::{Deserialize, Serialize};
+
+use super::{
+    BrickBlob, EditOp, Limits, MAX_MESSAGE_BYTES, MAX_NAME_BYTES, MAX_OPS_PER_BATCH,
+    MAX_REMOVED_PER_FRAME, MAX_SCENE_NAME_BYTES, MAX_TOKEN_BYTES, Rejection, WireError, bounded,
+    truncate_utf8,
+};
+
+/// Everything a client can send to the server.
+///
+/// Variant order is the wire format: append only, and `Hello` stays first and unchanged so a
+/// server can always read the version of a client that is too old or too new.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ClientMsg {
+    /// First message on a connection. `resume_from` is the last server sequence the client
+    /// holds a picture of (from a previous connection), so a reconnect can skip full sync.
+    Hello {
+        protocol: u32,
+        #[serde(deserialize_with = "bounded::string::<_, MAX_NAME_BYTES>")]
+        name: String,
+        #[serde(deserialize_with = "bounded::opt_string::<_, MAX_TOKEN_BYTES>")]
+        token: Option<String>,
+        resume_from: Option<u64>,
+    },
+    /// A batch of edits, applied in order. `client_seq` comes back in the matching `Ack`.
+    Edit {
+        client_seq: u64,
+        #[serde(deserialize_with = "bounded::vec::<_, _, { MAX_OPS_PER_BATCH as usize }>")]
+        ops: Vec<EditOp>,
+    },
+    /// Where the viewer is looking, so the server streams the nearest visible bricks first.
+    Camera { eye: [f32; 3], forward: [f32; 3] },
+    /// Asks for every brick changed after server sequence `since`, for a client that detected a
+    /// gap or dropped its own state.
+    Resume { since: u64 },
+    /// Keep-alive and latency probe; answered by `Pong` with the same nonce.
+    Ping { nonce: u64 },
+}
+
+/// What a connected client may do, decided by the server from its token.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Role {
+    /// May send `Edit`.
+    Editor,
+    /// Receives the scene, every edit op is rejected with `NotAllowed`.
+    Viewer,
+}
+
+/// One refused op in an `Ack`, named by its index in the `Edit` batch.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct OpRejection {
+    pub index: u32,
+    pub reason: Rejection,
+}
+
+/// Machine-readable reason for a `ServerMsg::Error`, so a client can react (retry later,
+/// prompt for a token, upgrade) without parsing the text.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum ErrorCode {
+    /// The client's `Hello` carried another `PROTOCOL_VERSION`.
+    VersionMismatch,
+    /// Missing or wrong token.
+    Unauthorized,
+    /// The role does not allow this message.
+    NotAllowed,
+    /// A frame failed to decode or broke a limit.
+    MalformedFrame,
+    /// A frame was over `max_frame_bytes`.
+    FrameTooLarge,
+    /// The client sent too much, too fast.
+    RateLimited,
+    /// The requested scene does not exist on this server.
+    UnknownScene,
+    /// The server is stopping; reconnecting later may work.
+    ShuttingDown,
+    /// A server bug; the text may say more.
+    Internal,
+}
+
+/// Everything the server can send to a client.
+///
+/// Variant order is the wire format: append only, and `Welcome` keeps its place and layout.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ServerMsg {
+    /// Answer to `Hello`: who the server is, the scene's size, the sequence number the scene is
+    /// at, and the limits this connection will be held to. `total_bricks` lets the client show
+    /// sync progress and size its GPU buffers before the first brick arrives.
+    Welcome {
+        protocol: u32,
+        #[serde(deserialize_with = "bounded::string::<_, MAX_NAME_BYTES>")]
+        server: String,
+        #[serde(deserialize_with = "bounded::string::<_, MAX_SCENE_NAME_BYTES>")]
+        scene: String,
+        size: [u32; 3],
+        seq: u64,
+        role: Role,
+        limits: Limits,
+        total_bricks: u32,
+    },
+    /// Part of the initial (or re-) sync; progress is `sent / total` bricks.
+    SyncBatch {
+        bricks: BrickBlob,
+        sent: u32,
+        total: u32,
+    },
+    /// Sync is complete: the client's picture now equals the scene at server sequence `seq`,
+    /// and deltas from `seq` on follow.
+    SyncDone { seq: u64 },
+    /// Changes between server sequences `from_seq` (exclusive) and `to_seq` (inclusive):
+    /// bricks that changed (whole bricks, replacing the client's copy) and cells whose brick
+    /// became empty.
+    Delta {
+        from_seq: u64,
+        to_seq: u64,
+        bricks: BrickBlob,
+        #[serde(deserialize_with = "bounded::vec::<_, _, MAX_REMOVED_PER_FRAME>")]
+        removed: Vec<[u32; 3]>,
+    },
+    /// The client fell too far behind and its queued deltas were dropped; every brick with a
+    /// version above `since` follows as `SyncBatch`es and a `SyncDone`.
+    Resync { since: u64 },
+    /// Outcome of one `Edit` batch. `seq` is the server sequence that contains the applied ops
+    /// (so the client knows which `Delta` shows them), `None` when nothing applied.
+    Ack {
+        client_seq: u64,
+        seq: Option<u64>,
+        applied: u32,
+        #[serde(deserialize_with = "bounded::vec::<_, _, { MAX_OPS_PER_BATCH as usize }>")]
+        rejected: Vec<OpRejection>,
+    },
+    /// Something went wrong at the connection level; usually followed by closing it.
+    Error {
+        code: ErrorCode,
+        #[serde(deserialize_with = "bounded::string::<_, MAX_MESSAGE_BYTES>")]
+        message: String,
+    },
+    /// Answer to `Ping`.
+    Pong { nonce: u64 },
+}
+
+fn check_len(what: &'static str, len: usize, max: usize) -> Result<(), WireError> {
+    if len > max {
+        Err(WireError::TooLong { what, len, max })
+    } else {
+        Ok(())
+    }
+}
+
+fn check_count(what: &'static str, len: usize, max: usize) -> Result<(), WireError> {
+    if len > max {
+        Err(WireError::TooMany { what, len, max })
+    } else {
+        Ok(())
+    }
+}
+
+fn check_finite(what: &'static str, v: &[f32]) -> Result<(), WireError> {
+    if v.iter().all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(WireError::NotFinite { what })
+    }
+}
+
+impl ClientMsg {
+    /// Checks the message against `limits` and the protocol's hard caps. Decoding runs this on
+    /// every frame; encoding runs it against [`Limits::hard_caps`] so a client notices its own
+    /// oversize message before the server drops the connection over it.
+    ///
+    /// Edit ops are not validated here (see [`EditOp::validate`]).
+    pub fn validate(&self, limits: &Limits) -> Result<(), WireError> {
+        match self {
+            ClientMsg::Hello { name, token, .. } => {
+                check_len("client name", name.len(), MAX_NAME_BYTES)?;
+                match token {
+                    Some(token) => check_len("token", token.len(), MAX_TOKEN_BYTES),
+                    None => Ok(()),
+                }
+            }
+            ClientMsg::Edit { ops, .. } => {
+                check_count("edit batch", ops.len(), limits.ops_cap() as usize)
+            }
+            // Non-finite camera values would poison the server's distance ordering.
+            ClientMsg::Camera { eye, forward } => {
+                check_finite("camera eye", eye)?;
+                check_finite("camera forward", forward)
+            }
+            ClientMsg::Resume { .. } | ClientMsg::Ping { .. } => Ok(()),
+        }
+    }
+}
+
+impl ServerMsg {
+    /// An `Error` whose text is cut to [`MAX_MESSAGE_BYTES`], so that an error built from
+    /// arbitrary detail can always be sent.
+    pub fn error(code: ErrorCode, message: impl Into<String>) -> Self {
+        ServerMsg::Error {
+            code,
+            message: truncate_utf8(message.into(), MAX_MESSAGE_BYTES),
+        }
+    }
+
+    /// Checks the message against `limits` and the protocol's hard caps, including the
+    /// header of any brick blob (count and size, not its compressed contents). Decoding runs
+    /// this on every frame; encoding runs it against [`Limits::hard_caps`].
+    pub fn validate(&self, limits: &Limits) -> Result<(), WireError> {
+        match self {
+            ServerMsg::Welcome {
+                server,
+                scene,
+                limits: announced,
+                ..
+            } => {
+                check_len("server name", server.len(), MAX_NAME_BYTES)?;
+                check_len("scene name", scene.len(), MAX_SCENE_NAME_BYTES)?;
+                announced.validate()
+            }
+            ServerMsg::SyncBatch { bricks, .. } => bricks.validate_header(limits.brick_cap()),
+            ServerMsg::Delta {
+                bricks, removed, ..
+            } => {
+                check_count("removed bricks", removed.len(), MAX_REMOVED_PER_FRAME)?;
+                bricks.validate_header(limits.brick_cap())
+            }
+            ServerMsg::Ack { rejected, .. } => {
+                check_count("ack rejections", rejected.len(), limits.ops_cap() as usize)?;
+                rejected.iter().try_for_each(|r| match &r.reason {
+                    Rejection::Malformed(text) => {
+                        check_len("rejection reason", text.len(), super::MAX_REASON_BYTES)
+                    }
+                    _ => Ok(()),
+                })
+            }
+            ServerMsg::Error { message, .. } => {
+                check_len("error message", message.len(), MAX_MESSAGE_BYTES)
+            }
+            ServerMsg::SyncDone { .. } | ServerMsg::Resync { .. } | ServerMsg::Pong { .. } => {
+                Ok(())
+            }
+        }
+    }
+}

@@ -1,0 +1,82 @@
+//! The binary messages that travel over the websocket between the brickcast server and its
+//! clients.
+//!
+//! Every websocket binary frame carries exactly one message, encoded with bincode 2 (standard
+//! configuration: little-endian, variable-length integers). The order of enum variants and of
+//! struct fields *is* the wire format, so new variants are only ever appended, and `Hello` and
+//! `Welcome` keep their layout forever so that a peer speaking another version can still read the
+//! version number and answer with a clean `VersionMismatch`.
+//!
+//! Bytes from the network are hostile until proven otherwise. Decoding therefore happens in three
+//! fences, each cheaper than the next is expensive:
+//!
+//! 1. the frame length is checked against the receiver's [`Limits`] before any parsing;
+//! 2. parsing itself refuses strings and lists longer than the hard caps below as soon as their
+//!    length prefix is read, so a 10-byte frame cannot make the decoder allocate megabytes;
+//! 3. the parsed message is checked against the (usually tighter) negotiated [`Limits`].
+//!
+//! Brick payloads are carried as a [`BrickBlob`]: compressed once by the server and the same
+//! bytes fanned out to every client, and only decompressed by the client that needs them.
+//!
+//! Edit operations are *not* rejected at decode time: they depend on the scene size and the
+//! server's brush limits, and a bad op should cost the client one [`OpRejection`] in its
+//! [`ServerMsg::Ack`], not its connection. See [`EditOp::validate`].
+
+mod blob;
+mod bounded;
+mod codec;
+mod edit;
+mod error;
+mod limits;
+mod message;
+
+pub use blob::{BlobDecoder, BlobEncoder, BrickBlob, BrickRef};
+pub use codec::{
+    decode_client, decode_server, encode_client, encode_server, encode_server_into, hello_version,
+};
+pub use edit::{BrushMode, EditOp, RayAction, Rejection};
+pub use error::WireError;
+pub use limits::Limits;
+pub use message::{ClientMsg, ErrorCode, OpRejection, Role, ServerMsg};
+
+/// Version of this wire format. A `Hello` carrying another number is answered with
+/// [`ErrorCode::VersionMismatch`] rather than a decode failure, so that old clients learn why.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Largest frame either side will ever encode or decode, whatever a server announces. It is also
+/// bincode's decode limit, the ceiling on what a length prefix can make the decoder reserve.
+pub const MAX_FRAME_BYTES: usize = 16 << 20;
+/// Most bricks one [`BrickBlob`] may hold; bounds the decompressed size of a blob to about 9 MB.
+pub const MAX_BRICKS_PER_FRAME: u32 = 8192;
+/// Most edit operations in one `Edit` batch (and so rejections in one `Ack`).
+pub const MAX_OPS_PER_BATCH: u32 = 8192;
+/// Longest client or server name, in UTF-8 bytes.
+pub const MAX_NAME_BYTES: usize = 64;
+/// Longest authentication token, in bytes.
+pub const MAX_TOKEN_BYTES: usize = 256;
+/// Longest human-readable error text in [`ServerMsg::Error`], in bytes.
+pub const MAX_MESSAGE_BYTES: usize = 1024;
+/// Longest detail text in [`Rejection::Malformed`]; kept short because an `Ack` can carry one per
+/// op, thousands of them.
+pub const MAX_REASON_BYTES: usize = 128;
+/// Most removed brick cells in one `Delta`. Removals are 12 bytes each and uncompressed, so this
+/// is higher than the brick cap but still bounded.
+pub const MAX_REMOVED_PER_FRAME: usize = 65536;
+/// Longest scene name, in UTF-8 bytes.
+pub const MAX_SCENE_NAME_BYTES: usize = 64;
+/// Smallest `max_frame_bytes` a server may announce: any less and a full brick plus the message
+/// around it might not fit in one frame, so initial sync could never make progress.
+pub const MIN_FRAME_BYTES: u32 = 64 << 10;
+
+/// Cuts `text` to at most `max` bytes on a character boundary, for texts that are built from
+/// arbitrary input (error messages, rejection details) and must still fit their wire bound.
+pub(crate) fn truncate_utf8(mut text: String, max: usize) -> String {
+    if text.len() > max {
+        let mut end = max;
+        while !text.is_char_boundary(end) {
+            end -= 1;
+        }
+        text.truncate(end);
+    }
+    text
+}
