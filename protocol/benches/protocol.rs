@@ -9,6 +9,9 @@ use brickcast_protocol::Colour;
 use brickcast_protocol::demo::demo_scene;
 use brickcast_protocol::map::{BrickMap, BrushMode};
 use brickcast_protocol::render::{Camera, trace_frame};
+use brickcast_protocol::wire::{
+    BlobDecoder, BlobEncoder, BrickBlob, Limits, ServerMsg, decode_server, encode_server,
+};
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 
 /// xorshift: deterministic positions without pulling in a RNG crate.
@@ -111,5 +114,55 @@ fn tracer(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, edits, tracer);
+/// Brick payload encoding: what the server pays once per delta or sync batch, and what every
+/// client pays per frame. Throughput is in raw (uncompressed) bytes.
+fn wire(c: &mut Criterion) {
+    let mut group = c.benchmark_group("wire");
+    group.measurement_time(Duration::from_secs(5));
+    let map = demo_scene([512, 256, 512]).expect("demo scene");
+    let bricks: Vec<_> = map.bricks().map(|(b, _)| b).take(4096).collect();
+    for level in [1, 3] {
+        let mut encoder = BlobEncoder::new(level).expect("zstd");
+        let blob = BrickBlob::encode(&bricks, level).expect("encode");
+        group.throughput(Throughput::Bytes(u64::from(blob.raw_len)));
+        group.bench_function(format!("encode_4096_bricks_zstd{level}"), |b| {
+            b.iter(|| {
+                for brick in &bricks {
+                    encoder.push_brick(brick).expect("push");
+                }
+                black_box(encoder.finish().expect("finish"))
+            })
+        });
+        let mut decoder = BlobDecoder::new().expect("zstd");
+        group.bench_function(format!("decode_4096_bricks_zstd{level}"), |b| {
+            b.iter(|| {
+                let mut voxels = 0usize;
+                decoder
+                    .for_each(&blob, 8192, |brick| voxels += brick.colour_count())
+                    .expect("decode");
+                black_box(voxels)
+            })
+        });
+        // A whole delta frame as a client receives it: bincode, header checks, decompression.
+        let frame = encode_server(&ServerMsg::Delta {
+            from_seq: 1,
+            to_seq: 2,
+            bricks: blob.clone(),
+            removed: Vec::new(),
+        })
+        .expect("frame");
+        let limits = Limits::default();
+        group.bench_function(format!("decode_delta_frame_zstd{level}"), |b| {
+            b.iter(|| match decode_server(&frame, &limits).expect("frame") {
+                ServerMsg::Delta { bricks, .. } => {
+                    black_box(decoder.decode(&bricks, 8192).expect("blob").len())
+                }
+                _ => unreachable!("encoded a delta"),
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, edits, tracer, wire);
 criterion_main!(benches);

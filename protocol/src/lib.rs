@@ -22,3 +22,8 @@ pub use colour::Colour;
 pub use map::{BrickMap, BrushMode, MemoryStats};
 pub use render::{Camera, Frame, Lighting, Projection};
 pub use trace::{Hit, Ray, trace};
+
+// The README's Rust example is compiled and run as a doctest so it cannot drift from the API.
+#[cfg(doctest)]
+#[doc = include_str!("../../README.md")]
+struct ReadmeDoctests;
