@@ -1,0 +1,94 @@
+//! Tokens → roles, from the `--auth FILE`.
+//!
+//! File format: one `TOKEN ROLE` pair per line (`ROLE` is `editor` or `viewer`), `#` comments and
+//! blank lines ignored. Without a file every connection is an editor (a local, single-user
+//! server). With one, a connection without a token is a viewer (hosting for remote viewers), and
+//! an unknown token is refused outright so that a typo is loud rather than silently read-only.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use anyhow::{Context, bail};
+use brickcast_protocol::wire::Role;
+
+#[derive(Debug, Clone, Default)]
+pub struct Auth {
+    tokens: Option<HashMap<String, Role>>,
+}
+
+/// The outcome of presenting a token.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Access {
+    Granted(Role),
+    Refused,
+}
+
+impl Auth {
+    /// Everyone is an editor.
+    pub fn open() -> Auth {
+        Auth { tokens: None }
+    }
+
+    pub fn from_file(path: &Path) -> anyhow::Result<Auth> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading auth file {}", path.display()))?;
+        Self::parse(&text).with_context(|| format!("in auth file {}", path.display()))
+    }
+
+    pub fn parse(text: &str) -> anyhow::Result<Auth> {
+        let mut tokens = HashMap::new();
+        for (n, line) in text.lines().enumerate() {
+            let line = line.split('#').next().unwrap_or("").trim();
+            if line.is_empty() {
+                continue;
+            }
+            let mut parts = line.split_whitespace();
+            let (Some(token), Some(role), None) = (parts.next(), parts.next(), parts.next()) else {
+                bail!("line {}: expected `TOKEN ROLE`", n + 1);
+            };
+            let role = match role {
+                "editor" => Role::Editor,
+                "viewer" => Role::Viewer,
+                other => bail!(
+                    "line {}: role must be `editor` or `viewer`, not `{other}`",
+                    n + 1
+                ),
+            };
+            if tokens.insert(token.to_string(), role).is_some() {
+                bail!("line {}: token listed twice", n + 1);
+            }
+        }
+        Ok(Auth {
+            tokens: Some(tokens),
+        })
+    }
+
+    pub fn check(&self, token: Option<&str>) -> Access {
+        match (&self.tokens, token) {
+            (None, _) => Access::Granted(Role::Editor),
+            (Some(_), None) => Access::Granted(Role::Viewer),
+            (Some(map), Some(t)) => map.get(t).map_or(Access::Refused, |&r| Access::Granted(r)),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn roles_from_file() {
+        let auth = Auth::parse("# team\nalice-secret editor\nbob viewer  # read only\n\n").unwrap();
+        assert_eq!(
+            auth.check(Some("alice-secret")),
+            Access::Granted(Role::Editor)
+        );
+        assert_eq!(auth.check(Some("bob")), Access::Granted(Role::Viewer));
+        assert_eq!(auth.check(None), Access::Granted(Role::Viewer));
+        assert_eq!(auth.check(Some("mallory")), Access::Refused);
+        assert_eq!(Auth::open().check(None), Access::Granted(Role::Editor));
+        assert!(Auth::parse("x admin").is_err());
+        assert!(Auth::parse("x").is_err());
+        assert!(Auth::parse("x editor\nx viewer").is_err());
+    }
+}

@@ -1,0 +1,280 @@
+//! The brickcast scene server as a library: the binary is a thin CLI over [`Server`].
+//!
+//! * [`store`]: redb snapshot + edit log per scene, recovery.
+//! * [`scene`]: one owner thread per scene: ordering, group commit, acks, deltas, syncs.
+//! * [`session`]: one task pair per websocket: handshake, reader, writer.
+//! * [`auth`], [`metrics`]: tokens → roles; Prometheus counters.
+//!
+//! Data flow of one edit: session reader → owner channel → `apply_op` on the map → durable log
+//! commit → ack to the editor → one encoded delta → every session's outbox → websocket.
+
+pub mod auth;
+pub mod metrics;
+pub mod scene;
+pub mod session;
+pub mod store;
+
+use std::collections::BTreeMap;
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::time::Duration;
+
+use anyhow::Context;
+use axum::Router;
+use axum::extract::{Path, State, WebSocketUpgrade};
+use axum::http::{StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use tokio::sync::watch;
+
+use crate::auth::Auth;
+use crate::metrics::Metrics;
+use crate::scene::{Command, OwnerConfig, SceneHandle};
+use crate::store::Store;
+
+/// Size of the built-in demo scene created on an empty store.
+pub const DEMO_SIZE: [u32; 3] = [512, 256, 512];
+
+/// Everything `serve` needs.
+#[derive(Clone, Debug)]
+pub struct ServerConfig {
+    pub listen: SocketAddr,
+    pub data: PathBuf,
+    pub auth: Auth,
+    pub owner: OwnerConfig,
+    /// Size of the demo scene created when the store holds no scene.
+    pub demo_size: [u32; 3],
+}
+
+impl ServerConfig {
+    pub fn new(listen: SocketAddr, data: PathBuf) -> ServerConfig {
+        ServerConfig {
+            listen,
+            data,
+            auth: Auth::open(),
+            owner: OwnerConfig::default(),
+            demo_size: DEMO_SIZE,
+        }
+    }
+}
+
+/// State shared by the HTTP handlers and sessions.
+pub struct App {
+    scenes: BTreeMap<String, SceneHandle>,
+    pub metrics: Arc<Metrics>,
+    pub auth: Auth,
+    pub shutdown: watch::Receiver<bool>,
+    next_id: AtomicU64,
+    sessions: watch::Sender<u64>,
+}
+
+/// Decrements the live-session count when a session ends, so shutdown can wait for sockets to
+/// flush and close.
+pub struct SessionGuard(watch::Sender<u64>);
+
+impl Drop for SessionGuard {
+    fn drop(&mut self) {
+        self.0.send_modify(|n| *n -= 1);
+    }
+}
+
+impl App {
+    pub fn next_session_id(&self) -> u64 {
+        self.next_id.fetch_add(1, Relaxed)
+    }
+
+    pub fn track_session(&self) -> SessionGuard {
+        self.sessions.send_modify(|n| *n += 1);
+        SessionGuard(self.sessions.clone())
+    }
+
+    pub fn scene(&self, name: &str) -> Option<&SceneHandle> {
+        self.scenes.get(name)
+    }
+}
+
+/// A bound, ready server. `run` serves until the shutdown future resolves.
+pub struct Server {
+    listener: tokio::net::TcpListener,
+    app: Arc<App>,
+    owners: Vec<std::thread::JoinHandle<()>>,
+    shutdown: watch::Sender<bool>,
+}
+
+impl Server {
+    /// Opens the store (creating the demo scene if it holds none), recovers every scene, starts
+    /// their owners and binds the listener.
+    pub async fn bind(config: ServerConfig) -> anyhow::Result<Server> {
+        let store = Arc::new(Store::open(&config.data)?);
+        let demo_size = config.demo_size;
+        let store2 = store.clone();
+        let loaded = tokio::task::spawn_blocking(move || -> anyhow::Result<Vec<(String, store::Loaded)>> {
+            if store2.scenes()?.is_empty() {
+                let map = brickcast_protocol::demo::demo_scene(demo_size)?;
+                store2.create_scene("demo", &map)?;
+                tracing::info!(bricks = map.brick_count(), voxels = map.solid_voxels(), "created the built-in demo scene");
+            }
+            let mut loaded = Vec::new();
+            for (name, _) in store2.scenes()? {
+                let scene = store2.load_scene(&name).with_context(|| format!("recovering scene {name}"))?;
+                tracing::info!(scene = %name, seq = scene.seq, replayed = scene.replayed, bricks = scene.map.brick_count(), "scene recovered");
+                loaded.push((name, scene));
+            }
+            Ok(loaded)
+        })
+        .await??;
+        let metrics = Arc::new(Metrics::default());
+        let runtime = tokio::runtime::Handle::current();
+        let mut scenes = BTreeMap::new();
+        let mut owners = Vec::new();
+        for (name, scene) in loaded {
+            let (handle, thread) = scene::spawn(
+                name.clone(),
+                scene,
+                store.clone(),
+                metrics.clone(),
+                config.owner.clone(),
+                runtime.clone(),
+            )?;
+            scenes.insert(name, handle);
+            owners.push(thread);
+        }
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .with_context(|| format!("listening on {}", config.listen))?;
+        let (shutdown, shutdown_rx) = watch::channel(false);
+        let app = Arc::new(App {
+            scenes,
+            metrics,
+            auth: config.auth,
+            shutdown: shutdown_rx,
+            next_id: AtomicU64::new(1),
+            sessions: watch::channel(0).0,
+        });
+        Ok(Server {
+            listener,
+            app,
+            owners,
+            shutdown,
+        })
+    }
+
+    pub fn local_addr(&self) -> std::io::Result<SocketAddr> {
+        self.listener.local_addr()
+    }
+
+    /// Serves until `signal` resolves, then: stop accepting, stop reading edits, let every scene
+    /// owner apply and commit what it has queued and write a snapshot, and let sessions flush and
+    /// close their sockets with a close frame.
+    pub async fn run(
+        self,
+        signal: impl Future<Output = ()> + Send + 'static,
+    ) -> anyhow::Result<()> {
+        let Server {
+            listener,
+            app,
+            owners,
+            shutdown,
+        } = self;
+        let router = router(app.clone());
+        let stop = shutdown.clone();
+        axum::serve(listener, router)
+            .with_graceful_shutdown(async move {
+                signal.await;
+                let _ = stop.send(true);
+            })
+            .await
+            .context("serving HTTP")?;
+        tracing::info!("shutting down: flushing scenes");
+        for scene in app.scenes.values() {
+            let _ = scene.send(Command::Shutdown).await;
+        }
+        let crashed = tokio::task::spawn_blocking(move || {
+            owners.into_iter().filter_map(|o| o.join().err()).count()
+        })
+        .await?;
+        // Owners have dropped their outboxes: writers send what is left and close.
+        let mut sessions = app.sessions.subscribe();
+        let _ = tokio::time::timeout(Duration::from_secs(5), sessions.wait_for(|&n| n == 0)).await;
+        if crashed > 0 {
+            anyhow::bail!(
+                "{crashed} scene owner(s) crashed; their last acknowledged edits are in the log"
+            );
+        }
+        tracing::info!("shut down cleanly");
+        Ok(())
+    }
+}
+
+/// The HTTP surface.
+pub fn router(app: Arc<App>) -> Router {
+    Router::new()
+        .route("/healthz", get(|| async { "ok\n" }))
+        .route("/metrics", get(metrics_text))
+        .route("/scenes", get(scene_list))
+        .route("/scenes/{name}/ws", get(websocket))
+        .with_state(app)
+}
+
+async fn metrics_text(State(app): State<Arc<App>>) -> Response {
+    let mut text = app.metrics.render();
+    for (name, scene) in &app.scenes {
+        let info = &scene.info;
+        for (metric, value) in [
+            ("scene_seq", info.seq.load(Relaxed)),
+            ("scene_bricks", info.bricks.load(Relaxed)),
+            ("scene_voxels", info.voxels.load(Relaxed)),
+            ("scene_clients", info.clients.load(Relaxed)),
+            ("scene_gpu_bytes", info.gpu_bytes.load(Relaxed)),
+        ] {
+            text.push_str(&format!("brickcast_{metric}{{scene=\"{name}\"}} {value}\n"));
+        }
+    }
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response()
+}
+
+async fn scene_list(State(app): State<Arc<App>>) -> Response {
+    let list: Vec<_> = app
+        .scenes
+        .iter()
+        .map(|(name, s)| {
+            serde_json::json!({
+                "name": name,
+                "size": s.size,
+                "seq": s.info.seq.load(Relaxed),
+                "bricks": s.info.bricks.load(Relaxed),
+                "voxels": s.info.voxels.load(Relaxed),
+                "clients": s.info.clients.load(Relaxed),
+                "gpu_bytes": s.info.gpu_bytes.load(Relaxed),
+            })
+        })
+        .collect();
+    axum::Json(list).into_response()
+}
+
+async fn websocket(
+    Path(name): Path<String>,
+    State(app): State<Arc<App>>,
+    ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
+) -> Response {
+    // Unknown scenes are a 404 whether or not the request is a websocket upgrade.
+    let Some(scene) = app.scene(&name).cloned() else {
+        return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
+    };
+    let ws = match ws {
+        Ok(ws) => ws,
+        Err(rejection) => return rejection.into_response(),
+    };
+    if *app.shutdown.borrow() {
+        return (StatusCode::SERVICE_UNAVAILABLE, "shutting down\n").into_response();
+    }
+    // Accept frames a little over the limit so the session can answer them with a clean
+    // FrameTooLarge error instead of a dropped connection.
+    let max = scene.limits.max_frame_bytes as usize + (64 << 10);
+    ws.max_message_size(max)
+        .max_frame_size(max)
+        .on_upgrade(move |socket| session::run(socket, scene, app))
+}

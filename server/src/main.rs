@@ -1,0 +1,180 @@
+//! `brickcast-server`: a thin command line over the `brickcast_server` library.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use brickcast_server::auth::Auth;
+use brickcast_server::store::Store;
+use brickcast_server::{Server, ServerConfig};
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "brickcast-server",
+    version,
+    about = "Authoritative brickcast voxel scene server"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Serve every scene in the store over websockets (creates the demo scene in an empty store).
+    Serve {
+        /// Address to listen on.
+        #[arg(long, default_value = "127.0.0.1:7878")]
+        listen: SocketAddr,
+        /// Folder holding the store (created if missing).
+        #[arg(long, default_value = "./brickcast-data")]
+        data: PathBuf,
+        /// File of `TOKEN ROLE` lines (role: editor|viewer). Without it everyone may edit.
+        #[arg(long)]
+        auth: Option<PathBuf>,
+    },
+    /// List the scenes in the store.
+    Scenes {
+        #[arg(long, default_value = "./brickcast-data")]
+        data: PathBuf,
+    },
+    /// Voxels, bricks and memory per component of one scene.
+    Stats {
+        #[arg(long)]
+        scene: String,
+        #[arg(long, default_value = "./brickcast-data")]
+        data: PathBuf,
+        /// Print one JSON object instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Fold a scene's edit log into its snapshot (the server does this itself periodically).
+    Snapshot {
+        #[arg(long)]
+        scene: String,
+        #[arg(long, default_value = "./brickcast-data")]
+        data: PathBuf,
+    },
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .init();
+    match Cli::parse().command {
+        Cmd::Serve { listen, data, auth } => serve(listen, data, auth),
+        Cmd::Scenes { data } => {
+            let store = Store::open(&data)?;
+            for (name, meta) in store.scenes()? {
+                println!(
+                    "{name}\t{}x{}x{}\tsnapshot at seq {}\t{} log entries after it",
+                    meta.size[0],
+                    meta.size[1],
+                    meta.size[2],
+                    meta.snapshot_seq,
+                    store.log_len(&name)?
+                );
+            }
+            Ok(())
+        }
+        Cmd::Stats { scene, data, json } => {
+            let store = Store::open(&data)?;
+            let loaded = store.load_scene(&scene)?;
+            let m = loaded.map.memory();
+            if json {
+                let mut value = serde_json::to_value(m)?;
+                value["scene"] = scene.into();
+                value["seq"] = loaded.seq.into();
+                println!("{value}");
+            } else {
+                let mib = |b: u64| b as f64 / (1 << 20) as f64;
+                println!(
+                    "scene {scene}: {}x{}x{} voxels, sequence {}",
+                    m.size[0], m.size[1], m.size[2], loaded.seq
+                );
+                println!("  solid voxels     {:>14}", m.solid_voxels);
+                println!("  bricks           {:>14}", m.bricks);
+                println!("  regions          {:>10.2} MiB", mib(m.region_bytes));
+                println!(
+                    "  cell blocks      {:>10.2} MiB ({} blocks)",
+                    mib(m.cell_bytes),
+                    m.cell_blocks
+                );
+                println!("  masks            {:>10.2} MiB", mib(m.mask_bytes));
+                println!("  colour bases     {:>10.2} MiB", mib(m.colour_base_bytes));
+                println!(
+                    "  colours          {:>10.2} MiB ({:.2} MiB live)",
+                    mib(m.colour_bytes),
+                    mib(m.colour_used_bytes)
+                );
+                println!("  total            {:>10.2} MiB", mib(m.total_bytes));
+                println!(
+                    "  paper's formula  {:>10.2} MiB",
+                    mib(m.paper_formula_bytes)
+                );
+                println!("  bytes per voxel  {:>14.2}", m.bytes_per_solid_voxel);
+            }
+            Ok(())
+        }
+        Cmd::Snapshot { scene, data } => {
+            let store = Store::open(&data)?;
+            let loaded = store.load_scene(&scene)?;
+            let mut map = loaded.map;
+            map.set_sequence(loaded.seq);
+            store.snapshot(&scene, &map, &loaded.replay_touched)?;
+            println!(
+                "{scene}: snapshot at sequence {}, {} log entries folded in",
+                loaded.seq, loaded.replayed
+            );
+            Ok(())
+        }
+    }
+}
+
+fn serve(listen: SocketAddr, data: PathBuf, auth: Option<PathBuf>) -> anyhow::Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting tokio")?;
+    runtime.block_on(async move {
+        let mut config = ServerConfig::new(listen, data);
+        if let Some(path) = auth {
+            config.auth = Auth::from_file(&path)?;
+        }
+        let server = Server::bind(config).await?;
+        tracing::info!("listening on http://{}", server.local_addr()?);
+        server.run(shutdown_signal()).await
+    })
+}
+
+/// Ctrl-C or SIGTERM.
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::error!(error = %e, "cannot listen for Ctrl-C");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot listen for SIGTERM");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {}
+        _ = term => {}
+    }
+    tracing::info!("shutdown requested");
+}

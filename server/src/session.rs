@@ -1,0 +1,301 @@
+//! One websocket connection: handshake, then a reader that forwards edits to the scene owner and
+//! a writer that drains the session's outgoing queue.
+//!
+//! The reader never blocks the owner: edits go through the owner's bounded channel (so a flood
+//! slows only its sender), and everything the owner sends back goes through the session's
+//! byte-counted [`Outbox`]. A frame that cannot be decoded or is too large earns one `Error`
+//! frame and a close; the scene and the other sessions carry on.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
+use std::time::{Duration, Instant};
+
+use axum::extract::ws::{CloseFrame, Message, WebSocket};
+use brickcast_protocol::wire::{
+    ClientMsg, ErrorCode, Limits, OpRejection, PROTOCOL_VERSION, Rejection, Role, ServerMsg,
+    decode_client, encode_server, hello_version,
+};
+use bytes::Bytes;
+use futures_util::{SinkExt, StreamExt};
+use tokio::sync::mpsc;
+
+use crate::App;
+use crate::auth::Access;
+use crate::metrics::Metrics;
+use crate::scene::{Command, Outbox, SceneHandle, SessionId};
+
+/// How long a new connection may take to say Hello.
+const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Ops per second per session, refilled continuously, with one second of burst.
+struct RateLimit {
+    rate: f64,
+    tokens: f64,
+    at: Instant,
+}
+
+impl RateLimit {
+    fn new(per_second: u32) -> RateLimit {
+        RateLimit {
+            rate: f64::from(per_second),
+            tokens: f64::from(per_second),
+            at: Instant::now(),
+        }
+    }
+
+    fn take(&mut self, n: usize) -> bool {
+        let now = Instant::now();
+        self.tokens =
+            (self.tokens + now.duration_since(self.at).as_secs_f64() * self.rate).min(self.rate);
+        self.at = now;
+        if self.tokens >= n as f64 {
+            self.tokens -= n as f64;
+            true
+        } else {
+            false
+        }
+    }
+}
+
+fn frame(msg: &ServerMsg) -> Option<Bytes> {
+    encode_server(msg).ok().map(Bytes::from)
+}
+
+/// Serves one connection to `scene` until either side closes or the server shuts down.
+pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
+    let id = app.next_session_id();
+    app.metrics.connected_clients.fetch_add(1, Relaxed);
+    let _guard = app.track_session();
+    let (sink, mut stream) = socket.split();
+    let (out, rx, queued) = Outbox::new();
+    let writer = tokio::spawn(write_loop(sink, rx, queued, app.metrics.clone()));
+
+    match handshake(&mut stream, &scene, &app, &out).await {
+        Some((role, resume_from)) => {
+            if scene
+                .send(Command::Join {
+                    session: id,
+                    out: out.clone(),
+                    role,
+                    resume_from,
+                })
+                .await
+                .is_ok()
+            {
+                read_loop(&mut stream, &scene, &app, &out, id, role).await;
+                let _ = scene.send(Command::Leave { session: id }).await;
+            } else if let Some(f) = frame(&ServerMsg::error(
+                ErrorCode::ShuttingDown,
+                "the scene is shutting down",
+            )) {
+                out.push(f);
+            }
+        }
+        None => tracing::debug!(session = id, "handshake failed"),
+    }
+    // The writer ends once every copy of the outbox is gone (ours now, the owner's on Leave),
+    // after sending what was queued.
+    drop(out);
+    let _ = writer.await;
+    app.metrics.connected_clients.fetch_sub(1, Relaxed);
+}
+
+/// Reads the Hello. On failure queues an error frame and returns `None`.
+async fn handshake(
+    stream: &mut futures_util::stream::SplitStream<WebSocket>,
+    scene: &SceneHandle,
+    app: &App,
+    out: &Outbox,
+) -> Option<(Role, Option<u64>)> {
+    let fail = |code: ErrorCode, text: String| {
+        app.metrics.rejected_frames.fetch_add(1, Relaxed);
+        if let Some(f) = frame(&ServerMsg::error(code, text)) {
+            out.push(f);
+        }
+        None
+    };
+    let bytes = match tokio::time::timeout(HELLO_TIMEOUT, stream.next()).await {
+        Ok(Some(Ok(Message::Binary(bytes)))) => bytes,
+        Ok(Some(Ok(_))) => {
+            return fail(
+                ErrorCode::MalformedFrame,
+                "expected a binary Hello frame".into(),
+            );
+        }
+        Ok(Some(Err(e))) => {
+            return fail(ErrorCode::MalformedFrame, format!("websocket error: {e}"));
+        }
+        Ok(None) => return None,
+        Err(_) => return fail(ErrorCode::MalformedFrame, "no Hello within 10 s".into()),
+    };
+    app.metrics.bytes_in.fetch_add(bytes.len() as u64, Relaxed);
+    if let Some(v) = hello_version(&bytes)
+        && v != PROTOCOL_VERSION
+    {
+        return fail(
+            ErrorCode::VersionMismatch,
+            format!("this server speaks protocol {PROTOCOL_VERSION}, the client {v}"),
+        );
+    }
+    let limits = &scene.limits;
+    match decode_client(&bytes, limits) {
+        Ok(ClientMsg::Hello {
+            token,
+            resume_from,
+            name,
+            ..
+        }) => match app.auth.check(token.as_deref()) {
+            Access::Granted(role) => {
+                tracing::info!(scene = %scene.name, client = %name, ?role, ?resume_from, "client joined");
+                Some((role, resume_from))
+            }
+            Access::Refused => fail(ErrorCode::Unauthorized, "unknown token".into()),
+        },
+        Ok(_) => fail(
+            ErrorCode::MalformedFrame,
+            "the first message must be Hello".into(),
+        ),
+        Err(e) => fail(frame_error_code(&e), format!("bad Hello: {e}")),
+    }
+}
+
+fn frame_error_code(e: &brickcast_protocol::wire::WireError) -> ErrorCode {
+    match e {
+        brickcast_protocol::wire::WireError::FrameTooLarge { .. } => ErrorCode::FrameTooLarge,
+        _ => ErrorCode::MalformedFrame,
+    }
+}
+
+async fn read_loop(
+    stream: &mut futures_util::stream::SplitStream<WebSocket>,
+    scene: &SceneHandle,
+    app: &App,
+    out: &Outbox,
+    id: SessionId,
+    role: Role,
+) {
+    let limits: &Limits = &scene.limits;
+    let mut rate = RateLimit::new(limits.max_edits_per_second);
+    let mut shutdown = app.shutdown.clone();
+    let reject = |code: ErrorCode, text: String| {
+        app.metrics.rejected_frames.fetch_add(1, Relaxed);
+        tracing::debug!(session = id, ?code, %text, "closing a session");
+        if let Some(f) = frame(&ServerMsg::error(code, text)) {
+            out.push(f);
+        }
+    };
+    loop {
+        let next = tokio::select! {
+            next = stream.next() => next,
+            _ = shutdown.changed() => return,
+        };
+        let bytes = match next {
+            Some(Ok(Message::Binary(bytes))) => bytes,
+            Some(Ok(Message::Close(_))) | None => return,
+            Some(Ok(Message::Ping(_) | Message::Pong(_))) => continue,
+            Some(Ok(Message::Text(_))) => {
+                return reject(
+                    ErrorCode::MalformedFrame,
+                    "only binary frames are spoken here".into(),
+                );
+            }
+            Some(Err(e)) => {
+                return reject(ErrorCode::FrameTooLarge, format!("unreadable frame: {e}"));
+            }
+        };
+        app.metrics.bytes_in.fetch_add(bytes.len() as u64, Relaxed);
+        let msg = match decode_client(&bytes, limits) {
+            Ok(msg) => msg,
+            Err(e) => return reject(frame_error_code(&e), e.to_string()),
+        };
+        match msg {
+            ClientMsg::Hello { .. } => {
+                return reject(ErrorCode::MalformedFrame, "Hello sent twice".into());
+            }
+            ClientMsg::Edit { client_seq, ops } => {
+                let refusal = if role != Role::Editor {
+                    Some(Rejection::NotAllowed)
+                } else if !rate.take(ops.len()) {
+                    Some(Rejection::RateLimited)
+                } else {
+                    None
+                };
+                if let Some(reason) = refusal {
+                    Metrics::add(&app.metrics.ops_rejected, ops.len() as u64);
+                    let rejected = (0..ops.len() as u32)
+                        .map(|index| OpRejection {
+                            index,
+                            reason: reason.clone(),
+                        })
+                        .collect();
+                    if let Some(f) = frame(&ServerMsg::Ack {
+                        client_seq,
+                        seq: None,
+                        applied: 0,
+                        rejected,
+                    }) {
+                        out.push(f);
+                    }
+                    continue;
+                }
+                if scene
+                    .send(Command::Edit {
+                        session: id,
+                        client_seq,
+                        ops,
+                    })
+                    .await
+                    .is_err()
+                {
+                    return reject(ErrorCode::ShuttingDown, "the scene is shutting down".into());
+                }
+            }
+            ClientMsg::Camera { eye, .. } => {
+                // Streaming order is a hint: drop it rather than wait when the owner is busy.
+                let _ = scene.try_send(Command::Camera { session: id, eye });
+            }
+            ClientMsg::Resume { since } => {
+                if scene
+                    .send(Command::Resume { session: id, since })
+                    .await
+                    .is_err()
+                {
+                    return;
+                }
+            }
+            ClientMsg::Ping { nonce } => {
+                if let Some(f) = frame(&ServerMsg::Pong { nonce }) {
+                    out.push(f);
+                }
+            }
+        }
+    }
+}
+
+async fn write_loop(
+    mut sink: futures_util::stream::SplitSink<WebSocket, Message>,
+    mut rx: mpsc::UnboundedReceiver<Bytes>,
+    queued: Arc<AtomicUsize>,
+    metrics: Arc<Metrics>,
+) {
+    while let Some(frame) = rx.recv().await {
+        let len = frame.len();
+        let sent = sink.send(Message::Binary(frame)).await;
+        queued.fetch_sub(len, Relaxed);
+        if sent.is_err() {
+            // The peer is gone; keep draining so the owner's byte count stays true.
+            while let Some(frame) = rx.recv().await {
+                queued.fetch_sub(frame.len(), Relaxed);
+            }
+            return;
+        }
+        metrics.bytes_out.fetch_add(len as u64, Relaxed);
+    }
+    let _ = sink
+        .send(Message::Close(Some(CloseFrame {
+            code: axum::extract::ws::close_code::NORMAL,
+            reason: "bye".into(),
+        })))
+        .await;
+    let _ = sink.close().await;
+}

@@ -1,0 +1,423 @@
+//! Durable storage of scenes in one embedded redb file.
+//!
+//! Per scene: a brick snapshot (one row per brick, keyed by linear cell index) taken at some
+//! sequence S, and an append-only edit log of every acknowledged batch after S. Recovery loads the
+//! snapshot and replays the log through the same `apply_op` the server used, so the recovered
+//! scene is the acknowledged one. Snapshots are incremental: only bricks touched since the last
+//! snapshot are rewritten, in the same transaction that trims the log, so a crash at any point
+//! leaves either the old snapshot + full log or the new snapshot + trimmed log.
+//!
+//! Every commit uses `Durability::Immediate` (fsync before `commit` returns); the scene owner
+//! batches many edits per commit (group commit) because commits, not records, are what cost.
+
+use std::path::{Path, PathBuf};
+
+use brickcast_protocol::brick::{BrickData, Mask};
+use brickcast_protocol::wire::EditOp;
+use brickcast_protocol::{BrickMap, Colour};
+use redb::{
+    Database, Durability, ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition,
+};
+use serde::{Deserialize, Serialize};
+
+/// Scene name → bincode [`SceneMeta`].
+const SCENES: TableDefinition<&str, &[u8]> = TableDefinition::new("scenes");
+
+/// Why the store failed. Storage errors are fatal for a scene: the owner stops rather than
+/// acknowledge edits it could not make durable.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("cannot open the store at {path}: {source}")]
+    Open {
+        path: PathBuf,
+        source: redb::DatabaseError,
+    },
+    #[error("storage error: {0}")]
+    Redb(#[from] redb::Error),
+    #[error("stored data for scene {scene} is corrupt: {detail}")]
+    Corrupt { scene: String, detail: String },
+    #[error("scene {0} does not exist")]
+    UnknownScene(String),
+    #[error("scene {0} already exists")]
+    SceneExists(String),
+    #[error("scene name {0:?} is invalid: use 1-64 letters, digits, '-', '_' or '.'")]
+    BadName(String),
+}
+
+macro_rules! from_redb {
+    ($($t:ty),*) => {$(
+        impl From<$t> for StoreError {
+            fn from(e: $t) -> Self {
+                StoreError::Redb(e.into())
+            }
+        }
+    )*};
+}
+from_redb!(
+    redb::TransactionError,
+    redb::TableError,
+    redb::StorageError,
+    redb::CommitError,
+    redb::SetDurabilityError
+);
+
+/// What the store knows about a scene besides its bricks and log.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SceneMeta {
+    pub size: [u32; 3],
+    /// Sequence number the brick snapshot reflects; log entries after it are replayed.
+    pub snapshot_seq: u64,
+}
+
+/// Scene names become redb table names and URL path segments: keep them plain.
+pub fn valid_scene_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.'))
+}
+
+fn bricks_table(name: &str) -> String {
+    format!("bricks/{name}")
+}
+fn log_table(name: &str) -> String {
+    format!("log/{name}")
+}
+
+fn bincode_config() -> bincode::config::Configuration {
+    bincode::config::standard()
+}
+
+/// One brick row: 64 mask bytes then the colours as u16 LE.
+fn encode_brick(mask: &Mask, colours: &[Colour], out: &mut Vec<u8>) {
+    out.clear();
+    for word in mask {
+        out.extend_from_slice(&word.to_le_bytes());
+    }
+    for c in colours {
+        out.extend_from_slice(&c.0.to_le_bytes());
+    }
+}
+
+fn decode_brick(cell: [u32; 3], bytes: &[u8]) -> Option<BrickData> {
+    if bytes.len() < 64 || (bytes.len() - 64) % 2 != 0 {
+        return None;
+    }
+    let mut mask = [0u64; 8];
+    for (word, chunk) in mask.iter_mut().zip(bytes[..64].chunks_exact(8)) {
+        *word = u64::from_le_bytes(chunk.try_into().ok()?);
+    }
+    let colours = bytes[64..]
+        .chunks_exact(2)
+        .map(|c| Colour(u16::from_le_bytes([c[0], c[1]])))
+        .collect();
+    Some(BrickData {
+        cell,
+        mask,
+        colours,
+    })
+}
+
+/// The redb file holding every scene.
+pub struct Store {
+    db: Database,
+    path: PathBuf,
+}
+
+/// A scene as recovered from the store.
+pub struct Loaded {
+    pub map: BrickMap,
+    pub meta: SceneMeta,
+    /// The last sequence in the log (or the snapshot's when the log is empty).
+    pub seq: u64,
+    pub replayed: u64,
+    /// Linear cells the replayed log changed (not yet in the snapshot).
+    pub replay_touched: Vec<u32>,
+}
+
+impl Store {
+    /// Opens (creating if needed) the store in `dir`.
+    pub fn open(dir: &Path) -> Result<Store, StoreError> {
+        let path = dir.join("brickcast.redb");
+        if let Err(e) = std::fs::create_dir_all(dir) {
+            return Err(StoreError::Open {
+                path,
+                source: redb::DatabaseError::Storage(redb::StorageError::Io(e)),
+            });
+        }
+        let db = Database::create(&path).map_err(|source| StoreError::Open {
+            path: path.clone(),
+            source,
+        })?;
+        let txn = db.begin_write()?;
+        txn.open_table(SCENES)?;
+        txn.commit()?;
+        Ok(Store { db, path })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Every scene with its metadata, sorted by name.
+    pub fn scenes(&self) -> Result<Vec<(String, SceneMeta)>, StoreError> {
+        let txn = self.db.begin_read()?;
+        let table = txn.open_table(SCENES)?;
+        let mut out = Vec::new();
+        for row in table.iter()? {
+            let (name, bytes) = row?;
+            let name = name.value().to_string();
+            let meta = self.decode_meta(&name, bytes.value())?;
+            out.push((name, meta));
+        }
+        Ok(out)
+    }
+
+    fn decode_meta(&self, scene: &str, bytes: &[u8]) -> Result<SceneMeta, StoreError> {
+        bincode::serde::decode_from_slice(bytes, bincode_config())
+            .map(|(m, _)| m)
+            .map_err(|e| StoreError::Corrupt {
+                scene: scene.into(),
+                detail: format!("metadata: {e}"),
+            })
+    }
+
+    /// Stores a new scene with all its bricks as the snapshot at sequence 0.
+    pub fn create_scene(&self, name: &str, map: &BrickMap) -> Result<(), StoreError> {
+        if !valid_scene_name(name) {
+            return Err(StoreError::BadName(name.into()));
+        }
+        let mut txn = self.db.begin_write()?;
+        txn.set_durability(Durability::Immediate)?;
+        {
+            let mut scenes = txn.open_table(SCENES)?;
+            if scenes.get(name)?.is_some() {
+                return Err(StoreError::SceneExists(name.into()));
+            }
+            let meta = SceneMeta {
+                size: map.size(),
+                snapshot_seq: map.sequence(),
+            };
+            let bytes = bincode::serde::encode_to_vec(&meta, bincode_config()).map_err(|e| {
+                StoreError::Corrupt {
+                    scene: name.into(),
+                    detail: e.to_string(),
+                }
+            })?;
+            scenes.insert(name, bytes.as_slice())?;
+            let bricks_name = bricks_table(name);
+            let mut bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
+            let mut row = Vec::with_capacity(64 + 1024);
+            for (brick, _) in map.bricks() {
+                encode_brick(&brick.mask, &brick.colours, &mut row);
+                bricks.insert(map.cell_index(brick.cell), row.as_slice())?;
+            }
+            let log_name = log_table(name);
+            txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
+        }
+        txn.commit()?;
+        Ok(())
+    }
+
+    /// Loads a scene: snapshot bricks, then every logged batch replayed in order.
+    pub fn load_scene(&self, name: &str) -> Result<Loaded, StoreError> {
+        let txn = self.db.begin_read()?;
+        let meta = {
+            let scenes = txn.open_table(SCENES)?;
+            let Some(bytes) = scenes.get(name)? else {
+                return Err(StoreError::UnknownScene(name.into()));
+            };
+            self.decode_meta(name, bytes.value())?
+        };
+        let corrupt = |detail: String| StoreError::Corrupt {
+            scene: name.into(),
+            detail,
+        };
+        let mut map = BrickMap::new(meta.size).map_err(|e| corrupt(e.to_string()))?;
+        let bricks_name = bricks_table(name);
+        let bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
+        map.set_sequence(meta.snapshot_seq);
+        for row in bricks.iter()? {
+            let (cell, bytes) = row?;
+            let cell = cell.value();
+            let coords = map.cell_coords(cell);
+            let brick = decode_brick(coords, bytes.value())
+                .ok_or_else(|| corrupt(format!("brick row {cell}")))?;
+            map.put_brick(&brick).map_err(|e| corrupt(e.to_string()))?;
+        }
+        let log_name = log_table(name);
+        let log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
+        // Replay with no brush limits: every logged op was validated against the server's limits
+        // when it was accepted, and must apply again even if those limits were lowered since.
+        let limits = brickcast_protocol::wire::Limits::hard_caps();
+        let unlimited = brickcast_protocol::wire::Limits {
+            max_brush_radius: f32::MAX,
+            max_box_extent: u32::MAX,
+            ..limits
+        };
+        let mut seq = meta.snapshot_seq;
+        let mut replayed = 0;
+        map.record_touched(true);
+        for row in log.range((meta.snapshot_seq + 1)..)? {
+            let (s, bytes) = row?;
+            let s = s.value();
+            let (ops, _): (Vec<EditOp>, usize) =
+                bincode::serde::decode_from_slice(bytes.value(), bincode_config())
+                    .map_err(|e| corrupt(format!("log entry {s}: {e}")))?;
+            map.set_sequence(s);
+            for op in &ops {
+                // An op that applied when logged applies again: the map is in the same state.
+                // A failure here means the log does not match the snapshot.
+                brickcast_protocol::apply::apply_op(&mut map, op, &unlimited)
+                    .map_err(|e| corrupt(format!("log entry {s} no longer applies: {e}")))?;
+            }
+            seq = s;
+            replayed += 1;
+        }
+        map.rebuild_clearance();
+        let replay_touched = map.take_touched();
+        map.record_touched(false);
+        Ok(Loaded {
+            map,
+            meta,
+            seq,
+            replayed,
+            replay_touched,
+        })
+    }
+
+    /// Appends acknowledged batches (sequence → applied ops) in one durable commit.
+    pub fn append(&self, scene: &str, batches: &[(u64, &[EditOp])]) -> Result<(), StoreError> {
+        let mut txn = self.db.begin_write()?;
+        txn.set_durability(Durability::Immediate)?;
+        {
+            let log_name = log_table(scene);
+            let mut log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
+            let mut buf = Vec::new();
+            for (seq, ops) in batches {
+                buf.clear();
+                bincode::serde::encode_into_std_write(ops, &mut buf, bincode_config()).map_err(
+                    |e| StoreError::Corrupt {
+                        scene: scene.into(),
+                        detail: e.to_string(),
+                    },
+                )?;
+                log.insert(*seq, buf.as_slice())?;
+            }
+        }
+        txn.commit()?;
+        Ok(())
+    }
+
+    /// Writes the bricks at `cells` in their current state (removing rows of empty cells),
+    /// moves the snapshot to the map's sequence and drops the log up to it, atomically.
+    pub fn snapshot(&self, scene: &str, map: &BrickMap, cells: &[u32]) -> Result<(), StoreError> {
+        let mut txn = self.db.begin_write()?;
+        txn.set_durability(Durability::Immediate)?;
+        {
+            let seq = map.sequence();
+            let bricks_name = bricks_table(scene);
+            let mut bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
+            let mut row = Vec::with_capacity(64 + 1024);
+            for &cell in cells {
+                match map.brick(map.cell_coords(cell)) {
+                    Some(b) => {
+                        encode_brick(&b.mask, &b.colours, &mut row);
+                        bricks.insert(cell, row.as_slice())?;
+                    }
+                    None => {
+                        bricks.remove(cell)?;
+                    }
+                }
+            }
+            let log_name = log_table(scene);
+            let mut log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
+            log.retain_in(..=seq, |_, _| false)?;
+            let mut scenes = txn.open_table(SCENES)?;
+            let meta = SceneMeta {
+                size: map.size(),
+                snapshot_seq: seq,
+            };
+            let bytes = bincode::serde::encode_to_vec(&meta, bincode_config()).map_err(|e| {
+                StoreError::Corrupt {
+                    scene: scene.into(),
+                    detail: e.to_string(),
+                }
+            })?;
+            scenes.insert(scene, bytes.as_slice())?;
+        }
+        txn.commit()?;
+        Ok(())
+    }
+
+    /// Number of log entries after the snapshot.
+    pub fn log_len(&self, scene: &str) -> Result<u64, StoreError> {
+        let txn = self.db.begin_read()?;
+        let log_name = log_table(scene);
+        let log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
+        Ok(log.len()?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use brickcast_protocol::BrushMode;
+
+    #[test]
+    fn create_append_snapshot_and_recover() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let mut map = BrickMap::new([64, 64, 64]).unwrap();
+        map.fill_box([0, 0, 0], [63, 3, 63], BrushMode::Fill, Colour::WHITE);
+        store.create_scene("s", &map).unwrap();
+        assert!(matches!(
+            store.create_scene("s", &map),
+            Err(StoreError::SceneExists(_))
+        ));
+        assert!(matches!(
+            store.create_scene("bad/name", &map),
+            Err(StoreError::BadName(_))
+        ));
+
+        let red = Colour::from_rgb8(255, 0, 0);
+        let ops1 = [EditOp::Set {
+            pos: [5, 10, 5],
+            colour: red,
+        }];
+        let ops2 = [EditOp::Sphere {
+            centre: [30.0, 4.0, 30.0],
+            radius: 6.0,
+            mode: BrushMode::Erase,
+            colour: red,
+        }];
+        map.record_touched(true);
+        for (seq, ops) in [(1u64, &ops1[..]), (2, &ops2[..])] {
+            map.set_sequence(seq);
+            for op in ops {
+                brickcast_protocol::apply::apply_op(&mut map, op, &Default::default()).unwrap();
+            }
+        }
+        store
+            .append("s", &[(1, &ops1[..]), (2, &ops2[..])])
+            .unwrap();
+        let loaded = store.load_scene("s").unwrap();
+        assert_eq!((loaded.seq, loaded.replayed), (2, 2));
+        assert_eq!(loaded.map.content_hash(), map.content_hash());
+
+        let touched = map.take_touched();
+        store.snapshot("s", &map, &touched).unwrap();
+        assert_eq!(store.log_len("s").unwrap(), 0);
+        let loaded = store.load_scene("s").unwrap();
+        assert_eq!((loaded.meta.snapshot_seq, loaded.replayed), (2, 0));
+        assert_eq!(loaded.map.content_hash(), map.content_hash());
+        drop(store);
+        let reopened = Store::open(dir.path()).unwrap();
+        assert_eq!(reopened.scenes().unwrap().len(), 1);
+        assert!(matches!(
+            reopened.load_scene("nope"),
+            Err(StoreError::UnknownScene(_))
+        ));
+    }
+}
