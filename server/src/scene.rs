@@ -508,10 +508,12 @@ impl Owner {
                 },
             ),
         };
-        if announce || since == 0 && sub.delivered != 0 {
-            if let Ok(frame) = encode_server(&ServerMsg::Resync { since }) {
-                sub.out.push(Bytes::from(frame));
-            }
+        // A client resuming from before the tombstone horizon must drop its copy: say so.
+        let restart = since == 0 && sub.delivered != 0;
+        if (announce || restart)
+            && let Ok(frame) = encode_server(&ServerMsg::Resync { since })
+        {
+            sub.out.push(Bytes::from(frame));
         }
         for chunk in changes.removed.chunks(MAX_REMOVED_PER_FRAME) {
             let msg = ServerMsg::Delta {

@@ -101,7 +101,7 @@ fn encode_brick(mask: &Mask, colours: &[Colour], out: &mut Vec<u8>) {
 }
 
 fn decode_brick(cell: [u32; 3], bytes: &[u8]) -> Option<BrickData> {
-    if bytes.len() < 64 || (bytes.len() - 64) % 2 != 0 {
+    if bytes.len() < 64 || !(bytes.len() - 64).is_multiple_of(2) {
         return None;
     }
     let mut mask = [0u64; 8];

@@ -1,0 +1,488 @@
+//! End-to-end tests against a real server over real websockets.
+
+mod common;
+
+use std::time::Duration;
+
+use brickcast_protocol::BrushMode;
+use brickcast_protocol::wire::{
+    ClientMsg, EditOp, ErrorCode, RayAction, Rejection, Role, ServerMsg, encode_client,
+};
+use brickcast_server::auth::Auth;
+use brickcast_server::store::Store;
+use common::{Client, Refused, TestServer, colour, http_get};
+
+/// xorshift, so runs are reproducible without a RNG crate.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0
+    }
+    fn below(&mut self, n: u32) -> u32 {
+        (self.next() % u64::from(n)) as u32
+    }
+}
+
+fn random_op(rng: &mut Rng, size: [u32; 3]) -> EditOp {
+    let pos = [rng.below(size[0]), rng.below(size[1]), rng.below(size[2])];
+    let c = colour(rng.below(1000));
+    match rng.below(8) {
+        0..=2 => EditOp::Set { pos, colour: c },
+        3 => EditOp::Clear { pos },
+        4 => EditOp::Paint { pos, colour: c },
+        5 => EditOp::Sphere {
+            centre: pos.map(|p| p as f32 + 0.5),
+            radius: 1.0 + rng.below(6) as f32,
+            mode: [BrushMode::Fill, BrushMode::Erase, BrushMode::Paint][rng.below(3) as usize],
+            colour: c,
+        },
+        6 => EditOp::Box {
+            min: pos,
+            max: std::array::from_fn(|i| (pos[i] + rng.below(5)).min(size[i] - 1)),
+            mode: [BrushMode::Fill, BrushMode::Erase][rng.below(2) as usize],
+            colour: c,
+        },
+        _ => EditOp::Ray {
+            origin: [
+                rng.below(size[0]) as f32 + 0.5,
+                size[1] as f32 + 10.0,
+                rng.below(size[2]) as f32 + 0.5,
+            ],
+            dir: [0.1, -1.0, 0.05],
+            action: if rng.below(2) == 0 {
+                RayAction::Place { colour: c }
+            } else {
+                RayAction::Remove
+            },
+        },
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_editors_converge_and_survive_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |_| {}).await;
+    let url = server.url("demo");
+    let mut tasks = Vec::new();
+    for id in 0..4u64 {
+        let url = url.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut c = Client::connect(&url, None).await.expect("joins");
+            c.sync().await;
+            let size = c.map.size();
+            let mut rng = Rng(0x9E37_79B9 + id * 7919);
+            let mut last_seq = 0;
+            // Pipeline several batches before reading acks, as a real client would.
+            for round in 0..12 {
+                let mut sent = Vec::new();
+                for _ in 0..5 {
+                    let ops = (0..1 + rng.below(20))
+                        .map(|_| random_op(&mut rng, size))
+                        .collect();
+                    sent.push(c.send_edit(ops).await);
+                }
+                for cs in sent {
+                    if let ServerMsg::Ack { seq: Some(s), .. } = c.ack(cs).await {
+                        assert!(s > last_seq, "sequence numbers grow (round {round})");
+                        last_seq = s;
+                    }
+                }
+            }
+            c
+        }));
+    }
+    let mut clients = Vec::new();
+    for t in tasks {
+        clients.push(t.await.unwrap());
+    }
+    let (_, body) = http_get(server.addr, "/scenes").await;
+    let scenes: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let final_seq = scenes[0]["seq"].as_u64().unwrap();
+    assert!(final_seq > 100, "edits were applied: {final_seq}");
+    for c in &mut clients {
+        c.catch_up(final_seq).await;
+    }
+    let hash = clients[0].map.content_hash();
+    for c in &clients {
+        assert_eq!(
+            c.map.content_hash(),
+            hash,
+            "every client holds the same scene"
+        );
+    }
+    // A client joining now gets the same scene from a fresh sync.
+    let mut late = Client::connect(&url, None).await.unwrap();
+    late.catch_up(final_seq).await;
+    assert_eq!(late.map.content_hash(), hash);
+    let (status, metrics) = http_get(server.addr, "/metrics").await;
+    assert_eq!(status, 200);
+    assert!(
+        metrics.contains("brickcast_connected_clients 5"),
+        "{metrics}"
+    );
+    assert!(metrics.contains("brickcast_log_commit_seconds_count"));
+    for c in clients {
+        c.close().await;
+    }
+    late.close().await;
+    server.shutdown().await.unwrap();
+    // What the store recovers is what the clients saw.
+    let store = Store::open(dir.path()).unwrap();
+    let loaded = store.load_scene("demo").unwrap();
+    assert_eq!(loaded.seq, final_seq);
+    assert_eq!(loaded.map.content_hash(), hash);
+}
+
+#[tokio::test]
+async fn roles_from_the_auth_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |c| {
+        c.auth = Auth::parse("ed-token editor\nview-token viewer\n").unwrap();
+    })
+    .await;
+    let url = server.url("demo");
+    let mut viewer = Client::connect(&url, Some("view-token")).await.unwrap();
+    assert_eq!(viewer.role, Role::Viewer);
+    viewer.sync().await;
+    let before = viewer.map.content_hash();
+    match viewer
+        .edit(vec![EditOp::Set {
+            pos: [1, 60, 1],
+            colour: colour(1),
+        }])
+        .await
+    {
+        ServerMsg::Ack {
+            seq: None,
+            applied: 0,
+            rejected,
+            ..
+        } => {
+            assert_eq!(rejected.len(), 1);
+            assert_eq!(rejected[0].reason, Rejection::NotAllowed);
+        }
+        other => panic!("{other:?}"),
+    }
+    let mut anonymous = Client::connect(&url, None).await.unwrap();
+    assert_eq!(anonymous.role, Role::Viewer, "no token: watch only");
+    anonymous.sync().await;
+    match Client::connect(&url, Some("wrong")).await {
+        Err(Refused::Error(ErrorCode::Unauthorized, _)) => {}
+        Err(other) => panic!("{other:?}"),
+        Ok(_) => panic!("an unknown token was let in"),
+    }
+    let mut editor = Client::connect(&url, Some("ed-token")).await.unwrap();
+    assert_eq!(editor.role, Role::Editor);
+    editor.sync().await;
+    let ServerMsg::Ack { seq: Some(seq), .. } = editor
+        .edit(vec![EditOp::Set {
+            pos: [1, 60, 1],
+            colour: colour(1),
+        }])
+        .await
+    else {
+        panic!("editor edit applies")
+    };
+    // The viewer still watches: it receives the editor's change.
+    viewer.catch_up(seq).await;
+    assert_ne!(viewer.map.content_hash(), before);
+    assert!(viewer.map.is_solid([1, 60, 1]));
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn bad_frames_close_only_their_connection() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |c| {
+        c.owner.limits.max_frame_bytes = brickcast_protocol::wire::MIN_FRAME_BYTES;
+    })
+    .await;
+    let url = server.url("demo");
+    let mut good = Client::connect(&url, None).await.unwrap();
+    good.sync().await;
+
+    let mut garbage = Client::connect(&url, None).await.unwrap();
+    garbage.send_raw(vec![0xFF, 0x13, 0x37, 0x00, 0x42]).await;
+    let errors = garbage.until_closed().await;
+    assert!(
+        errors.iter().any(|(c, _)| *c == ErrorCode::MalformedFrame),
+        "{errors:?}"
+    );
+
+    let mut big = Client::connect(&url, None).await.unwrap();
+    // A well-formed edit whose frame (about 160 KB) exceeds the server's 64 KiB limit.
+    let sphere = EditOp::Sphere {
+        centre: [1.5, 2.5, 3.5],
+        radius: 2.5,
+        mode: BrushMode::Fill,
+        colour: colour(5),
+    };
+    let ops = vec![sphere; 8000];
+    big.send_raw(encode_client(&ClientMsg::Edit { client_seq: 1, ops }).unwrap())
+        .await;
+    let errors = big.until_closed().await;
+    assert!(
+        errors.iter().any(|(c, _)| *c == ErrorCode::FrameTooLarge),
+        "{errors:?}"
+    );
+
+    // Wrong protocol version: a clear error, not a decode failure.
+    let (mut ws, _) = tokio_tungstenite::connect_async(&url).await.unwrap();
+    use futures_util::{SinkExt, StreamExt};
+    let hello = ClientMsg::Hello {
+        protocol: 99,
+        name: "old".into(),
+        token: None,
+        resume_from: None,
+    };
+    ws.send(tokio_tungstenite::tungstenite::Message::Binary(
+        encode_client(&hello).unwrap().into(),
+    ))
+    .await
+    .unwrap();
+    let reply = ws.next().await.unwrap().unwrap().into_data();
+    match brickcast_protocol::wire::decode_server(&reply, &Default::default()).unwrap() {
+        ServerMsg::Error {
+            code: ErrorCode::VersionMismatch,
+            message,
+        } => assert!(message.contains("99"), "{message}"),
+        other => panic!("{other:?}"),
+    }
+
+    // The well-behaved client carries on.
+    match good
+        .edit(vec![EditOp::Set {
+            pos: [2, 60, 2],
+            colour: colour(2),
+        }])
+        .await
+    {
+        ServerMsg::Ack {
+            seq: Some(_),
+            applied: 1,
+            ..
+        } => {}
+        other => panic!("{other:?}"),
+    }
+    let (_, metrics) = http_get(server.addr, "/metrics").await;
+    assert!(
+        metrics.contains("brickcast_rejected_frames_total 3"),
+        "{metrics}"
+    );
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn bad_ops_are_rejected_one_by_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |_| {}).await;
+    let mut c = Client::connect(&server.url("demo"), None).await.unwrap();
+    c.sync().await;
+    let ops = vec![
+        EditOp::Set {
+            pos: [3, 60, 3],
+            colour: colour(3),
+        },
+        EditOp::Set {
+            pos: [128, 0, 0],
+            colour: colour(3),
+        },
+        EditOp::Sphere {
+            centre: [f32::NAN, 1.0, 1.0],
+            radius: 2.0,
+            mode: BrushMode::Fill,
+            colour: colour(3),
+        },
+        EditOp::Sphere {
+            centre: [10.0, 10.0, 10.0],
+            radius: 1000.0,
+            mode: BrushMode::Fill,
+            colour: colour(3),
+        },
+        EditOp::Ray {
+            origin: [5.0, 100.0, 5.0],
+            dir: [0.0, 1.0, 0.0],
+            action: RayAction::Remove,
+        },
+        EditOp::Clear { pos: [3, 60, 4] },
+    ];
+    match c.edit(ops).await {
+        ServerMsg::Ack {
+            seq: Some(_),
+            applied,
+            rejected,
+            ..
+        } => {
+            assert_eq!(applied, 2, "the set and the (no-op) clear");
+            let reasons: Vec<_> = rejected
+                .iter()
+                .map(|r| (r.index, r.reason.clone()))
+                .collect();
+            assert_eq!(
+                reasons,
+                vec![
+                    (1, Rejection::OutOfBounds),
+                    (2, Rejection::InvalidNumber),
+                    (3, Rejection::TooLarge),
+                    (4, Rejection::RayMissed)
+                ]
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn reconnect_resumes_with_only_what_changed() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |_| {}).await;
+    let url = server.url("demo");
+    let mut a = Client::connect(&url, None).await.unwrap();
+    a.sync().await;
+    let full = a.sync_total;
+    let seen = a.seq;
+    let map = a.map.clone();
+    a.close().await;
+
+    let mut b = Client::connect(&url, None).await.unwrap();
+    b.sync().await;
+    let ServerMsg::Ack { seq: Some(seq), .. } = b
+        .edit(vec![
+            EditOp::Sphere {
+                centre: [20.0, 30.0, 20.0],
+                radius: 5.0,
+                mode: BrushMode::Erase,
+                colour: colour(0),
+            },
+            EditOp::Set {
+                pos: [100, 62, 100],
+                colour: colour(9),
+            },
+        ])
+        .await
+    else {
+        panic!("edit applies")
+    };
+
+    let mut back = Client::resume(&url, None, Some(seen), Some(map))
+        .await
+        .unwrap();
+    assert!(
+        back.sync_total < full / 10,
+        "resume sends {} bricks, a full sync {full}",
+        back.sync_total
+    );
+    back.catch_up(seq).await;
+    b.catch_up(seq).await;
+    assert_eq!(back.map.content_hash(), b.map.content_hash());
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn a_client_that_never_reads_is_resynced_not_buffered() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |c| c.owner.max_queue_bytes = 64 << 10).await;
+    let url = server.url("demo");
+    // Joins, then reads nothing while another client edits heavily.
+    let mut sleeper = Client::connect(&url, None).await.unwrap();
+    let mut editor = Client::connect(&url, None).await.unwrap();
+    editor.sync().await;
+    // Random colours at random places: large deltas that barely compress, more than the
+    // kernel's socket buffers can hide.
+    let mut rng = Rng(42);
+    let mut last = 0;
+    for _ in 0..40 {
+        let ops = (0..4000)
+            .map(|_| EditOp::Set {
+                pos: [rng.below(128), rng.below(64), rng.below(128)],
+                colour: brickcast_protocol::Colour(rng.next() as u16),
+            })
+            .collect();
+        if let ServerMsg::Ack { seq: Some(s), .. } = editor.edit(ops).await {
+            last = s;
+        }
+    }
+    let (_, metrics) = http_get(server.addr, "/metrics").await;
+    let resyncs: u64 = metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("brickcast_resyncs_total "))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
+    assert!(
+        resyncs >= 1,
+        "the sleeper overflowed its queue and was marked for resync"
+    );
+    // It wakes up, and converges anyway.
+    sleeper.catch_up(last).await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    editor.catch_up(last).await;
+    assert_eq!(sleeper.map.content_hash(), editor.map.content_hash());
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn shutdown_acks_and_persists_queued_edits() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |_| {}).await;
+    let url = server.url("demo");
+    let mut c = Client::connect(&url, None).await.unwrap();
+    c.sync().await;
+    let mut sent = Vec::new();
+    for i in 0..20u32 {
+        sent.push(
+            c.send_edit(vec![EditOp::Set {
+                pos: [i, 63, 7],
+                colour: colour(i),
+            }])
+            .await,
+        );
+    }
+    // Read one ack so the edits are surely in flight, then shut down without waiting for more.
+    c.ack(sent[0]).await;
+    let shutdown = tokio::spawn(server.shutdown());
+    let mut acked = vec![0u32];
+    while let Some(msg) = c.next().await {
+        if let ServerMsg::Ack {
+            client_seq,
+            seq: Some(_),
+            ..
+        } = msg
+        {
+            acked.push(client_seq as u32 - 1);
+        }
+    }
+    assert!(c.closed, "the server closed the socket");
+    shutdown.await.unwrap().unwrap();
+    let store = Store::open(dir.path()).unwrap();
+    let loaded = store.load_scene("demo").unwrap();
+    assert_eq!(
+        store.log_len("demo").unwrap(),
+        0,
+        "shutdown folded the log into a snapshot"
+    );
+    for i in acked {
+        assert_eq!(
+            loaded.map.get([i, 63, 7]),
+            Some(colour(i)),
+            "acknowledged edit {i} persisted"
+        );
+    }
+}
+
+#[tokio::test]
+async fn http_endpoints() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |_| {}).await;
+    assert_eq!(http_get(server.addr, "/healthz").await.0, 200);
+    assert_eq!(http_get(server.addr, "/scenes/nope/ws").await.0, 404);
+    let (status, body) = http_get(server.addr, "/scenes").await;
+    assert_eq!(status, 200);
+    let list: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(list[0]["name"], "demo");
+    assert_eq!(list[0]["size"], serde_json::json!([128, 64, 128]));
+    server.shutdown().await.unwrap();
+}
