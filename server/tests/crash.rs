@@ -15,7 +15,26 @@ fn free_port() -> SocketAddr {
     listener.local_addr().unwrap()
 }
 
-async fn start(addr: SocketAddr, data: &std::path::Path) -> Child {
+/// The server process; killed and reaped on drop, so a failing assertion leaves no orphan.
+struct ServerProcess(Child);
+
+impl ServerProcess {
+    /// SIGKILL, and wait for the process to be gone.
+    fn kill(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Drop for ServerProcess {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+// The child is returned inside `ServerProcess`, whose Drop waits for it.
+#[allow(clippy::zombie_processes)]
+async fn start(addr: SocketAddr, data: &std::path::Path) -> ServerProcess {
     let mut child = Command::new(env!("CARGO_BIN_EXE_brickcast-server"))
         .args(["serve", "--listen", &addr.to_string(), "--data"])
         .arg(data)
@@ -28,7 +47,7 @@ async fn start(addr: SocketAddr, data: &std::path::Path) -> Child {
         if tokio::net::TcpStream::connect(addr).await.is_ok()
             && http_get(addr, "/healthz").await.0 == 200
         {
-            return child;
+            return ServerProcess(child);
         }
         if Instant::now() >= deadline {
             let _ = child.kill();
@@ -117,8 +136,7 @@ async fn acknowledged_edits_survive_sigkill() {
             );
             tokio::time::sleep(Duration::from_millis(2)).await;
         }
-        server.kill().expect("SIGKILL");
-        let _ = server.wait();
+        server.kill();
         let mut this_round = 0;
         for t in tasks {
             let done = t.await.unwrap();
@@ -143,6 +161,5 @@ async fn acknowledged_edits_survive_sigkill() {
             "acknowledged edit at {pos:?} lost after the last kill"
         );
     }
-    server.kill().unwrap();
-    let _ = server.wait();
+    server.kill();
 }
