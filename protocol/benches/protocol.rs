@@ -31,7 +31,7 @@ impl Rng {
 fn edits(c: &mut Criterion) {
     let mut group = c.benchmark_group("edit");
     group.measurement_time(Duration::from_secs(4));
-    let base = demo_scene([512, 256, 512]).expect("demo scene");
+    let base = demo_scene([512, 512, 512]).expect("demo scene");
 
     // Random single-voxel sets over the demo scene: a mix of recolouring existing voxels, growing
     // existing bricks and creating new ones, which is what people's clicks do.
@@ -119,7 +119,7 @@ fn tracer(c: &mut Criterion) {
 fn wire(c: &mut Criterion) {
     let mut group = c.benchmark_group("wire");
     group.measurement_time(Duration::from_secs(5));
-    let map = demo_scene([512, 256, 512]).expect("demo scene");
+    let map = demo_scene([512, 512, 512]).expect("demo scene");
     let bricks: Vec<_> = map.bricks().map(|(b, _)| b).take(4096).collect();
     for level in [1, 3] {
         let mut encoder = BlobEncoder::new(level).expect("zstd");

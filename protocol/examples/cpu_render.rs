@@ -17,7 +17,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let height: u32 = args.next().map(|a| a.parse()).transpose()?.unwrap_or(540);
 
     let started = Instant::now();
-    let map = demo_scene([512, 256, 512])?;
+    let map = demo_scene([512, 512, 512])?;
     let built = started.elapsed();
     let camera = Camera {
         eye: [-60.0, 230.0, -60.0],

@@ -15,7 +15,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "| scene | bricks | solid voxels | regions | cells | masks | colour bases | colours | total | paper formula | bytes/voxel |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
-    for size in [[512, 256, 512], [1024, 1024, 1024]] {
+    for size in [[512, 512, 512], [1024, 1024, 1024]] {
         let map = demo_scene(size)?;
         let m = map.memory();
         println!(
@@ -38,7 +38,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!();
     println!("| scene | zstd level | raw bytes/brick | compressed bytes/brick | ratio |");
     println!("|---|---|---|---|---|");
-    let map = demo_scene([512, 256, 512])?;
+    let map = demo_scene([512, 512, 512])?;
     let bricks: Vec<_> = map.bricks().map(|(b, _)| b).collect();
     for level in [1, 3, 9] {
         let mut encoder = BlobEncoder::new(level)?;
@@ -53,7 +53,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         let n = bricks.len() as f64;
         println!(
-            "| demo 512×256×512 ({} bricks) | {level} | {:.1} | {:.1} | {:.2} |",
+            "| demo 512³ ({} bricks) | {level} | {:.1} | {:.1} | {:.2} |",
             bricks.len(),
             raw as f64 / n,
             packed as f64 / n,

@@ -38,21 +38,31 @@ struct Terrain {
     water: u32,
 }
 
+/// Height scale of the terrain: half the horizontal extent, or the scene height if lower, so a
+/// taller scene gets more sky rather than steeper mountains.
+fn relief(size: [u32; 3]) -> u32 {
+    size[1].min(size[0].max(size[2]) / 2).max(1)
+}
+
 impl Terrain {
+    fn relief(&self) -> u32 {
+        relief(self.size)
+    }
+
     fn height(&self, x: u32, z: u32) -> u32 {
         let s = self.size[0].max(self.size[2]) as f32;
         let (x, z) = (x as f32, z as f32);
         let n = 0.55 * value_noise(x, z, s / 4.0, 1)
             + 0.3 * value_noise(x, z, s / 10.0, 2)
             + 0.15 * value_noise(x, z, s / 32.0, 3);
-        let top = self.size[1] as f32;
+        let top = self.relief() as f32;
         ((top * (0.12 + 0.5 * n * n)) as u32).clamp(1, self.size[1] - 1)
     }
 
     fn colour(&self, x: u32, y: u32, z: u32, surface: u32) -> Colour {
         let jitter = (lattice(x as i32 * 7 + y as i32, z as i32 * 13 - y as i32, 9) * 24.0) as u8;
         let depth = surface - y;
-        let top = self.size[1];
+        let top = self.relief();
         if surface <= self.water + 1 {
             Colour::from_rgb8(214 - jitter / 2, 196 - jitter / 2, 140)
         } else if depth > 2 {
@@ -67,12 +77,12 @@ impl Terrain {
     }
 }
 
-/// The demo scene at `size` voxels (the server uses 512×256×512).
+/// The demo scene at `size` voxels (the server uses 512³).
 pub fn demo_scene(size: [u32; 3]) -> Result<BrickMap, MapError> {
     let mut map = BrickMap::new(size)?;
     let terrain = Terrain {
         size,
-        water: size[1] * 3 / 16,
+        water: relief(size) * 3 / 16,
     };
     let cells = map.cell_dims();
     let mut heights = vec![0u32; 10 * 10];

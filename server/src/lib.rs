@@ -36,7 +36,7 @@ use crate::scene::{Command, OwnerConfig, SceneHandle};
 use crate::store::Store;
 
 /// Size of the built-in demo scene created on an empty store.
-pub const DEMO_SIZE: [u32; 3] = [512, 256, 512];
+pub const DEMO_SIZE: [u32; 3] = [512, 512, 512];
 
 /// Everything `serve` needs.
 #[derive(Clone, Debug)]

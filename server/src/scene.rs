@@ -144,6 +144,8 @@ pub struct SceneHandle {
     pub name: String,
     pub size: [u32; 3],
     pub limits: Limits,
+    /// Queue bound of each session (see [`OwnerConfig::max_queue_bytes`]).
+    pub max_queue_bytes: usize,
     pub info: Arc<SceneInfo>,
     tx: mpsc::Sender<Command>,
 }
@@ -203,6 +205,7 @@ pub fn spawn(
         name: name.clone(),
         size: map.size(),
         limits: config.limits.clone(),
+        max_queue_bytes: config.max_queue_bytes,
         info: info.clone(),
         tx,
     };

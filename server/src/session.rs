@@ -204,6 +204,14 @@ async fn read_loop(
             }
         };
         app.metrics.bytes_in.fetch_add(bytes.len() as u64, Relaxed);
+        // Deltas to a slow reader are bounded by resyncs, but replies (acks, pongs) to a client
+        // that keeps writing without reading are not: cut such a client off.
+        if out.queued() > 2 * scene.max_queue_bytes {
+            return reject(
+                ErrorCode::RateLimited,
+                "the client sends but does not read its replies".into(),
+            );
+        }
         let msg = match decode_client(&bytes, limits) {
             Ok(msg) => msg,
             Err(e) => return reject(frame_error_code(&e), e.to_string()),

@@ -486,3 +486,70 @@ async fn http_endpoints() {
     assert_eq!(list[0]["size"], serde_json::json!([128, 64, 128]));
     server.shutdown().await.unwrap();
 }
+
+#[tokio::test]
+async fn edits_are_rate_limited_per_client() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |c| c.owner.limits.max_edits_per_second = 100).await;
+    let mut c = Client::connect(&server.url("demo"), None).await.unwrap();
+    c.sync().await;
+    let ops = |n: u32| {
+        (0..n)
+            .map(|i| EditOp::Set {
+                pos: [i, 62, 9],
+                colour: colour(i),
+            })
+            .collect::<Vec<_>>()
+    };
+    assert!(matches!(
+        c.edit(ops(80)).await,
+        ServerMsg::Ack { applied: 80, .. }
+    ));
+    match c.edit(ops(80)).await {
+        ServerMsg::Ack {
+            applied: 0,
+            rejected,
+            ..
+        } => {
+            assert_eq!(rejected.len(), 80);
+            assert!(rejected.iter().all(|r| r.reason == Rejection::RateLimited));
+        }
+        other => panic!("second burst should be rate limited: {other:?}"),
+    }
+    // Tokens come back with time.
+    tokio::time::sleep(Duration::from_millis(900)).await;
+    assert!(matches!(
+        c.edit(ops(80)).await,
+        ServerMsg::Ack { applied: 80, .. }
+    ));
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_joining_during_heavy_editing_converges() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |_| {}).await;
+    let url = server.url("demo");
+    let editor_url = url.clone();
+    let editor = tokio::spawn(async move {
+        let mut e = Client::connect(&editor_url, None).await.unwrap();
+        let mut rng = Rng(7);
+        let mut last = 0;
+        for _ in 0..80 {
+            let ops = (0..40)
+                .map(|_| random_op(&mut rng, [128, 64, 128]))
+                .collect();
+            if let ServerMsg::Ack { seq: Some(s), .. } = e.edit(ops).await {
+                last = s;
+            }
+        }
+        (e, last)
+    });
+    tokio::time::sleep(Duration::from_millis(30)).await;
+    let mut joiner = Client::connect(&url, None).await.unwrap();
+    let (mut e, last) = editor.await.unwrap();
+    joiner.catch_up(last).await;
+    e.catch_up(last).await;
+    assert_eq!(joiner.map.content_hash(), e.map.content_hash());
+    server.shutdown().await.unwrap();
+}
