@@ -71,7 +71,8 @@ async fn acknowledged_edits_survive_sigkill() {
     let dir = tempfile::tempdir().unwrap();
     let addr = free_port();
     let mut acked: Vec<([u32; 3], brickcast_protocol::Colour)> = Vec::new();
-    for round in 0..3u32 {
+    // Three rounds of edit-then-kill; a fourth start only checks the last kill's survivors.
+    for round in 0..4u32 {
         let mut server = start(addr, dir.path()).await;
         // Everything acknowledged in earlier rounds survived the previous kill.
         let mut check = Client::connect(&format!("ws://{addr}/scenes/demo/ws"), None)
@@ -86,6 +87,9 @@ async fn acknowledged_edits_survive_sigkill() {
             );
         }
         check.close().await;
+        if round == 3 {
+            break;
+        }
 
         let progress = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
         let mut tasks = Vec::new();
@@ -149,17 +153,4 @@ async fn acknowledged_edits_survive_sigkill() {
             "round {round}: the kill came mid-stream"
         );
     }
-    let mut server = start(addr, dir.path()).await;
-    let mut check = Client::connect(&format!("ws://{addr}/scenes/demo/ws"), None)
-        .await
-        .unwrap();
-    check.sync().await;
-    for (pos, c) in &acked {
-        assert_eq!(
-            check.map.get(*pos),
-            Some(*c),
-            "acknowledged edit at {pos:?} lost after the last kill"
-        );
-    }
-    server.kill();
 }
