@@ -24,6 +24,8 @@ use crate::auth::Access;
 use crate::metrics::Metrics;
 use crate::scene::{Command, Outbox, SceneHandle, SessionId};
 
+/// How long a closing connection keeps reading so its peer can receive the close.
+const CLOSE_GRACE: Duration = Duration::from_secs(2);
 /// How long a new connection may take to say Hello.
 const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 
@@ -94,9 +96,18 @@ pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
         None => tracing::debug!(session = id, "handshake failed"),
     }
     // The writer ends once every copy of the outbox is gone (ours now, the owner's on Leave),
-    // after sending what was queued.
+    // after sending what was queued and a close frame. Meanwhile keep reading and discarding:
+    // closing a socket with unread input makes the kernel reset the connection, and the peer
+    // would lose the error frame that says why it was closed.
     drop(out);
-    let _ = writer.await;
+    let drain = async {
+        while let Some(Ok(msg)) = stream.next().await {
+            if matches!(msg, Message::Close(_)) {
+                break;
+            }
+        }
+    };
+    let (_, _) = tokio::join!(writer, tokio::time::timeout(CLOSE_GRACE, drain));
     app.metrics.connected_clients.fetch_sub(1, Relaxed);
 }
 

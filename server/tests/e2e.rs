@@ -553,3 +553,41 @@ async fn a_client_joining_during_heavy_editing_converges() {
     assert_eq!(joiner.map.content_hash(), e.map.content_hash());
     server.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_writes_but_never_reads_is_cut_off() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |c| c.owner.max_queue_bytes = 64 << 10).await;
+    let url = server.url("demo");
+    let mut flooder = Client::connect(&url, None).await.unwrap();
+    // Every op is out of bounds, so each batch earns an ack listing 4,000 rejections; the
+    // client never reads them, and they pile up behind the kernel's socket buffers.
+    let ops: Vec<EditOp> = (0..4000)
+        .map(|_| EditOp::Clear {
+            pos: [100_000, 100_000, 100_000],
+        })
+        .collect();
+    for _ in 0..200 {
+        flooder.send_edit(ops.clone()).await;
+    }
+    let errors = flooder.until_closed().await;
+    assert!(
+        errors
+            .iter()
+            .any(|(code, text)| *code == ErrorCode::RateLimited && text.contains("does not read")),
+        "{errors:?}"
+    );
+    // Everyone else is unaffected.
+    let mut other = Client::connect(&url, None).await.unwrap();
+    other.sync().await;
+    assert!(matches!(
+        other
+            .edit(vec![EditOp::Set {
+                pos: [5, 61, 5],
+                colour: colour(5)
+            }])
+            .await,
+        ServerMsg::Ack { applied: 1, .. }
+    ));
+    server.shutdown().await.unwrap();
+}

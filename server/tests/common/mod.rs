@@ -188,7 +188,12 @@ impl Client {
             };
             let bytes = match frame {
                 Some(Ok(Message::Binary(b))) => b,
-                Some(Ok(Message::Close(_))) | None | Some(Err(_)) => {
+                Some(Ok(Message::Close(_))) | None => {
+                    self.closed = true;
+                    return None;
+                }
+                Some(Err(e)) => {
+                    eprintln!("test client: websocket error: {e}");
                     self.closed = true;
                     return None;
                 }
