@@ -591,3 +591,39 @@ async fn a_client_that_writes_but_never_reads_is_cut_off() {
     ));
     server.shutdown().await.unwrap();
 }
+
+#[tokio::test]
+async fn initial_sync_sends_nearest_bricks_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |c| c.owner.limits.max_bricks_per_frame = 32).await;
+    let mut c = Client::connect(&server.url("demo"), None).await.unwrap();
+    // Before any Camera message the server streams from above the scene's centre.
+    let size = c.map.size();
+    let eye = [size[0] as f32 * 0.5, size[1] as f32, size[2] as f32 * 0.5];
+    let distance = |cell: [u32; 3]| -> f32 {
+        (0..3)
+            .map(|i| (cell[i] as f32 * 8.0 + 4.0 - eye[i]).powi(2))
+            .sum()
+    };
+    let mut batches: Vec<(f32, f32)> = Vec::new();
+    let mut decoder = brickcast_protocol::wire::BlobDecoder::new().unwrap();
+    while !c.synced {
+        if let Some(ServerMsg::SyncBatch { bricks, .. }) = c.next().await {
+            let (mut lo, mut hi) = (f32::MAX, 0f32);
+            decoder
+                .for_each(&bricks, 64, |b| {
+                    lo = lo.min(distance(b.cell));
+                    hi = hi.max(distance(b.cell));
+                })
+                .unwrap();
+            batches.push((lo, hi));
+        }
+    }
+    assert!(batches.len() > 10, "small batches: {}", batches.len());
+    for pair in batches.windows(2) {
+        // Every brick of a batch is at most as far as every brick of the next (up to the
+        // server's 1/16-voxel² sort granularity).
+        assert!(pair[0].1 <= pair[1].0 + 1.0, "{pair:?}");
+    }
+    server.shutdown().await.unwrap();
+}
