@@ -159,9 +159,8 @@ pub struct BrickMap {
     slot_version: Vec<u64>,
     slot_capacity: Vec<u16>,
     free_slots: Vec<u32>,
-    // Per cell block: how many of its cells hold a brick, and which region owns it.
+    // Per cell block: how many of its cells hold a brick.
     block_fill: Vec<u16>,
-    block_region: Vec<u32>,
     free_blocks: Vec<u32>,
     /// Free colour chunks, indexed by capacity.
     free_chunks: Vec<Vec<u32>>,
@@ -216,7 +215,6 @@ impl BrickMap {
             slot_capacity: Vec::new(),
             free_slots: Vec::new(),
             block_fill: Vec::new(),
-            block_region: Vec::new(),
             free_blocks: Vec::new(),
             free_chunks: vec![Vec::new(); 513],
             tombstones: HashMap::new(),
@@ -808,7 +806,7 @@ impl BrickMap {
         let region = self.region_index(cell.map(|c| c / REGION_CELLS));
         let mut block = self.regions[region];
         if region_is_empty(block) {
-            block = self.alloc_block(region as u32);
+            block = self.alloc_block();
             self.regions[region] = block;
             if let Some(g) = &mut self.gpu {
                 g.regions.push(region as u32);
@@ -976,17 +974,13 @@ impl BrickMap {
         }
     }
 
-    fn alloc_block(&mut self, region: u32) -> u32 {
+    fn alloc_block(&mut self) -> u32 {
         match self.free_blocks.pop() {
-            Some(b) => {
-                self.block_region[b as usize] = region;
-                b
-            }
+            Some(b) => b,
             None => {
                 self.cells
                     .extend(std::iter::repeat_n(EMPTY, CELLS_PER_BLOCK as usize));
                 self.block_fill.push(0);
-                self.block_region.push(region);
                 self.block_fill.len() as u32 - 1
             }
         }

@@ -551,9 +551,10 @@ impl Owner {
         }
         self.unsnapshotted.extend_from_slice(&touched);
         let from = self.info.seq.load(Relaxed);
+        let to = self.seq;
         let frames = match self.encode_cells(&touched, |bricks, removed| ServerMsg::Delta {
             from_seq: from,
-            to_seq: 0,
+            to_seq: to,
             bricks,
             removed,
         }) {
@@ -584,7 +585,7 @@ impl Owner {
 
     /// Encodes the current state of `cells` as frames: bricks that exist go in blobs cut to
     /// fit the frame limit, empty cells are listed as removed. `make` builds the message around
-    /// each blob; deltas get `to_seq` patched to the current sequence.
+    /// each blob.
     fn encode_cells(
         &mut self,
         cells: &[u32],
@@ -595,14 +596,10 @@ impl Owner {
         let mut frames = Vec::new();
         let mut removed = Vec::new();
         self.encoder.clear();
-        let seq = self.seq;
         let finish =
             |encoder: &mut BlobEncoder, removed: &mut Vec<[u32; 3]>, frames: &mut Vec<Bytes>| {
                 let blob = encoder.finish()?;
-                let mut msg = make(blob, std::mem::take(removed));
-                if let ServerMsg::Delta { to_seq, .. } = &mut msg {
-                    *to_seq = seq;
-                }
+                let msg = make(blob, std::mem::take(removed));
                 frames.push(Bytes::from(encode_server(&msg)?));
                 Ok::<(), brickcast_protocol::wire::WireError>(())
             };
