@@ -19,11 +19,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let started = Instant::now();
     let map = demo_scene([512, 512, 512])?;
     let built = started.elapsed();
-    let camera = Camera {
-        eye: [-60.0, 230.0, -60.0],
-        target: [300.0, 60.0, 300.0],
-        fov_y: 55.0,
-    };
+    let camera = Camera::overview(map.size());
     let projection = camera.project(width, height).ok_or("degenerate camera")?;
     let started = Instant::now();
     let frame = render(&map, &projection, &Lighting::default(), 0);

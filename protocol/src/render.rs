@@ -57,6 +57,17 @@ fn normalize(a: [f32; 3]) -> Option<[f32; 3]> {
 }
 
 impl Camera {
+    /// A view of the whole scene from above one corner, looking across it: the default when a
+    /// user names no camera.
+    pub fn overview(size: [u32; 3]) -> Camera {
+        let [sx, sy, sz] = size.map(|s| s as f32);
+        Camera {
+            eye: [-0.117 * sx, 0.45 * sy.max(0.25 * sx.max(sz)), -0.117 * sz],
+            target: [0.586 * sx, 0.117 * sy, 0.586 * sz],
+            fov_y: 55.0,
+        }
+    }
+
     /// Per-frame constants for a `width`×`height` image; `None` for a degenerate camera (eye on
     /// target, non-finite values, zero-sized image).
     pub fn project(&self, width: u32, height: u32) -> Option<Projection> {

@@ -485,6 +485,12 @@ impl Owner {
                 self.start_resync(&mut sub, false);
             }
             None => {
+                // A client that asked to resume holds a copy we cannot patch: tell it to drop it.
+                if resume_from.is_some()
+                    && let Ok(frame) = encode_server(&ServerMsg::Resync { since: 0 })
+                {
+                    sub.out.push(Bytes::from(frame));
+                }
                 sub.pending = self
                     .map
                     .brick_cells()

@@ -1,0 +1,236 @@
+//! One websocket connection to a scene: handshake, frames in and out.
+//!
+//! A `Link` knows the wire protocol but not what to do with the scene; the replica applies what
+//! arrives, and the front ends decide when to reconnect.
+
+use std::time::Duration;
+
+use brickcast_protocol::wire::{
+    ClientMsg, ErrorCode, Limits, PROTOCOL_VERSION, Role, ServerMsg, WireError, decode_server,
+    encode_client,
+};
+use futures_util::{SinkExt, StreamExt};
+use tokio::net::TcpStream;
+use tokio_tungstenite::tungstenite::Message;
+use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
+
+use crate::replica::{Replica, ReplicaError};
+
+/// How long the server has to answer the Hello.
+const WELCOME_TIMEOUT: Duration = Duration::from_secs(15);
+
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    #[error("{0:?} is not a scene address: expected ws://HOST:PORT/scenes/NAME")]
+    BadUrl(String),
+    #[error("could not connect to {url}: {reason}")]
+    Connect { url: String, reason: String },
+    #[error("the server refused the connection ({code:?}): {message}")]
+    Refused { code: ErrorCode, message: String },
+    #[error("the server closed the connection")]
+    Closed,
+    #[error("no Welcome from the server within {0:?}")]
+    Timeout(Duration),
+    #[error("websocket error: {0}")]
+    Socket(String),
+    #[error("the server sent an invalid frame: {0}")]
+    Wire(#[from] WireError),
+    #[error("the server sent {0} where a Welcome was expected")]
+    Unexpected(&'static str),
+    #[error(transparent)]
+    Replica(#[from] ReplicaError),
+}
+
+impl LinkError {
+    /// Whether trying again later can help (a refused token or version cannot).
+    pub fn is_retryable(&self) -> bool {
+        !matches!(self, LinkError::BadUrl(_) | LinkError::Refused { .. })
+    }
+}
+
+/// Turns what a user types into the websocket address: `ws://HOST:PORT/scenes/NAME`, with or
+/// without the trailing `/ws` the server routes on, or a bare `HOST:PORT/scenes/NAME`.
+pub fn websocket_url(input: &str) -> Result<String, LinkError> {
+    let bad = || LinkError::BadUrl(input.to_string());
+    let rest = if let Some(r) = input.strip_prefix("ws://") {
+        r
+    } else if let Some(r) = input.strip_prefix("http://") {
+        r
+    } else if input.contains("://") {
+        // No TLS support is compiled in; say so rather than fail obscurely.
+        return Err(bad());
+    } else {
+        input
+    };
+    let (host, path) = rest.split_once('/').ok_or_else(bad)?;
+    let path = path.trim_end_matches('/');
+    let path = path.strip_suffix("/ws").unwrap_or(path);
+    let name = path.strip_prefix("scenes/").ok_or_else(bad)?;
+    if host.is_empty() || name.is_empty() || name.contains('/') {
+        return Err(bad());
+    }
+    Ok(format!("ws://{host}/scenes/{name}/ws"))
+}
+
+/// What the server said about the scene and us.
+#[derive(Debug, Clone)]
+pub struct Welcome {
+    pub server: String,
+    pub scene: String,
+    pub size: [u32; 3],
+    pub seq: u64,
+    pub role: Role,
+    pub limits: Limits,
+    pub total_bricks: u32,
+}
+
+/// An open, welcomed connection.
+pub struct Link {
+    ws: WebSocketStream<MaybeTlsStream<TcpStream>>,
+    pub welcome: Welcome,
+}
+
+impl Link {
+    /// Connects and says hello, asking to resume from `resume_from` when the caller holds a
+    /// complete copy up to that sequence.
+    pub async fn connect(
+        url: &str,
+        name: &str,
+        token: Option<&str>,
+        resume_from: Option<u64>,
+    ) -> Result<Link, LinkError> {
+        let (mut ws, _) =
+            tokio_tungstenite::connect_async(url)
+                .await
+                .map_err(|e| LinkError::Connect {
+                    url: url.to_string(),
+                    reason: e.to_string(),
+                })?;
+        let hello = ClientMsg::Hello {
+            protocol: PROTOCOL_VERSION,
+            name: name.to_string(),
+            token: token.map(String::from),
+            resume_from,
+        };
+        ws.send(Message::Binary(encode_client(&hello)?.into()))
+            .await
+            .map_err(|e| LinkError::Socket(e.to_string()))?;
+        let mut link = Link {
+            ws,
+            welcome: Welcome {
+                server: String::new(),
+                scene: String::new(),
+                size: [0; 3],
+                seq: 0,
+                role: Role::Viewer,
+                limits: Limits::default(),
+                total_bricks: 0,
+            },
+        };
+        let first = tokio::time::timeout(WELCOME_TIMEOUT, link.next())
+            .await
+            .map_err(|_| LinkError::Timeout(WELCOME_TIMEOUT))??;
+        match first {
+            Some(ServerMsg::Welcome {
+                server,
+                scene,
+                size,
+                seq,
+                role,
+                limits,
+                total_bricks,
+                ..
+            }) => {
+                link.welcome = Welcome {
+                    server,
+                    scene,
+                    size,
+                    seq,
+                    role,
+                    limits,
+                    total_bricks,
+                };
+                Ok(link)
+            }
+            Some(ServerMsg::Error { code, message }) => Err(LinkError::Refused { code, message }),
+            Some(_) => Err(LinkError::Unexpected("another message")),
+            None => Err(LinkError::Closed),
+        }
+    }
+
+    /// The next message from the server; `None` once it has closed the connection.
+    pub async fn next(&mut self) -> Result<Option<ServerMsg>, LinkError> {
+        loop {
+            match self.ws.next().await {
+                Some(Ok(Message::Binary(bytes))) => {
+                    return Ok(Some(decode_server(&bytes, &Limits::hard_caps())?));
+                }
+                Some(Ok(Message::Close(_))) | None => return Ok(None),
+                Some(Ok(_)) => continue,
+                Some(Err(e)) => return Err(LinkError::Socket(e.to_string())),
+            }
+        }
+    }
+
+    pub async fn send(&mut self, msg: &ClientMsg) -> Result<(), LinkError> {
+        self.ws
+            .send(Message::Binary(encode_client(msg)?.into()))
+            .await
+            .map_err(|e| LinkError::Socket(e.to_string()))
+    }
+
+    pub async fn close(mut self) {
+        let _ = self.ws.close(None).await;
+    }
+}
+
+/// Reads until `replica` holds the whole scene, calling `progress` after every sync batch.
+/// Errors the server reports during the sync end it.
+pub async fn sync(
+    link: &mut Link,
+    replica: &mut Replica,
+    mut progress: impl FnMut(&Replica),
+) -> Result<(), LinkError> {
+    while !replica.synced {
+        match link.next().await? {
+            Some(ServerMsg::Error { code, message }) => {
+                return Err(LinkError::Refused { code, message });
+            }
+            Some(msg) => {
+                replica.apply(&msg)?;
+                progress(replica);
+            }
+            None => return Err(LinkError::Closed),
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_normalise_to_the_websocket_route() {
+        let want = "ws://127.0.0.1:7878/scenes/demo/ws";
+        for input in [
+            "ws://127.0.0.1:7878/scenes/demo",
+            "ws://127.0.0.1:7878/scenes/demo/",
+            "ws://127.0.0.1:7878/scenes/demo/ws",
+            "http://127.0.0.1:7878/scenes/demo",
+            "127.0.0.1:7878/scenes/demo",
+        ] {
+            assert_eq!(websocket_url(input).unwrap(), want, "{input}");
+        }
+        for bad in [
+            "wss://host/scenes/demo",
+            "ws://host",
+            "ws://host/demo",
+            "ws:///scenes/demo",
+            "ws://host/scenes/",
+            "ws://host/scenes/a/b",
+        ] {
+            assert!(websocket_url(bad).is_err(), "{bad}");
+        }
+    }
+}

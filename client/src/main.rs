@@ -1,0 +1,150 @@
+//! `brickcast`: view a scene in a window, or render one frame of it to a PNG.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use brickcast_client::gpu::BackendChoice;
+use brickcast_client::headless::{self, RenderJob};
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "brickcast",
+    version,
+    about = "Thin client for brickcast scene servers"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Open a window on a scene: fly around, edit with the mouse.
+    View {
+        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/demo
+        url: String,
+        /// Access token (servers started with --auth).
+        #[arg(long)]
+        token: Option<String>,
+        #[command(flatten)]
+        view: brickcast_client::viewer::ViewArgs,
+    },
+    /// Sync a scene, render one frame and write it as a PNG.
+    Render {
+        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/demo
+        url: String,
+        #[arg(long)]
+        token: Option<String>,
+        /// Where to write the PNG.
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value_t = 640)]
+        width: u32,
+        #[arg(long, default_value_t = 360)]
+        height: u32,
+        /// Camera position in voxels, "x,y,z" (default: above a corner of the scene).
+        #[arg(long, value_parser = parse_vec3)]
+        eye: Option<[f32; 3]>,
+        /// Point the camera looks at, "x,y,z".
+        #[arg(long, value_parser = parse_vec3)]
+        target: Option<[f32; 3]>,
+        /// Vertical field of view in degrees.
+        #[arg(long, default_value_t = 60.0)]
+        fov: f32,
+        /// Trace on the CPU instead of the GPU.
+        #[arg(long)]
+        cpu: bool,
+        /// Frames to time after a warm-up frame; trace_ms is their median.
+        #[arg(long, default_value_t = 3)]
+        frames: u32,
+        /// Print a JSON report on stdout.
+        #[arg(long)]
+        json: bool,
+        /// Only use Vulkan adapters (no fallback to other APIs).
+        #[arg(long)]
+        vulkan: bool,
+    },
+}
+
+fn parse_vec3(text: &str) -> Result<[f32; 3], String> {
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    let [x, y, z] = parts.as_slice() else {
+        return Err(format!("expected x,y,z, got {text:?}"));
+    };
+    let parse = |s: &str| {
+        s.parse::<f32>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| format!("{s:?} is not a finite number"))
+    };
+    Ok([parse(x)?, parse(y)?, parse(z)?])
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,wgpu_core=warn,wgpu_hal=warn,naga=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::View { url, token, view } => brickcast_client::viewer::run(&url, token, view),
+        Command::Render {
+            url,
+            token,
+            out,
+            width,
+            height,
+            eye,
+            target,
+            fov,
+            cpu,
+            frames,
+            json,
+            vulkan,
+        } => {
+            if width == 0 || height == 0 || width > 16384 || height > 16384 {
+                bail!("image size {width}×{height} is out of range (1..=16384 per side)");
+            }
+            let report = headless::run(&RenderJob {
+                url: &url,
+                token: token.as_deref(),
+                out: &out,
+                width,
+                height,
+                eye,
+                target,
+                fov,
+                cpu,
+                backends: if vulkan {
+                    BackendChoice::Vulkan
+                } else {
+                    BackendChoice::Primary
+                },
+                timed_frames: frames,
+            })?;
+            if json {
+                println!(
+                    "{}",
+                    serde_json::to_string(&report).context("encoding the report")?
+                );
+            } else {
+                eprintln!(
+                    "{}: {}×{} of {} ({} bricks, {} voxels) on {}: sync {:.0} ms, trace {:.2} ms",
+                    out.display(),
+                    report.width,
+                    report.height,
+                    report.scene,
+                    report.bricks,
+                    report.voxels,
+                    report.adapter,
+                    report.sync_ms,
+                    report.trace_ms
+                );
+            }
+            Ok(())
+        }
+    }
+}

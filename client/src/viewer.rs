@@ -1,0 +1,804 @@
+//! `brickcast view`: a window onto a live scene.
+//!
+//! Each frame: copy what the network thread applied since the last frame into the GPU buffers,
+//! trace the frame in a compute pass, and draw the traced image onto the window with one
+//! full-screen triangle (`shaders/blit.wgsl`). Edits are sent as ray ops built from the same
+//! per-pixel ray the tracer used, so the server (which resolves them on its own copy) hits the
+//! voxel the user pointed at.
+//!
+//! Controls: WASD to fly, Space/E up, Q/C down, mouse look while the middle button is held (or
+//! after Tab, which captures the cursor and aims with a crosshair at the centre); the wheel sets
+//! the speed. Left click removes, right click places, Ctrl+left paints; 1–8 pick a colour, `[` and
+//! `]` set the brush radius (0 edits single voxels, more carves or fills spheres).
+
+use std::collections::HashSet;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, anyhow};
+use brickcast_protocol::wire::{BrushMode, EditOp, RayAction, Role};
+use brickcast_protocol::{Camera, Colour, Lighting, Projection};
+use winit::application::ApplicationHandler;
+use winit::event::{
+    DeviceEvent, DeviceId, ElementState, MouseButton, MouseScrollDelta, WindowEvent,
+};
+use winit::event_loop::{ActiveEventLoop, EventLoop};
+use winit::keyboard::{KeyCode, ModifiersState, PhysicalKey};
+use winit::window::{CursorGrabMode, Window, WindowId};
+
+use crate::gpu::{BackendChoice, GpuContext, GpuScene, Tracer, new_instance};
+use crate::link::websocket_url;
+use crate::live::{Live, Status};
+
+/// Options of `brickcast view` besides the address.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ViewArgs {
+    /// Trace at 1/SCALE of the window's resolution (faster on slow GPUs).
+    #[arg(long, default_value_t = 1)]
+    pub scale: u32,
+    /// Initial window size, "WIDTHxHEIGHT".
+    #[arg(long, default_value = "1280x720")]
+    pub size: String,
+    /// Only use Vulkan adapters.
+    #[arg(long)]
+    pub vulkan: bool,
+    /// Close after this many frames have been drawn with the scene fully synced (for scripted
+    /// runs and smoke tests).
+    #[arg(long)]
+    pub exit_after: Option<u32>,
+    /// With --exit-after: save the last frame, as shown in the window, to this PNG.
+    #[arg(long)]
+    pub screenshot: Option<PathBuf>,
+}
+
+/// The palette behind keys 1–8.
+const PALETTE: [(u8, u8, u8); 8] = [
+    (0xd9, 0x3b, 0x3b),
+    (0xf2, 0x9e, 0x38),
+    (0xf2, 0xd8, 0x4b),
+    (0x5f, 0xb0, 0x4a),
+    (0x3b, 0x8e, 0xd9),
+    (0x8a, 0x5c, 0xc7),
+    (0xf0, 0xf0, 0xf0),
+    (0x50, 0x48, 0x40),
+];
+
+/// A free-flying camera: position plus yaw/pitch, y up.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlyCamera {
+    pub eye: [f32; 3],
+    pub yaw: f32,
+    pub pitch: f32,
+    pub fov_y: f32,
+    /// Voxels per second.
+    pub speed: f32,
+}
+
+impl FlyCamera {
+    /// Starts at `camera`, moving about an eighth of the scene per second.
+    pub fn from_camera(camera: &Camera, size: [u32; 3]) -> FlyCamera {
+        let d: [f32; 3] = std::array::from_fn(|i| camera.target[i] - camera.eye[i]);
+        let flat = (d[0] * d[0] + d[2] * d[2]).sqrt();
+        FlyCamera {
+            eye: camera.eye,
+            yaw: d[2].atan2(d[0]),
+            pitch: d[1].atan2(flat),
+            fov_y: camera.fov_y,
+            speed: size.iter().copied().max().unwrap_or(64) as f32 / 8.0,
+        }
+    }
+
+    pub fn forward(&self) -> [f32; 3] {
+        let (sy, cy) = self.yaw.sin_cos();
+        let (sp, cp) = self.pitch.sin_cos();
+        [cp * cy, sp, cp * sy]
+    }
+
+    pub fn camera(&self) -> Camera {
+        let f = self.forward();
+        Camera {
+            eye: self.eye,
+            target: std::array::from_fn(|i| self.eye[i] + f[i]),
+            fov_y: self.fov_y,
+        }
+    }
+
+    /// Moves by `dir` (forward, right, up) for `dt` seconds.
+    pub fn fly(&mut self, dir: [f32; 3], dt: f32) {
+        let f = self.forward();
+        let (sy, cy) = self.yaw.sin_cos();
+        let right = [-sy, 0.0, cy];
+        let step = self.speed * dt;
+        for i in 0..3 {
+            self.eye[i] += (f[i] * dir[0] + right[i] * dir[1] + [0.0, 1.0, 0.0][i] * dir[2]) * step;
+        }
+    }
+
+    pub fn look(&mut self, dx: f32, dy: f32) {
+        const SENSITIVITY: f32 = 0.003;
+        self.yaw += dx * SENSITIVITY;
+        self.pitch = (self.pitch - dy * SENSITIVITY).clamp(-1.55, 1.55);
+    }
+}
+
+/// Everything that exists once the window does.
+struct Gpu {
+    window: Arc<Window>,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    ctx: GpuContext,
+    tracer: Tracer,
+    blit: wgpu::RenderPipeline,
+    blit_layout: wgpu::BindGroupLayout,
+    sampler: wgpu::Sampler,
+    scene: Option<GpuScene>,
+}
+
+struct App {
+    args: ViewArgs,
+    live: Live,
+    backends: BackendChoice,
+    instance: Option<wgpu::Instance>,
+    gpu: Option<Gpu>,
+    error: Option<anyhow::Error>,
+    camera: Option<FlyCamera>,
+    keys: HashSet<KeyCode>,
+    modifiers: ModifiersState,
+    cursor: (f64, f64),
+    looking: bool,
+    captured: bool,
+    colour: usize,
+    radius: f32,
+    last_frame: Instant,
+    frames_since_title: u32,
+    title_at: Instant,
+    fps: f32,
+    synced_frames: u32,
+    /// Projection of the last traced frame, for turning clicks into rays.
+    projection: Option<Projection>,
+}
+
+/// Opens the window and runs until it is closed.
+pub fn run(url: &str, token: Option<String>, args: ViewArgs) -> Result<()> {
+    if args.scale == 0 || args.scale > 16 {
+        return Err(anyhow!("--scale must be 1..=16"));
+    }
+    let (w, h) = parse_size(&args.size)?;
+    let url = websocket_url(url)?;
+    let event_loop =
+        EventLoop::new().context("opening a window system connection (is DISPLAY set?)")?;
+    let backends = if args.vulkan {
+        BackendChoice::Vulkan
+    } else {
+        BackendChoice::Primary
+    };
+    let instance = new_instance(backends, Some(Box::new(event_loop.owned_display_handle())));
+    let live =
+        Live::start(url, "brickcast view".into(), token).context("starting the network thread")?;
+    let mut app = App {
+        args: ViewArgs {
+            size: format!("{w}x{h}"),
+            ..args
+        },
+        live,
+        backends,
+        instance: Some(instance),
+        gpu: None,
+        error: None,
+        camera: None,
+        keys: HashSet::new(),
+        modifiers: ModifiersState::empty(),
+        cursor: (0.0, 0.0),
+        looking: false,
+        captured: false,
+        colour: 0,
+        radius: 0.0,
+        last_frame: Instant::now(),
+        frames_since_title: 0,
+        title_at: Instant::now(),
+        fps: 0.0,
+        synced_frames: 0,
+        projection: None,
+    };
+    event_loop
+        .run_app(&mut app)
+        .context("running the event loop")?;
+    match app.error.take() {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
+}
+
+fn parse_size(text: &str) -> Result<(u32, u32)> {
+    let (w, h) = text
+        .split_once('x')
+        .ok_or_else(|| anyhow!("--size must look like 1280x720, not {text:?}"))?;
+    let w: u32 = w.trim().parse().context("window width")?;
+    let h: u32 = h.trim().parse().context("window height")?;
+    if !(1..=16384).contains(&w) || !(1..=16384).contains(&h) {
+        return Err(anyhow!("window size {w}x{h} is out of range"));
+    }
+    Ok((w, h))
+}
+
+impl App {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, error: anyhow::Error) {
+        tracing::error!("{error:#}");
+        self.error = Some(error);
+        event_loop.exit();
+    }
+
+    fn create(&mut self, event_loop: &ActiveEventLoop) -> Result<()> {
+        let (w, h) = parse_size(&self.args.size)?;
+        let window = Arc::new(
+            event_loop
+                .create_window(
+                    Window::default_attributes()
+                        .with_title("brickcast")
+                        .with_inner_size(winit::dpi::PhysicalSize::new(w, h)),
+                )
+                .context("creating the window")?,
+        );
+        let instance = match self.instance.take() {
+            Some(i) => i,
+            None => new_instance(
+                self.backends,
+                Some(Box::new(event_loop.owned_display_handle())),
+            ),
+        };
+        let surface = instance
+            .create_surface(window.clone())
+            .context("creating a surface for the window")?;
+        let ctx = pollster::block_on(GpuContext::with_instance(instance, Some(&surface)))?;
+        let size = window.inner_size();
+        let mut config = surface
+            .get_default_config(&ctx.adapter, size.width.max(1), size.height.max(1))
+            .ok_or_else(|| anyhow!("{} cannot present to this window", ctx.adapter_name))?;
+        let caps = surface.get_capabilities(&ctx.adapter);
+        // The traced bytes are already display values: present them untouched, not through an
+        // sRGB conversion.
+        if let Some(format) = caps.formats.iter().find(|f| !f.is_srgb()) {
+            config.format = *format;
+        }
+        if caps.usages.contains(wgpu::TextureUsages::COPY_SRC) {
+            config.usage |= wgpu::TextureUsages::COPY_SRC;
+        }
+        surface.configure(&ctx.device, &config);
+        let tracer = Tracer::new(&ctx)?;
+        let (blit, blit_layout) = blit_pipeline(&ctx.device, config.format);
+        let sampler = ctx.device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("nearest"),
+            mag_filter: wgpu::FilterMode::Nearest,
+            min_filter: wgpu::FilterMode::Nearest,
+            ..Default::default()
+        });
+        tracing::info!("tracing on {}", ctx.adapter_name);
+        self.gpu = Some(Gpu {
+            window,
+            surface,
+            config,
+            ctx,
+            tracer,
+            blit,
+            blit_layout,
+            sampler,
+            scene: None,
+        });
+        Ok(())
+    }
+
+    /// Movement keys held now, as (forward, right, up).
+    fn movement(&self) -> [f32; 3] {
+        let axis = |plus: &[KeyCode], minus: &[KeyCode]| {
+            let held = |ks: &[KeyCode]| ks.iter().any(|k| self.keys.contains(k));
+            f32::from(u8::from(held(plus))) - f32::from(u8::from(held(minus)))
+        };
+        [
+            axis(
+                &[KeyCode::KeyW, KeyCode::ArrowUp],
+                &[KeyCode::KeyS, KeyCode::ArrowDown],
+            ),
+            axis(
+                &[KeyCode::KeyD, KeyCode::ArrowRight],
+                &[KeyCode::KeyA, KeyCode::ArrowLeft],
+            ),
+            axis(
+                &[KeyCode::Space, KeyCode::KeyE],
+                &[KeyCode::KeyQ, KeyCode::KeyC],
+            ),
+        ]
+    }
+
+    fn frame(&mut self, event_loop: &ActiveEventLoop) -> Result<()> {
+        let now = Instant::now();
+        let dt = now.duration_since(self.last_frame).as_secs_f32().min(0.25);
+        self.last_frame = now;
+        let movement = self.movement();
+        let Some(gpu) = &mut self.gpu else {
+            return Ok(());
+        };
+        // Bring the GPU copy up to date with what the network thread applied.
+        let (status, role, synced, progress, rejected) = {
+            let mut live = self.live.lock();
+            let status = live.status.clone();
+            let role = live.role;
+            let rejected = live.last_rejection.clone();
+            match &mut live.replica {
+                Some(replica) => {
+                    let size = replica.map.size();
+                    if self.camera.is_none() {
+                        self.camera = Some(FlyCamera::from_camera(&Camera::overview(size), size));
+                    }
+                    let stale = gpu.scene.as_ref().is_none_or(|s| s.size() != size);
+                    if replica.take_reset() || stale {
+                        gpu.scene = Some(GpuScene::new(&gpu.ctx, &mut replica.map, None)?);
+                    } else if let Some(scene) = &mut gpu.scene {
+                        scene.update(&gpu.ctx, &mut replica.map)?;
+                    }
+                    let progress = (replica.sync_sent, replica.sync_total);
+                    (status, role, replica.synced, progress, rejected)
+                }
+                None => (status, role, false, (0, 0), rejected),
+            }
+        };
+        if let Status::Failed(reason) = &status {
+            return Err(anyhow!("{reason}"));
+        }
+        if let Some(camera) = &mut self.camera {
+            camera.fly(movement, dt);
+        }
+        let frame = match gpu.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                gpu.surface.configure(&gpu.ctx.device, &gpu.config);
+                return Ok(());
+            }
+            // Minimised or covered: nothing to draw.
+            _ => return Ok(()),
+        };
+        let target = frame
+            .texture
+            .create_view(&wgpu::TextureViewDescriptor::default());
+        let mut encoder = gpu
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("frame"),
+            });
+        let scale = self.args.scale;
+        let (tw, th) = (
+            gpu.config.width.div_ceil(scale).max(1),
+            gpu.config.height.div_ceil(scale).max(1),
+        );
+        let traced = match (&gpu.scene, &self.camera) {
+            (Some(scene), Some(camera)) => match camera.camera().project(tw, th) {
+                Some(projection) => {
+                    gpu.tracer.encode(
+                        &gpu.ctx,
+                        &mut encoder,
+                        scene,
+                        &projection,
+                        &Lighting::default(),
+                    )?;
+                    self.projection = Some(projection);
+                    true
+                }
+                None => false,
+            },
+            _ => false,
+        };
+        {
+            let group = match (traced, gpu.tracer.image_view()) {
+                (true, Some(view)) => Some(gpu.ctx.device.create_bind_group(
+                    &wgpu::BindGroupDescriptor {
+                        label: Some("blit"),
+                        layout: &gpu.blit_layout,
+                        entries: &[
+                            wgpu::BindGroupEntry {
+                                binding: 0,
+                                resource: wgpu::BindingResource::TextureView(view),
+                            },
+                            wgpu::BindGroupEntry {
+                                binding: 1,
+                                resource: wgpu::BindingResource::Sampler(&gpu.sampler),
+                            },
+                        ],
+                    },
+                )),
+                _ => None,
+            };
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("present"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &target,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color {
+                            r: 0.62,
+                            g: 0.74,
+                            b: 0.90,
+                            a: 1.0,
+                        }),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: None,
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            if let Some(group) = &group {
+                pass.set_pipeline(&gpu.blit);
+                pass.set_bind_group(0, group, &[]);
+                pass.draw(0..3, 0..1);
+            }
+        }
+        if synced && traced {
+            self.synced_frames += 1;
+        }
+        let last = self
+            .args
+            .exit_after
+            .is_some_and(|n| self.synced_frames >= n);
+        let shot = match (&self.args.screenshot, last) {
+            (Some(path), true) => Some((
+                path.clone(),
+                screenshot_buffer(&gpu.ctx, &mut encoder, &frame.texture, &gpu.config),
+            )),
+            _ => None,
+        };
+        gpu.ctx.queue.submit([encoder.finish()]);
+        gpu.window.pre_present_notify();
+        gpu.ctx.queue.present(frame);
+        if let Some((path, readback)) = shot {
+            save_screenshot(&gpu.ctx, &readback, &gpu.config, &path)?;
+        }
+        if last {
+            event_loop.exit();
+        }
+
+        self.frames_since_title += 1;
+        let since = now.duration_since(self.title_at);
+        if since >= Duration::from_millis(500) {
+            self.fps = self.frames_since_title as f32 / since.as_secs_f32();
+            self.frames_since_title = 0;
+            self.title_at = now;
+            let state = match &status {
+                Status::Connecting => "connecting".to_string(),
+                Status::Syncing => format!("syncing {}/{} bricks", progress.0, progress.1),
+                Status::Live => "live".to_string(),
+                Status::Reconnecting(why) => format!("reconnecting ({why})"),
+                Status::Failed(why) => format!("failed: {why}"),
+            };
+            let role = match role {
+                Some(Role::Editor) => "editor",
+                Some(Role::Viewer) => "viewer (read-only)",
+                None => "",
+            };
+            let (r, g, b) = PALETTE[self.colour];
+            let mut title = format!(
+                "brickcast — {state} — {:.1} fps — {role} — colour #{r:02x}{g:02x}{b:02x} (1-8), brush {} ([ ])",
+                self.fps, self.radius
+            );
+            if let Some(why) = rejected {
+                title.push_str(&format!(" — last edit rejected: {why}"));
+            }
+            gpu.window.set_title(&title);
+        }
+        Ok(())
+    }
+
+    /// Sends the edit for a click at window position `at`.
+    fn click(&mut self, button: MouseButton) {
+        let Some(projection) = self.projection else {
+            return;
+        };
+        if self.live.lock().role != Some(Role::Editor) {
+            tracing::info!("this connection may only watch; edits are ignored");
+            return;
+        }
+        let scale = f64::from(self.args.scale);
+        let (x, y) = if self.captured {
+            (projection.width / 2, projection.height / 2)
+        } else {
+            (
+                ((self.cursor.0 / scale) as u32).min(projection.width - 1),
+                ((self.cursor.1 / scale) as u32).min(projection.height - 1),
+            )
+        };
+        let ray = projection.ray(x, y);
+        let (r, g, b) = PALETTE[self.colour];
+        let colour = Colour::from_rgb8(r, g, b);
+        let paint = self.modifiers.control_key();
+        let action = match (button, self.radius > 0.0, paint) {
+            (MouseButton::Left, false, false) => RayAction::Remove,
+            (MouseButton::Left, false, true) => RayAction::Paint { colour },
+            (MouseButton::Right, false, _) => RayAction::Place { colour },
+            (MouseButton::Left, true, paint) => RayAction::Sphere {
+                mode: if paint {
+                    BrushMode::Paint
+                } else {
+                    BrushMode::Erase
+                },
+                radius: self.radius,
+                colour,
+            },
+            (MouseButton::Right, true, _) => RayAction::Sphere {
+                mode: BrushMode::Fill,
+                radius: self.radius,
+                colour,
+            },
+            _ => return,
+        };
+        self.live.edit(vec![EditOp::Ray {
+            origin: ray.origin,
+            dir: ray.dir,
+            action,
+        }]);
+    }
+
+    fn set_captured(&mut self, on: bool) {
+        let Some(gpu) = &self.gpu else { return };
+        self.captured = on;
+        if on {
+            let grabbed = gpu
+                .window
+                .set_cursor_grab(CursorGrabMode::Locked)
+                .or_else(|_| gpu.window.set_cursor_grab(CursorGrabMode::Confined));
+            if grabbed.is_err() {
+                tracing::warn!("this window system cannot capture the cursor");
+            }
+        } else {
+            let _ = gpu.window.set_cursor_grab(CursorGrabMode::None);
+        }
+        gpu.window.set_cursor_visible(!on);
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.gpu.is_none()
+            && let Err(e) = self.create(event_loop)
+        {
+            self.fail(event_loop, e);
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) => {
+                if let Some(gpu) = &mut self.gpu
+                    && size.width > 0
+                    && size.height > 0
+                {
+                    gpu.config.width = size.width;
+                    gpu.config.height = size.height;
+                    gpu.surface.configure(&gpu.ctx.device, &gpu.config);
+                }
+            }
+            WindowEvent::ModifiersChanged(m) => self.modifiers = m.state(),
+            WindowEvent::KeyboardInput { event, .. } => {
+                let PhysicalKey::Code(code) = event.physical_key else {
+                    return;
+                };
+                if event.state == ElementState::Released {
+                    self.keys.remove(&code);
+                    return;
+                }
+                self.keys.insert(code);
+                if event.repeat {
+                    return;
+                }
+                match code {
+                    KeyCode::Escape if self.captured => self.set_captured(false),
+                    KeyCode::Escape => event_loop.exit(),
+                    KeyCode::Tab => self.set_captured(!self.captured),
+                    KeyCode::BracketLeft => self.radius = (self.radius - 1.0).max(0.0),
+                    KeyCode::BracketRight => {
+                        let max = self.live.lock().max_radius.max(1.0);
+                        self.radius = (self.radius + 1.0).min(max);
+                    }
+                    _ => {
+                        let digits = [
+                            KeyCode::Digit1,
+                            KeyCode::Digit2,
+                            KeyCode::Digit3,
+                            KeyCode::Digit4,
+                            KeyCode::Digit5,
+                            KeyCode::Digit6,
+                            KeyCode::Digit7,
+                            KeyCode::Digit8,
+                        ];
+                        if let Some(i) = digits.iter().position(|&d| d == code) {
+                            self.colour = i;
+                        }
+                    }
+                }
+            }
+            WindowEvent::CursorMoved { position, .. } => self.cursor = (position.x, position.y),
+            WindowEvent::MouseInput { state, button, .. } => match (button, state) {
+                (MouseButton::Middle, s) => self.looking = s == ElementState::Pressed,
+                (b, ElementState::Pressed) => self.click(b),
+                _ => {}
+            },
+            WindowEvent::MouseWheel { delta, .. } => {
+                let steps = match delta {
+                    MouseScrollDelta::LineDelta(_, y) => y,
+                    MouseScrollDelta::PixelDelta(p) => (p.y / 40.0) as f32,
+                };
+                if let Some(camera) = &mut self.camera {
+                    camera.speed = (camera.speed * 1.25f32.powf(steps)).clamp(1.0, 20_000.0);
+                }
+            }
+            WindowEvent::RedrawRequested => {
+                if let Err(e) = self.frame(event_loop) {
+                    self.fail(event_loop, e);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn device_event(&mut self, _event_loop: &ActiveEventLoop, _id: DeviceId, event: DeviceEvent) {
+        if let DeviceEvent::MouseMotion { delta } = event
+            && (self.looking || self.captured)
+            && let Some(camera) = &mut self.camera
+        {
+            camera.look(delta.0 as f32, delta.1 as f32);
+        }
+    }
+
+    fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
+        // Render continuously: the scene changes under us and the camera flies.
+        if let Some(gpu) = &self.gpu {
+            gpu.window.request_redraw();
+        }
+    }
+}
+
+fn blit_pipeline(
+    device: &wgpu::Device,
+    format: wgpu::TextureFormat,
+) -> (wgpu::RenderPipeline, wgpu::BindGroupLayout) {
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some("blit.wgsl"),
+        source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/blit.wgsl").into()),
+    });
+    let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("blit"),
+        entries: &[
+            wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                    view_dimension: wgpu::TextureViewDimension::D2,
+                    multisampled: false,
+                },
+                count: None,
+            },
+            wgpu::BindGroupLayoutEntry {
+                binding: 1,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                count: None,
+            },
+        ],
+    });
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some("blit"),
+        bind_group_layouts: &[Some(&layout)],
+        immediate_size: 0,
+    });
+    let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("blit"),
+        layout: Some(&pipeline_layout),
+        vertex: wgpu::VertexState {
+            module: &module,
+            entry_point: Some("vs_main"),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: wgpu::PrimitiveState::default(),
+        depth_stencil: None,
+        multisample: wgpu::MultisampleState::default(),
+        fragment: Some(wgpu::FragmentState {
+            module: &module,
+            entry_point: Some("fs_main"),
+            compilation_options: Default::default(),
+            targets: &[Some(wgpu::ColorTargetState {
+                format,
+                blend: None,
+                write_mask: wgpu::ColorWrites::ALL,
+            })],
+        }),
+        multiview_mask: None,
+        cache: None,
+    });
+    (pipeline, layout)
+}
+
+/// Where a screenshot is copied before presenting, and its row pitch.
+struct ScreenshotReadback {
+    buffer: wgpu::Buffer,
+    row: u32,
+}
+
+/// Copies the window's image (before it is presented) into a buffer, so the smoke test checks
+/// what reached the window and not just what the tracer produced.
+fn screenshot_buffer(
+    ctx: &GpuContext,
+    encoder: &mut wgpu::CommandEncoder,
+    texture: &wgpu::Texture,
+    config: &wgpu::SurfaceConfiguration,
+) -> Option<ScreenshotReadback> {
+    if !config.usage.contains(wgpu::TextureUsages::COPY_SRC) {
+        tracing::warn!("this surface cannot be read back; no screenshot");
+        return None;
+    }
+    let row = (config.width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+        * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("screenshot"),
+        size: u64::from(row) * u64::from(config.height),
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    encoder.copy_texture_to_buffer(
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(row),
+                rows_per_image: Some(config.height),
+            },
+        },
+        wgpu::Extent3d {
+            width: config.width,
+            height: config.height,
+            depth_or_array_layers: 1,
+        },
+    );
+    Some(ScreenshotReadback { buffer, row })
+}
+
+fn save_screenshot(
+    ctx: &GpuContext,
+    readback: &Option<ScreenshotReadback>,
+    config: &wgpu::SurfaceConfiguration,
+    path: &std::path::Path,
+) -> Result<()> {
+    let Some(readback) = readback else {
+        return Err(anyhow!(
+            "the surface of {} cannot be read back for --screenshot",
+            ctx.adapter_name
+        ));
+    };
+    let bytes = crate::gpu::tracer::map_read(ctx, &readback.buffer)?;
+    let bgra = matches!(
+        config.format,
+        wgpu::TextureFormat::Bgra8Unorm | wgpu::TextureFormat::Bgra8UnormSrgb
+    );
+    let mut pixels = Vec::with_capacity((config.width * config.height) as usize);
+    for y in 0..config.height as usize {
+        let line = &bytes[y * readback.row as usize..][..config.width as usize * 4];
+        pixels.extend(line.chunks_exact(4).map(|p| {
+            if bgra {
+                [p[2], p[1], p[0], 255]
+            } else {
+                [p[0], p[1], p[2], 255]
+            }
+        }));
+    }
+    crate::headless::write_png(path, config.width, config.height, &pixels)
+}

@@ -1,0 +1,439 @@
+//! The GPU tracer against its CPU twin: same scene, same camera, same lighting; every pixel must
+//! agree on hit/miss and on the voxel hit, and colours must be within a small tolerance. Only a
+//! handful of pixels whose ray grazes an exact voxel edge or corner may differ (the shader's float
+//! arithmetic may be fused or reordered by the driver).
+//!
+//! These tests need a Vulkan adapter and pin `Backends::VULKAN`: on a machine without a GPU that is
+//! Mesa's lavapipe (`mesa-vulkan-drivers`). They fail rather than skip when there is none, so a
+//! CI run can never pass without having traced a single pixel on the GPU.
+
+use brickcast_client::gpu::{BackendChoice, GpuContext, GpuScene, Tracer};
+use brickcast_client::replica::Replica;
+use brickcast_protocol::demo::demo_scene;
+use brickcast_protocol::map::BrushMode;
+use brickcast_protocol::render::{
+    Camera, Frame, Lighting, MISS, Projection, colour_distance, render,
+};
+use brickcast_protocol::wire::{BrickBlob, ServerMsg};
+use brickcast_protocol::{BrickMap, Colour};
+
+/// Largest colour difference (max over channels, 0..255) allowed where both tracers hit the same
+/// voxel. Shading is a few multiply-adds on the same inputs; rounding differs by at most a step.
+const COLOUR_TOLERANCE: u32 = 2;
+
+fn gpu() -> GpuContext {
+    GpuContext::headless(BackendChoice::Vulkan).unwrap_or_else(|e| {
+        panic!("GPU tests need a Vulkan adapter (lavapipe: apt-get install mesa-vulkan-drivers libvulkan1): {e}")
+    })
+}
+
+/// Pixels allowed to differ: a handful, scaling gently with the image.
+fn edge_allowance(projection: &Projection) -> usize {
+    3 + (projection.width * projection.height) as usize / 2000
+}
+
+struct Comparison {
+    hit_pixels: usize,
+    hit_mismatches: Vec<(u32, u32, u32, u32)>,
+    colour_mismatches: Vec<(u32, u32, [u8; 4], [u8; 4])>,
+}
+
+fn compare(cpu: &Frame, gpu: &Frame) -> Comparison {
+    assert_eq!((cpu.width, cpu.height), (gpu.width, gpu.height));
+    let mut c = Comparison {
+        hit_pixels: 0,
+        hit_mismatches: Vec::new(),
+        colour_mismatches: Vec::new(),
+    };
+    for i in 0..cpu.pixels.len() {
+        let (x, y) = (i as u32 % cpu.width, i as u32 / cpu.width);
+        if cpu.hits[i] != MISS {
+            c.hit_pixels += 1;
+        }
+        if cpu.hits[i] != gpu.hits[i] {
+            c.hit_mismatches.push((x, y, cpu.hits[i], gpu.hits[i]));
+        } else if colour_distance(cpu.pixels[i], gpu.pixels[i]) > COLOUR_TOLERANCE {
+            c.colour_mismatches
+                .push((x, y, cpu.pixels[i], gpu.pixels[i]));
+        }
+    }
+    c
+}
+
+/// Traces `map` both ways and asserts they agree. Returns the number of pixels that hit.
+fn assert_twins(
+    label: &str,
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    tracer: &mut Tracer,
+    map: &BrickMap,
+    projection: &Projection,
+) -> usize {
+    let lighting = Lighting::default();
+    let cpu = render(map, projection, &lighting, 0);
+    tracer
+        .trace(ctx, scene, projection, &lighting)
+        .expect("GPU trace");
+    let gpu = tracer
+        .read_back(ctx)
+        .expect("read back")
+        .to_frame(map.size());
+    let c = compare(&cpu, &gpu);
+    let allowed = edge_allowance(projection);
+    assert!(
+        c.hit_mismatches.len() <= allowed,
+        "{label}: {} of {} pixels hit a different voxel (allowed {allowed}); first: {:?}",
+        c.hit_mismatches.len(),
+        cpu.pixels.len(),
+        &c.hit_mismatches[..c.hit_mismatches.len().min(8)]
+    );
+    // A shadow ray that grazes an edge flips a pixel between lit and shadowed: same budget.
+    assert!(
+        c.colour_mismatches.len() <= allowed,
+        "{label}: {} pixels differ in colour by more than {COLOUR_TOLERANCE} (allowed {allowed}); first: {:?}",
+        c.colour_mismatches.len(),
+        &c.colour_mismatches[..c.colour_mismatches.len().min(8)]
+    );
+    c.hit_pixels
+}
+
+fn cameras(size: [u32; 3]) -> Vec<(&'static str, Camera)> {
+    let s = size.map(|v| v as f32);
+    vec![
+        ("overview", Camera::overview(size)),
+        (
+            "inside, low and grazing",
+            Camera {
+                eye: [s[0] * 0.3, s[1] * 0.45, s[2] * 0.2],
+                target: [s[0] * 0.8, s[1] * 0.2, s[2] * 0.9],
+                fov_y: 70.0,
+            },
+        ),
+        (
+            "straight down an axis",
+            Camera {
+                eye: [s[0] * 0.5 + 0.25, s[1] * 2.0, s[2] * 0.5 + 0.25],
+                target: [s[0] * 0.5, 0.0, s[2] * 0.5],
+                fov_y: 40.0,
+            },
+        ),
+        (
+            "from below, outside the grid",
+            Camera {
+                eye: [-s[0] * 0.4, -s[1] * 0.8, s[2] * 1.3],
+                target: [s[0] * 0.5, s[1] * 0.3, s[2] * 0.5],
+                fov_y: 60.0,
+            },
+        ),
+    ]
+}
+
+/// A scene of random boxes and spheres, sizes not multiples of a brick or a region.
+fn scattered_scene(size: [u32; 3], seed: u64) -> BrickMap {
+    let mut map = BrickMap::new(size).expect("scene size");
+    let mut state = seed;
+    let mut next = move |n: u32| {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((state >> 33) % u64::from(n.max(1))) as u32
+    };
+    for i in 0..40 {
+        let colour = Colour::from_rgb8(next(256) as u8, next(256) as u8, next(256) as u8);
+        if i % 2 == 0 {
+            let min = [next(size[0]), next(size[1]), next(size[2])];
+            let max = [
+                (min[0] + next(24)).min(size[0] - 1),
+                (min[1] + next(24)).min(size[1] - 1),
+                (min[2] + next(24)).min(size[2] - 1),
+            ];
+            map.fill_box(min, max, BrushMode::Fill, colour);
+        } else {
+            let centre = [
+                next(size[0]) as f32,
+                next(size[1]) as f32,
+                next(size[2]) as f32,
+            ];
+            map.sphere(centre, 2.0 + next(10) as f32, BrushMode::Fill, colour);
+        }
+    }
+    // Single voxels: the smallest thing a ray can hit.
+    for _ in 0..200 {
+        let p = [next(size[0]), next(size[1]), next(size[2])];
+        map.set(p, Colour::from_rgb8(250, 240, 20));
+    }
+    map.rebuild_clearance();
+    map
+}
+
+#[test]
+fn demo_scene_matches_the_cpu_tracer_from_several_cameras() {
+    let ctx = gpu();
+    let mut map = demo_scene([192, 96, 160]).expect("demo scene");
+    let scene = GpuScene::new(&ctx, &mut map, None).expect("upload");
+    let mut tracer = Tracer::new(&ctx).expect("tracer");
+    for (label, camera) in cameras(map.size()) {
+        let projection = camera.project(160, 96).expect("camera");
+        assert_twins(label, &ctx, &scene, &mut tracer, &map, &projection);
+    }
+    // The overview must actually look at something, or the comparison proves little.
+    let projection = Camera::overview(map.size())
+        .project(160, 96)
+        .expect("camera");
+    let hits = assert_twins(
+        "overview again",
+        &ctx,
+        &scene,
+        &mut tracer,
+        &map,
+        &projection,
+    );
+    assert!(hits > 160 * 96 / 3, "overview hit only {hits} pixels");
+}
+
+#[test]
+fn scattered_scene_with_odd_sizes_matches_the_cpu_tracer() {
+    let ctx = gpu();
+    for (seed, size) in [(1u64, [100u32, 70, 90]), (2, [37, 129, 61])] {
+        let mut map = scattered_scene(size, seed);
+        let scene = GpuScene::new(&ctx, &mut map, None).expect("upload");
+        let mut tracer = Tracer::new(&ctx).expect("tracer");
+        let mut total_hits = 0;
+        for (label, camera) in cameras(size) {
+            let projection = camera.project(128, 80).expect("camera");
+            total_hits += assert_twins(label, &ctx, &scene, &mut tracer, &map, &projection);
+        }
+        assert!(
+            total_hits > 1000,
+            "seed {seed}: the cameras saw almost nothing"
+        );
+    }
+}
+
+/// Scattered single voxels: one brick each, so masks and the coarse grid dominate.
+fn dust_scene(size: [u32; 3], voxels: u32) -> BrickMap {
+    let mut map = BrickMap::new(size).expect("scene size");
+    let mut state = 7u64;
+    for i in 0..voxels {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let r = state >> 16;
+        let p = [
+            (r % u64::from(size[0])) as u32,
+            ((r >> 16) % u64::from(size[1])) as u32,
+            ((r >> 32) % u64::from(size[2])) as u32,
+        ];
+        map.set(p, Colour::from_rgb8((i % 200) as u8 + 50, 120, 200));
+    }
+    map.rebuild_clearance();
+    map
+}
+
+#[test]
+fn paged_pools_trace_like_a_single_binding() {
+    let ctx = gpu();
+    let scenes = [
+        (
+            "demo (colours dominate)",
+            demo_scene([192, 96, 160]).expect("demo scene"),
+        ),
+        (
+            "dust (masks and cells dominate)",
+            dust_scene([512, 64, 512], 3000),
+        ),
+    ];
+    let mut paged_at_least_once = std::collections::BTreeSet::new();
+    for (label, mut map) in scenes {
+        let biggest_pool = [
+            map.cells().len() as u64 * 4,
+            map.masks().len() as u64 * 64,
+            map.colour_pool().len().div_ceil(2) as u64 * 4,
+        ]
+        .into_iter()
+        .max()
+        .unwrap_or(0);
+        // The biggest pool spans two or three pages (at most four are bound).
+        let page = (biggest_pool / 3).next_power_of_two();
+        let paged = GpuScene::new(&ctx, &mut map, Some(page)).expect("paged upload");
+        for (array, pages) in paged.page_counts() {
+            if pages > 1 {
+                paged_at_least_once.insert(array);
+            }
+        }
+        let mut tracer = Tracer::new(&ctx).expect("tracer");
+        for (camera_label, camera) in cameras(map.size()) {
+            let projection = camera.project(128, 72).expect("camera");
+            let what = format!("{label}, {camera_label}");
+            assert_twins(&what, &ctx, &paged, &mut tracer, &map, &projection);
+        }
+    }
+    assert_eq!(
+        paged_at_least_once.into_iter().collect::<Vec<_>>(),
+        ["cells", "colours", "masks"],
+        "every paged pool must have been split across bindings by one of the scenes"
+    );
+}
+
+/// The server side of the delta test: an authoritative map and what a client has seen of it.
+struct Authority {
+    map: BrickMap,
+    sent_seq: u64,
+}
+
+impl Authority {
+    /// Everything that changed since the last call, as the server would send it.
+    fn delta(&mut self) -> ServerMsg {
+        let changes = self.map.changes_since(self.sent_seq).expect("history kept");
+        let bricks: Vec<_> = changes
+            .changed
+            .iter()
+            .filter_map(|&cell| self.map.brick(cell))
+            .collect();
+        let msg = ServerMsg::Delta {
+            from_seq: self.sent_seq,
+            to_seq: self.map.sequence(),
+            bricks: BrickBlob::encode(&bricks, 1).expect("encode"),
+            removed: changes.removed,
+        };
+        self.sent_seq = self.map.sequence();
+        msg
+    }
+}
+
+/// One step of the delta test: an edit made on the server's map.
+type Edit = Box<dyn Fn(&mut BrickMap)>;
+
+#[test]
+fn deltas_update_the_gpu_copy_incrementally_and_it_still_matches() {
+    let ctx = gpu();
+    let size = [160, 80, 144];
+    let mut authority = Authority {
+        map: demo_scene(size).expect("demo scene"),
+        sent_seq: 0,
+    };
+    authority.map.record_touched(false);
+    // Initial sync: the whole scene as one batch.
+    let mut replica = Replica::new("demo", size).expect("replica");
+    let everything: Vec<_> = authority.map.bricks().map(|(b, _)| b).collect();
+    let total = everything.len() as u32;
+    replica
+        .apply(&ServerMsg::SyncBatch {
+            bricks: BrickBlob::encode(&everything, 1).expect("encode"),
+            sent: total,
+            total,
+        })
+        .expect("sync");
+    authority.sent_seq = authority.map.sequence();
+    replica
+        .apply(&ServerMsg::SyncDone {
+            seq: authority.sent_seq,
+        })
+        .expect("sync done");
+    assert!(replica.take_reset());
+    let mut scene = GpuScene::new(&ctx, &mut replica.map, None).expect("upload");
+    let full_upload = scene.uploaded.bytes;
+    let mut tracer = Tracer::new(&ctx).expect("tracer");
+    let projection = Camera::overview(size).project(128, 72).expect("camera");
+    let close = Camera {
+        eye: [40.0, 60.0, 30.0],
+        target: [80.0, 20.0, 72.0],
+        fov_y: 65.0,
+    }
+    .project(128, 72)
+    .expect("camera");
+
+    let s = size.map(|v| v as f32);
+    let steps: Vec<(&str, Edit)> = vec![
+        (
+            "carve a crater",
+            Box::new(move |m| {
+                m.sphere(
+                    [s[0] * 0.5, s[1] * 0.3, s[2] * 0.5],
+                    14.0,
+                    BrushMode::Erase,
+                    Colour(0),
+                );
+            }),
+        ),
+        (
+            "build a tower into empty sky (new bricks)",
+            Box::new(|m| {
+                m.fill_box(
+                    [70, 20, 60],
+                    [85, 79, 75],
+                    BrushMode::Fill,
+                    Colour::from_rgb8(200, 30, 30),
+                );
+            }),
+        ),
+        (
+            "repaint a hillside",
+            Box::new(move |m| {
+                m.sphere(
+                    [s[0] * 0.25, s[1] * 0.25, s[2] * 0.7],
+                    20.0,
+                    BrushMode::Paint,
+                    Colour::from_rgb8(20, 20, 220),
+                );
+            }),
+        ),
+        (
+            "single voxels",
+            Box::new(|m| {
+                for i in 0..30u32 {
+                    m.set([10 + i * 4, 70, 10 + i * 3], Colour::from_rgb8(255, 255, 0));
+                }
+                m.clear([80, 79, 67]);
+            }),
+        ),
+        (
+            "remove whole bricks",
+            Box::new(|m| {
+                m.fill_box([0, 0, 0], [47, 79, 31], BrushMode::Erase, Colour(0));
+            }),
+        ),
+        (
+            "grow the pools past their slack (reallocation)",
+            Box::new(|m| {
+                m.fill_box(
+                    [0, 40, 0],
+                    [159, 47, 143],
+                    BrushMode::Fill,
+                    Colour::from_rgb8(90, 90, 90),
+                );
+            }),
+        ),
+    ];
+    for (label, edit) in steps {
+        let next = authority.map.sequence() + 1;
+        authority.map.set_sequence(next);
+        edit(&mut authority.map);
+        let delta = authority.delta();
+        replica.apply(&delta).expect("delta");
+        assert!(
+            !replica.take_reset(),
+            "{label}: a delta must not reset the copy"
+        );
+        assert_eq!(
+            replica.map.content_hash(),
+            authority.map.content_hash(),
+            "{label}: replica diverged"
+        );
+        let stats = scene.update(&ctx, &mut replica.map).expect("update");
+        assert!(stats.bytes > 0, "{label}: nothing uploaded");
+        if stats.reallocations == 0 {
+            assert!(
+                stats.bytes * 4 < full_upload,
+                "{label}: uploaded {} bytes, the whole scene is {full_upload}",
+                stats.bytes
+            );
+        }
+        assert_twins(label, &ctx, &scene, &mut tracer, &replica.map, &projection);
+        assert_twins(label, &ctx, &scene, &mut tracer, &replica.map, &close);
+    }
+    assert!(
+        scene.uploaded.reallocations > 0,
+        "the last step was meant to outgrow the pools"
+    );
+}

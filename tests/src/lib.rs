@@ -1,0 +1,248 @@
+//! Helpers for the end-to-end tests: a real server in this process, the real `brickcast` binary,
+//! and a virtual X display for the window.
+//!
+//! The server runs on a runtime of its own thread so that tests can drive blocking things (the
+//! client binary, the viewer's network thread) without starving it, and can stop and restart it
+//! on the same port and data directory as an operator would.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use brickcast_client::replica::Replica;
+use brickcast_server::{Server, ServerConfig};
+
+/// The demo scene size the tests serve: big enough for several regions, small to sync.
+pub const TEST_SCENE: [u32; 3] = [128, 64, 128];
+
+/// A server running on its own thread until [`TestServer::stop`] (or drop).
+pub struct TestServer {
+    pub addr: SocketAddr,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<Result<()>>>,
+}
+
+impl TestServer {
+    /// Serves `data` on `addr` (port 0 picks a free one).
+    pub fn start(data: &Path, addr: SocketAddr) -> Result<TestServer> {
+        let mut config = ServerConfig::new(addr, data.to_path_buf());
+        config.demo_size = TEST_SCENE;
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()?;
+        let server = runtime.block_on(Server::bind(config))?;
+        let addr = server.local_addr()?;
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let thread = std::thread::Builder::new()
+            .name("test-server".into())
+            .spawn(move || {
+                runtime.block_on(server.run(async move {
+                    let _ = stopped.await;
+                }))
+            })?;
+        Ok(TestServer {
+            addr,
+            stop: Some(stop),
+            thread: Some(thread),
+        })
+    }
+
+    /// The scene's address as a user would type it.
+    pub fn url(&self, scene: &str) -> String {
+        format!("ws://{}/scenes/{scene}", self.addr)
+    }
+
+    /// Graceful shutdown, waiting for the store to close.
+    pub fn stop(mut self) -> Result<()> {
+        self.shutdown()
+    }
+
+    fn shutdown(&mut self) -> Result<()> {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        match self.thread.take() {
+            Some(t) => t
+                .join()
+                .map_err(|_| anyhow::anyhow!("server thread panicked"))?,
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for TestServer {
+    fn drop(&mut self) {
+        let _ = self.shutdown();
+    }
+}
+
+/// A fresh full copy of a scene, as a new client would get it.
+pub fn fetch(url: &str) -> Result<Replica> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    Ok(runtime
+        .block_on(brickcast_client::headless::fetch(url, None))?
+        .0)
+}
+
+/// The `brickcast` binary of this build. Cargo builds it before running any test of the
+/// workspace (the client package's own tests need it); a test run of this crate alone does not.
+pub fn brickcast_bin() -> PathBuf {
+    let exe = std::env::current_exe().unwrap_or_default();
+    // target/<profile>/deps/<test> → target/<profile>/brickcast
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .map(Path::to_path_buf)
+        .unwrap_or_default();
+    let bin = dir.join(format!("brickcast{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        bin.exists(),
+        "{} is missing: build it first with `cargo build -p brickcast-client` (scripts/test does)",
+        bin.display()
+    );
+    bin
+}
+
+/// Runs `brickcast` with `args` to completion within `timeout`, returning (status, stdout, stderr).
+pub fn run_brickcast(
+    args: &[&str],
+    env: &[(&str, &str)],
+    timeout: Duration,
+) -> Result<(std::process::ExitStatus, String, String)> {
+    let mut cmd = Command::new(brickcast_bin());
+    cmd.args(args)
+        .env("NODEVICE_SELECT", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    let child = cmd.spawn().context("starting brickcast")?;
+    wait_with_timeout(child, timeout)
+}
+
+fn wait_with_timeout(
+    mut child: Child,
+    timeout: Duration,
+) -> Result<(std::process::ExitStatus, String, String)> {
+    use std::io::Read;
+    let mut stdout = child.stdout.take().context("stdout")?;
+    let mut stderr = child.stderr.take().context("stderr")?;
+    let out = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = stdout.read_to_string(&mut s);
+        s
+    });
+    let err = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = stderr.read_to_string(&mut s);
+        s
+    });
+    let started = Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait()? {
+            break status;
+        }
+        if started.elapsed() > timeout {
+            let _ = child.kill();
+            let _ = child.wait();
+            bail!(
+                "brickcast did not finish within {timeout:?}; stderr:\n{}",
+                err.join().unwrap_or_default()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    Ok((
+        status,
+        out.join().unwrap_or_default(),
+        err.join().unwrap_or_default(),
+    ))
+}
+
+/// A virtual X display (`Xvfb`), killed on drop.
+pub struct VirtualDisplay {
+    pub display: String,
+    child: Child,
+}
+
+impl VirtualDisplay {
+    /// Starts Xvfb on a free display number. Errors (rather than skipping) when Xvfb is missing:
+    /// scripts/test installs it.
+    pub fn start() -> Result<VirtualDisplay> {
+        let base = 100 + std::process::id() % 400;
+        for number in base..base + 50 {
+            if Path::new(&format!("/tmp/.X11-unix/X{number}")).exists()
+                || Path::new(&format!("/tmp/.X{number}-lock")).exists()
+            {
+                continue;
+            }
+            let mut child = Command::new("Xvfb")
+                .args([
+                    &format!(":{number}"),
+                    "-screen",
+                    "0",
+                    "1024x768x24",
+                    "-nolisten",
+                    "tcp",
+                ])
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .context("starting Xvfb (apt-get install xvfb; scripts/test does)")?;
+            let socket = PathBuf::from(format!("/tmp/.X11-unix/X{number}"));
+            let started = Instant::now();
+            while started.elapsed() < Duration::from_secs(10) {
+                if socket.exists() {
+                    return Ok(VirtualDisplay {
+                        display: format!(":{number}"),
+                        child,
+                    });
+                }
+                if child.try_wait()?.is_some() {
+                    break; // lost a race for this number; try the next
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+        bail!("could not start Xvfb on any display near :{base}")
+    }
+}
+
+impl Drop for VirtualDisplay {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Polls `check` until it returns true or `timeout` passes.
+pub fn wait_until(timeout: Duration, mut check: impl FnMut() -> bool) -> bool {
+    let started = Instant::now();
+    while started.elapsed() < timeout {
+        if check() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    check()
+}
+
+/// Reads a PNG as RGBA8 pixels.
+pub fn read_png(path: &Path) -> Result<(u32, u32, Vec<[u8; 4]>)> {
+    let image = image::open(path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .to_rgba8();
+    let (w, h) = image.dimensions();
+    let pixels = image.pixels().map(|p| p.0).collect::<Vec<[u8; 4]>>();
+    Ok((w, h, pixels))
+}
