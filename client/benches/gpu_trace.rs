@@ -11,8 +11,8 @@
 use std::time::Duration;
 
 use brickcast_client::gpu::{BackendChoice, GpuContext, GpuScene, Tracer};
+use brickcast_protocol::Lighting;
 use brickcast_protocol::demo::demo_scene;
-use brickcast_protocol::{Camera, Lighting};
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 
 fn gpu_trace(c: &mut Criterion) {
@@ -25,24 +25,7 @@ fn gpu_trace(c: &mut Criterion) {
     let scene = GpuScene::new(&ctx, &mut map, None).expect("upload");
     eprintln!("gpu_trace: scene buffers = {} bytes", scene.gpu_bytes());
     let mut tracer = Tracer::new(&ctx).expect("tracer");
-    let cameras = [
-        (
-            "1024_overview",
-            Camera {
-                eye: [-80.0, 700.0, -80.0],
-                target: [512.0, 200.0, 512.0],
-                fov_y: 60.0,
-            },
-        ),
-        (
-            "1024_ground",
-            Camera {
-                eye: [300.0, 420.0, 200.0],
-                target: [700.0, 260.0, 800.0],
-                fov_y: 70.0,
-            },
-        ),
-    ];
+    let cameras = brickcast_protocol::demo::benchmark_cameras_1024();
     let (w, h) = (640, 360);
     let mut group = c.benchmark_group("gpu_trace");
     group.sample_size(10);

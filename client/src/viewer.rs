@@ -23,7 +23,7 @@ use winit::application::ApplicationHandler;
 use winit::event::{
     DeviceEvent, DeviceId, ElementState, MouseButton, MouseScrollDelta, WindowEvent,
 };
-use winit::event_loop::{ActiveEventLoop, EventLoop};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, ModifiersState, PhysicalKey};
 use winit::window::{CursorGrabMode, Window, WindowId};
 
@@ -652,10 +652,22 @@ impl ApplicationHandler for App {
         }
     }
 
-    fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
-        // Render continuously: the scene changes under us and the camera flies.
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        // Render continuously: the scene changes under us and the camera flies. A minimised
+        // (or zero-sized) window draws nothing; it looks again ten times a second, and catches
+        // up on the scene's changes in one upload when it is back.
         if let Some(gpu) = &self.gpu {
-            gpu.window.request_redraw();
+            let size = gpu.window.inner_size();
+            let hidden =
+                size.width == 0 || size.height == 0 || gpu.window.is_minimized() == Some(true);
+            if hidden {
+                event_loop.set_control_flow(ControlFlow::WaitUntil(
+                    Instant::now() + Duration::from_millis(100),
+                ));
+            } else {
+                event_loop.set_control_flow(ControlFlow::Wait);
+                gpu.window.request_redraw();
+            }
         }
     }
 }

@@ -8,7 +8,7 @@ use std::time::Duration;
 use brickcast_protocol::Colour;
 use brickcast_protocol::demo::demo_scene;
 use brickcast_protocol::map::{BrickMap, BrushMode};
-use brickcast_protocol::render::{Camera, trace_frame};
+use brickcast_protocol::render::trace_frame;
 use brickcast_protocol::wire::{
     BlobDecoder, BlobEncoder, BrickBlob, Limits, ServerMsg, decode_server, encode_server,
 };
@@ -83,24 +83,7 @@ fn tracer(c: &mut Criterion) {
     group.sample_size(20);
     group.measurement_time(Duration::from_secs(8));
     let map: BrickMap = demo_scene([1024, 1024, 1024]).expect("demo scene");
-    let cameras = [
-        (
-            "1024_overview",
-            Camera {
-                eye: [-80.0, 700.0, -80.0],
-                target: [512.0, 200.0, 512.0],
-                fov_y: 60.0,
-            },
-        ),
-        (
-            "1024_ground",
-            Camera {
-                eye: [300.0, 420.0, 200.0],
-                target: [700.0, 260.0, 800.0],
-                fov_y: 70.0,
-            },
-        ),
-    ];
+    let cameras = brickcast_protocol::demo::benchmark_cameras_1024();
     let (w, h) = (640, 360);
     group.throughput(Throughput::Elements(u64::from(w * h)));
     for (name, camera) in cameras {

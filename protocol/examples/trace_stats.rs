@@ -1,7 +1,7 @@
 //! Prints where a frame's rays spend their steps (regions, cells, voxels): a guide for tuning
 //! empty-space skipping. `cargo run --release -p brickcast-protocol --example trace_stats`
 use brickcast_protocol::demo::demo_scene;
-use brickcast_protocol::render::{Camera, trace_frame};
+use brickcast_protocol::render::trace_frame;
 use brickcast_protocol::trace::{TraceStats, trace_with_stats};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -13,24 +13,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         m.solid_voxels,
         m.total_bytes >> 20
     );
-    let cameras = [
-        (
-            "overview",
-            Camera {
-                eye: [-80.0, 700.0, -80.0],
-                target: [512.0, 200.0, 512.0],
-                fov_y: 60.0,
-            },
-        ),
-        (
-            "ground",
-            Camera {
-                eye: [300.0, 420.0, 200.0],
-                target: [700.0, 260.0, 800.0],
-                fov_y: 70.0,
-            },
-        ),
-    ];
+    let cameras = brickcast_protocol::demo::benchmark_cameras_1024();
     for (name, camera) in cameras {
         let p = camera.project(640, 360).ok_or("camera")?;
         let mut total = TraceStats::default();

@@ -244,6 +244,30 @@ fn add_village(map: &mut BrickMap, terrain: &Terrain) {
     }
 }
 
+/// The fixed cameras of the tracer benchmarks (CPU and GPU) and of `trace_stats`, on the 1024³
+/// demo scene: one above a corner looking across, one low over the terrain. Kept in one place so
+/// the CPU and GPU figures in BENCHMARKS.md are of the same rays.
+pub fn benchmark_cameras_1024() -> [(&'static str, crate::Camera); 2] {
+    [
+        (
+            "1024_overview",
+            crate::Camera {
+                eye: [-80.0, 700.0, -80.0],
+                target: [512.0, 200.0, 512.0],
+                fov_y: 60.0,
+            },
+        ),
+        (
+            "1024_ground",
+            crate::Camera {
+                eye: [300.0, 420.0, 200.0],
+                target: [700.0, 260.0, 800.0],
+                fov_y: 70.0,
+            },
+        ),
+    ]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -246,3 +246,85 @@ pub fn read_png(path: &Path) -> Result<(u32, u32, Vec<[u8; 4]>)> {
     let pixels = image.pixels().map(|p| p.0).collect::<Vec<[u8; 4]>>();
     Ok((w, h, pixels))
 }
+
+/// A plain HTTP GET against the server: the body of a 200 answer.
+pub fn http_get(addr: SocketAddr, path: &str) -> Result<String> {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect(addr)?;
+    stream.set_read_timeout(Some(Duration::from_secs(10)))?;
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: test\r\nConnection: close\r\n\r\n"
+    )?;
+    let mut text = String::new();
+    stream.read_to_string(&mut text)?;
+    let (head, body) = text.split_once("\r\n\r\n").context("no HTTP header")?;
+    if !head.starts_with("HTTP/1.1 200") {
+        bail!("GET {path}: {}", head.lines().next().unwrap_or(""));
+    }
+    Ok(body.to_string())
+}
+
+/// One scene's entry in the server's `/scenes` list.
+pub fn scene_info(addr: SocketAddr, scene: &str) -> Result<serde_json::Value> {
+    let list: serde_json::Value = serde_json::from_str(&http_get(addr, "/scenes")?)?;
+    list.as_array()
+        .and_then(|l| l.iter().find(|s| s["name"] == scene))
+        .cloned()
+        .with_context(|| format!("scene {scene} not listed"))
+}
+
+/// Runs `xdotool` on `display` (it drives the window as a user would, through XTEST).
+pub fn xdotool(display: &str, args: &[&str]) -> Result<String> {
+    let out = Command::new("xdotool")
+        .args(args)
+        .env("DISPLAY", display)
+        .stdin(Stdio::null())
+        .output()
+        .context("running xdotool (apt-get install xdotool; scripts/test does)")?;
+    if !out.status.success() {
+        bail!(
+            "xdotool {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).trim().to_string())
+}
+
+/// Starts `brickcast` with `args` in the background (killed on drop).
+pub fn spawn_brickcast(args: &[&str], env: &[(&str, &str)]) -> Result<Background> {
+    let mut cmd = Command::new(brickcast_bin());
+    cmd.args(args)
+        .env("NODEVICE_SELECT", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    Ok(Background(cmd.spawn().context("starting brickcast")?))
+}
+
+/// A child process that is killed when the test ends, pass or fail.
+pub struct Background(pub Child);
+
+impl Background {
+    /// Waits up to `timeout` for the process to exit by itself.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Result<Option<std::process::ExitStatus>> {
+        let started = Instant::now();
+        while started.elapsed() < timeout {
+            if let Some(status) = self.0.try_wait()? {
+                return Ok(Some(status));
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        Ok(None)
+    }
+}
+
+impl Drop for Background {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}

@@ -10,7 +10,10 @@ use brickcast_client::live::{Live, Status};
 use brickcast_protocol::Colour;
 use brickcast_protocol::render::colour_distance;
 use brickcast_protocol::wire::{BrushMode, EditOp};
-use brickcast_tests::{TestServer, VirtualDisplay, fetch, read_png, run_brickcast, wait_until};
+use brickcast_tests::{
+    TestServer, VirtualDisplay, fetch, read_png, run_brickcast, scene_info, spawn_brickcast,
+    wait_until, xdotool,
+};
 
 const RUN_LIMIT: Duration = Duration::from_secs(120);
 
@@ -281,5 +284,91 @@ fn live_copy_follows_edits_and_resumes_after_a_server_restart() {
     drop(s);
     drop(live);
     drop(other);
+    server.stop().expect("clean shutdown");
+}
+
+/// Drives the window as a user would (pointer and keys through XTEST, on Xvfb): clicks edit the
+/// server's scene, keys change colour and brush, a resize keeps it working, Escape closes it.
+#[test]
+fn viewer_edits_the_scene_with_mouse_and_keys() {
+    let data = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(data.path(), local()).expect("server");
+    let display = VirtualDisplay::start().expect("Xvfb");
+    let x = |args: &[&str]| xdotool(&display.display, args);
+    let mut viewer = spawn_brickcast(
+        &["view", &server.url("demo"), "--vulkan", "--size", "320x200"],
+        &[("DISPLAY", &display.display), ("WAYLAND_DISPLAY", "")],
+    )
+    .expect("brickcast view");
+    let mut window = String::new();
+    assert!(
+        wait_until(Duration::from_secs(60), || {
+            window = x(&["search", "--name", "^brickcast"])
+                .unwrap_or_default()
+                .lines()
+                .next()
+                .unwrap_or_default()
+                .to_string();
+            !window.is_empty()
+        }),
+        "the viewer never opened a window"
+    );
+    let title = || x(&["getwindowname", &window]).unwrap_or_default();
+    assert!(
+        wait_until(Duration::from_secs(60), || title().contains("live")),
+        "never synced; title: {}",
+        title()
+    );
+    let info = || scene_info(server.addr, "demo").expect("/scenes");
+    let number = |v: &serde_json::Value, k: &str| v[k].as_u64().unwrap_or(0);
+    let before = info();
+
+    // Left click on the terrain in the middle of the window removes one voxel.
+    x(&["mousemove", "--window", &window, "160", "100", "click", "1"]).expect("click");
+    assert!(
+        wait_until(Duration::from_secs(20), || number(&info(), "seq")
+            > number(&before, "seq")),
+        "a left click sent no edit"
+    );
+    let after_remove = info();
+    assert_eq!(
+        number(&after_remove, "voxels"),
+        number(&before, "voxels") - 1,
+        "a left click removes exactly the voxel under the cursor"
+    );
+
+    // Keys: colour 5, brush radius 2; the title shows both.
+    x(&["windowfocus", &window]).expect("focus");
+    x(&["key", "5", "bracketright", "bracketright"]).expect("keys");
+    assert!(
+        wait_until(Duration::from_secs(10), || {
+            let t = title();
+            t.contains("#3b8ed9") && t.contains("brush 2")
+        }),
+        "keys did not change colour and brush; title: {}",
+        title()
+    );
+
+    // After a resize, a right click with the brush fills a sphere where the new window's
+    // centre looks.
+    x(&["windowsize", &window, "400", "260"]).expect("resize");
+    std::thread::sleep(Duration::from_millis(500));
+    x(&["mousemove", "--window", &window, "200", "130", "click", "3"]).expect("click");
+    assert!(
+        wait_until(Duration::from_secs(20), || number(&info(), "voxels")
+            > number(&after_remove, "voxels")),
+        "a right click with a brush added nothing"
+    );
+    assert!(
+        viewer.0.try_wait().expect("status").is_none(),
+        "viewer died"
+    );
+
+    x(&["key", "Escape"]).expect("escape");
+    let status = viewer.wait_exit(Duration::from_secs(20)).expect("wait");
+    assert!(
+        status.is_some_and(|s| s.success()),
+        "Escape should close the viewer cleanly, got {status:?}"
+    );
     server.stop().expect("clean shutdown");
 }
