@@ -84,9 +84,11 @@ pub struct Welcome {
     pub total_bricks: u32,
 }
 
+type Socket = WebSocketStream<MaybeTlsStream<TcpStream>>;
+
 /// An open, welcomed connection.
 pub struct Link {
-    ws: WebSocketStream<MaybeTlsStream<TcpStream>>,
+    ws: Socket,
     pub welcome: Welcome,
 }
 
@@ -115,19 +117,7 @@ impl Link {
         ws.send(Message::Binary(encode_client(&hello)?.into()))
             .await
             .map_err(|e| LinkError::Socket(e.to_string()))?;
-        let mut link = Link {
-            ws,
-            welcome: Welcome {
-                server: String::new(),
-                scene: String::new(),
-                size: [0; 3],
-                seq: 0,
-                role: Role::Viewer,
-                limits: Limits::default(),
-                total_bricks: 0,
-            },
-        };
-        let first = tokio::time::timeout(WELCOME_TIMEOUT, link.next())
+        let first = tokio::time::timeout(WELCOME_TIMEOUT, read_msg(&mut ws))
             .await
             .map_err(|_| LinkError::Timeout(WELCOME_TIMEOUT))??;
         match first {
@@ -140,8 +130,9 @@ impl Link {
                 limits,
                 total_bricks,
                 ..
-            }) => {
-                link.welcome = Welcome {
+            }) => Ok(Link {
+                ws,
+                welcome: Welcome {
                     server,
                     scene,
                     size,
@@ -149,9 +140,8 @@ impl Link {
                     role,
                     limits,
                     total_bricks,
-                };
-                Ok(link)
-            }
+                },
+            }),
             Some(ServerMsg::Error { code, message }) => Err(LinkError::Refused { code, message }),
             Some(_) => Err(LinkError::Unexpected("another message")),
             None => Err(LinkError::Closed),
@@ -160,16 +150,7 @@ impl Link {
 
     /// The next message from the server; `None` once it has closed the connection.
     pub async fn next(&mut self) -> Result<Option<ServerMsg>, LinkError> {
-        loop {
-            match self.ws.next().await {
-                Some(Ok(Message::Binary(bytes))) => {
-                    return Ok(Some(decode_server(&bytes, &Limits::hard_caps())?));
-                }
-                Some(Ok(Message::Close(_))) | None => return Ok(None),
-                Some(Ok(_)) => continue,
-                Some(Err(e)) => return Err(LinkError::Socket(e.to_string())),
-            }
-        }
+        read_msg(&mut self.ws).await
     }
 
     pub async fn send(&mut self, msg: &ClientMsg) -> Result<(), LinkError> {
@@ -181,6 +162,20 @@ impl Link {
 
     pub async fn close(mut self) {
         let _ = self.ws.close(None).await;
+    }
+}
+
+/// The next server message on `ws`, skipping pings and text; `None` once the server has closed.
+async fn read_msg(ws: &mut Socket) -> Result<Option<ServerMsg>, LinkError> {
+    loop {
+        match ws.next().await {
+            Some(Ok(Message::Binary(bytes))) => {
+                return Ok(Some(decode_server(&bytes, &Limits::hard_caps())?));
+            }
+            Some(Ok(Message::Close(_))) | None => return Ok(None),
+            Some(Ok(_)) => continue,
+            Some(Err(e)) => return Err(LinkError::Socket(e.to_string())),
+        }
     }
 }
 

@@ -108,22 +108,27 @@ pub fn brickcast_bin() -> PathBuf {
     bin
 }
 
+/// `brickcast args` with `env` added, no stdin, and lavapipe's harmless warning silenced.
+fn brickcast_command(args: &[&str], env: &[(&str, &str)]) -> Command {
+    let mut cmd = Command::new(brickcast_bin());
+    cmd.args(args)
+        .env("NODEVICE_SELECT", "1")
+        .envs(env.iter().copied())
+        .stdin(Stdio::null());
+    cmd
+}
+
 /// Runs `brickcast` with `args` to completion within `timeout`, returning (status, stdout, stderr).
 pub fn run_brickcast(
     args: &[&str],
     env: &[(&str, &str)],
     timeout: Duration,
 ) -> Result<(std::process::ExitStatus, String, String)> {
-    let mut cmd = Command::new(brickcast_bin());
-    cmd.args(args)
-        .env("NODEVICE_SELECT", "1")
-        .stdin(Stdio::null())
+    let child = brickcast_command(args, env)
         .stdout(Stdio::piped())
-        .stderr(Stdio::piped());
-    for (k, v) in env {
-        cmd.env(k, v);
-    }
-    let child = cmd.spawn().context("starting brickcast")?;
+        .stderr(Stdio::piped())
+        .spawn()
+        .context("starting brickcast")?;
     wait_with_timeout(child, timeout)
 }
 
@@ -293,16 +298,12 @@ pub fn xdotool(display: &str, args: &[&str]) -> Result<String> {
 
 /// Starts `brickcast` with `args` in the background (killed on drop).
 pub fn spawn_brickcast(args: &[&str], env: &[(&str, &str)]) -> Result<Background> {
-    let mut cmd = Command::new(brickcast_bin());
-    cmd.args(args)
-        .env("NODEVICE_SELECT", "1")
-        .stdin(Stdio::null())
+    let child = brickcast_command(args, env)
         .stdout(Stdio::null())
-        .stderr(Stdio::null());
-    for (k, v) in env {
-        cmd.env(k, v);
-    }
-    Ok(Background(cmd.spawn().context("starting brickcast")?))
+        .stderr(Stdio::null())
+        .spawn()
+        .context("starting brickcast")?;
+    Ok(Background(child))
 }
 
 /// A child process that is killed when the test ends, pass or fail.
