@@ -4,11 +4,15 @@
 //! * [`scene`]: one owner thread per scene: ordering, group commit, acks, deltas, syncs.
 //! * [`session`]: one task pair per websocket: handshake, reader, writer.
 //! * [`auth`], [`metrics`]: tokens → roles; Prometheus counters.
+//! * [`import`]: OBJ/MTL meshes voxelized through an octree, MagicaVoxel `.vox` in and out.
+//! * [`incoming`]: the spool through which a running server picks up newly imported scenes.
 //!
 //! Data flow of one edit: session reader → owner channel → `apply_op` on the map → durable log
 //! commit → ack to the editor → one encoded delta → every session's outbox → websocket.
 
 pub mod auth;
+pub mod import;
+pub mod incoming;
 pub mod metrics;
 pub mod scene;
 pub mod session;
@@ -18,8 +22,8 @@ use std::collections::BTreeMap;
 use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, RwLock};
 use std::time::Duration;
 
 use anyhow::Context;
@@ -37,6 +41,9 @@ use crate::store::Store;
 
 /// Size of the built-in demo scene created on an empty store.
 pub const DEMO_SIZE: [u32; 3] = [512, 512, 512];
+
+/// How often a running server looks in its spool for newly imported scenes.
+pub const SPOOL_POLL: Duration = Duration::from_millis(300);
 
 /// Everything `serve` needs.
 #[derive(Clone, Debug)]
@@ -63,7 +70,14 @@ impl ServerConfig {
 
 /// State shared by the HTTP handlers and sessions.
 pub struct App {
-    scenes: BTreeMap<String, SceneHandle>,
+    /// Served scenes. Written only when an imported scene arrives through the spool, so a
+    /// read lock held for a lookup costs nothing in practice.
+    scenes: RwLock<BTreeMap<String, SceneHandle>>,
+    /// Owner threads, joined at shutdown (scenes added while running included).
+    owners: Mutex<Vec<std::thread::JoinHandle<()>>>,
+    store: Arc<Store>,
+    owner_config: OwnerConfig,
+    data: PathBuf,
     pub metrics: Arc<Metrics>,
     pub auth: Auth,
     pub shutdown: watch::Receiver<bool>,
@@ -91,8 +105,100 @@ impl App {
         SessionGuard(self.sessions.clone())
     }
 
-    pub fn scene(&self, name: &str) -> Option<&SceneHandle> {
-        self.scenes.get(name)
+    pub fn scene(&self, name: &str) -> Option<SceneHandle> {
+        self.read_scenes().get(name).cloned()
+    }
+
+    /// Every served scene, by name.
+    pub fn scene_list(&self) -> Vec<(String, SceneHandle)> {
+        self.read_scenes()
+            .iter()
+            .map(|(n, h)| (n.clone(), h.clone()))
+            .collect()
+    }
+
+    fn read_scenes(&self) -> std::sync::RwLockReadGuard<'_, BTreeMap<String, SceneHandle>> {
+        // A panic while holding the lock cannot leave the map half-written (inserts are one
+        // call), so a poisoned lock is still a good map.
+        self.scenes.read().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Starts serving a recovered scene: spawns its owner and makes it reachable.
+    fn add_scene(&self, name: String, loaded: store::Loaded) -> anyhow::Result<()> {
+        let (handle, thread) = scene::spawn(
+            name.clone(),
+            loaded,
+            self.store.clone(),
+            self.metrics.clone(),
+            self.owner_config.clone(),
+            tokio::runtime::Handle::current(),
+        )?;
+        self.scenes
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(name, handle);
+        self.owners
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(thread);
+        Ok(())
+    }
+
+    /// Takes one spooled scene: store it, serve it, remove the file. On failure the file stays
+    /// with a `.error` beside it saying why.
+    async fn adopt_spooled(self: &Arc<Self>, file: PathBuf) {
+        let app = self.clone();
+        let file2 = file.clone();
+        let outcome = tokio::task::spawn_blocking(move || -> anyhow::Result<(String, store::Loaded)> {
+            let (name, map) = incoming::read(&file2)?;
+            if app.scene(&name).is_some() {
+                anyhow::bail!("scene {name} already exists on this server: import under another name, or stop the server and import with --replace");
+            }
+            app.store.create_scene(&name, &map)?;
+            let loaded = app.store.load_scene(&name)?;
+            Ok((name, loaded))
+        })
+        .await;
+        let outcome = match outcome {
+            Ok(Ok((name, loaded))) => self.add_scene(name.clone(), loaded).map(|()| name),
+            Ok(Err(e)) => Err(e),
+            Err(e) => Err(anyhow::anyhow!("import task failed: {e}")),
+        };
+        match outcome {
+            Ok(name) => {
+                tracing::info!(scene = %name, "serving newly imported scene");
+                if let Err(e) = std::fs::remove_file(&file) {
+                    tracing::warn!(file = %file.display(), error = %e, "cannot remove the spool file of an adopted scene");
+                }
+            }
+            Err(e) => {
+                tracing::warn!(file = %file.display(), error = %format!("{e:#}"), "refused a spooled scene");
+                if let Err(e) = std::fs::write(incoming::error_path(&file), format!("{e:#}\n")) {
+                    tracing::error!(file = %file.display(), error = %e, "cannot write the spool error file");
+                }
+            }
+        }
+    }
+
+    /// Polls the spool until shutdown.
+    async fn watch_spool(self: Arc<Self>) {
+        let mut shutdown = self.shutdown.clone();
+        loop {
+            tokio::select! {
+                _ = tokio::time::sleep(SPOOL_POLL) => {}
+                _ = shutdown.changed() => {}
+            }
+            if *shutdown.borrow() {
+                return;
+            }
+            let data = self.data.clone();
+            let files = tokio::task::spawn_blocking(move || incoming::pending(&data))
+                .await
+                .unwrap_or_default();
+            for file in files {
+                self.adopt_spooled(file).await;
+            }
+        }
     }
 }
 
@@ -100,7 +206,6 @@ impl App {
 pub struct Server {
     listener: tokio::net::TcpListener,
     app: Arc<App>,
-    owners: Vec<std::thread::JoinHandle<()>>,
     shutdown: watch::Sender<bool>,
 }
 
@@ -126,38 +231,28 @@ impl Server {
             Ok(loaded)
         })
         .await??;
-        let metrics = Arc::new(Metrics::default());
-        let runtime = tokio::runtime::Handle::current();
-        let mut scenes = BTreeMap::new();
-        let mut owners = Vec::new();
-        for (name, scene) in loaded {
-            let (handle, thread) = scene::spawn(
-                name.clone(),
-                scene,
-                store.clone(),
-                metrics.clone(),
-                config.owner.clone(),
-                runtime.clone(),
-            )?;
-            scenes.insert(name, handle);
-            owners.push(thread);
-        }
         let listener = tokio::net::TcpListener::bind(config.listen)
             .await
             .with_context(|| format!("listening on {}", config.listen))?;
         let (shutdown, shutdown_rx) = watch::channel(false);
         let app = Arc::new(App {
-            scenes,
-            metrics,
+            scenes: RwLock::new(BTreeMap::new()),
+            owners: Mutex::new(Vec::new()),
+            store,
+            owner_config: config.owner,
+            data: config.data,
+            metrics: Arc::new(Metrics::default()),
             auth: config.auth,
             shutdown: shutdown_rx,
             next_id: AtomicU64::new(1),
             sessions: watch::channel(0).0,
         });
+        for (name, scene) in loaded {
+            app.add_scene(name, scene)?;
+        }
         Ok(Server {
             listener,
             app,
-            owners,
             shutdown,
         })
     }
@@ -176,9 +271,9 @@ impl Server {
         let Server {
             listener,
             app,
-            owners,
             shutdown,
         } = self;
+        let spool = tokio::spawn(app.clone().watch_spool());
         let router = router(app.clone());
         let stop = shutdown.clone();
         axum::serve(listener, router)
@@ -189,9 +284,12 @@ impl Server {
             .await
             .context("serving HTTP")?;
         tracing::info!("shutting down: flushing scenes");
-        for scene in app.scenes.values() {
+        // No scene may be added after the owners were told to stop.
+        let _ = spool.await;
+        for (_, scene) in app.scene_list() {
             let _ = scene.send(Command::Shutdown).await;
         }
+        let owners = std::mem::take(&mut *app.owners.lock().unwrap_or_else(|e| e.into_inner()));
         let crashed = tokio::task::spawn_blocking(move || {
             owners.into_iter().filter_map(|o| o.join().err()).count()
         })
@@ -221,7 +319,7 @@ pub fn router(app: Arc<App>) -> Router {
 
 async fn metrics_text(State(app): State<Arc<App>>) -> Response {
     let mut text = app.metrics.render();
-    for (name, scene) in &app.scenes {
+    for (name, scene) in app.scene_list() {
         let info = &scene.info;
         for (metric, value) in [
             ("scene_seq", info.seq.load(Relaxed)),
@@ -238,8 +336,8 @@ async fn metrics_text(State(app): State<Arc<App>>) -> Response {
 
 async fn scene_list(State(app): State<Arc<App>>) -> Response {
     let list: Vec<_> = app
-        .scenes
-        .iter()
+        .scene_list()
+        .into_iter()
         .map(|(name, s)| {
             serde_json::json!({
                 "name": name,
@@ -261,7 +359,7 @@ async fn websocket(
     ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
 ) -> Response {
     // Unknown scenes are a 404 whether or not the request is a websocket upgrade.
-    let Some(scene) = app.scene(&name).cloned() else {
+    let Some(scene) = app.scene(&name) else {
         return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
     };
     let ws = match ws {

@@ -9,6 +9,8 @@ use brickcast_server::store::Store;
 use brickcast_server::{Server, ServerConfig};
 use clap::{Parser, Subcommand};
 
+mod import_cli;
+
 #[derive(Parser)]
 #[command(
     name = "brickcast-server",
@@ -56,6 +58,46 @@ enum Cmd {
         #[arg(long, default_value = "./brickcast-data")]
         data: PathBuf,
     },
+    /// Import a mesh (OBJ with its MTL and textures) or a MagicaVoxel .vox as a new scene.
+    ///
+    /// With a server running on the same store, the scene is handed to it and served at once.
+    Import {
+        /// Model file: `.obj` or `.vox`.
+        model: PathBuf,
+        /// Name of the new scene.
+        #[arg(long)]
+        scene: String,
+        /// Voxels along the mesh's longest axis: a power of two, 8..=8192 (meshes only).
+        #[arg(long)]
+        resolution: Option<u32>,
+        #[arg(long, default_value = "./brickcast-data")]
+        data: PathBuf,
+        /// Replace an existing scene of that name (only while no server runs on the store).
+        #[arg(long)]
+        replace: bool,
+        /// Voxelizing threads (default: one per core).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Print the summary as one JSON object.
+        #[arg(long)]
+        json: bool,
+        /// No progress bars.
+        #[arg(long)]
+        quiet: bool,
+    },
+    /// Export a scene as a MagicaVoxel .vox file (models of at most 256³, 255 colours).
+    Export {
+        #[arg(long)]
+        scene: String,
+        /// Output file.
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value = "./brickcast-data")]
+        data: PathBuf,
+        /// Print the summary as one JSON object.
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 fn main() -> anyhow::Result<()> {
@@ -67,7 +109,7 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Cmd::Serve { listen, data, auth } => serve(listen, data, auth),
         Cmd::Scenes { data } => {
-            let store = Store::open(&data)?;
+            let store = open_store(&data)?;
             for (name, meta) in store.scenes()? {
                 println!(
                     "{name}\t{}x{}x{}\tsnapshot at seq {}\t{} log entries after it",
@@ -81,7 +123,7 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Cmd::Stats { scene, data, json } => {
-            let store = Store::open(&data)?;
+            let store = open_store(&data)?;
             let loaded = store.load_scene(&scene)?;
             let m = loaded.map.memory();
             if json {
@@ -90,37 +132,16 @@ fn main() -> anyhow::Result<()> {
                 value["seq"] = loaded.seq.into();
                 println!("{value}");
             } else {
-                let mib = |b: u64| b as f64 / (1 << 20) as f64;
                 println!(
                     "scene {scene}: {}x{}x{} voxels, sequence {}",
                     m.size[0], m.size[1], m.size[2], loaded.seq
                 );
-                println!("  solid voxels     {:>14}", m.solid_voxels);
-                println!("  bricks           {:>14}", m.bricks);
-                println!("  regions          {:>10.2} MiB", mib(m.region_bytes));
-                println!(
-                    "  cell blocks      {:>10.2} MiB ({} blocks)",
-                    mib(m.cell_bytes),
-                    m.cell_blocks
-                );
-                println!("  masks            {:>10.2} MiB", mib(m.mask_bytes));
-                println!("  colour bases     {:>10.2} MiB", mib(m.colour_base_bytes));
-                println!(
-                    "  colours          {:>10.2} MiB ({:.2} MiB live)",
-                    mib(m.colour_bytes),
-                    mib(m.colour_used_bytes)
-                );
-                println!("  total            {:>10.2} MiB", mib(m.total_bytes));
-                println!(
-                    "  paper's formula  {:>10.2} MiB",
-                    mib(m.paper_formula_bytes)
-                );
-                println!("  bytes per voxel  {:>14.2}", m.bytes_per_solid_voxel);
+                print_memory(&m);
             }
             Ok(())
         }
         Cmd::Snapshot { scene, data } => {
-            let store = Store::open(&data)?;
+            let store = open_store(&data)?;
             let loaded = store.load_scene(&scene)?;
             let mut map = loaded.map;
             map.set_sequence(loaded.seq);
@@ -131,7 +152,71 @@ fn main() -> anyhow::Result<()> {
             );
             Ok(())
         }
+        Cmd::Import {
+            model,
+            scene,
+            resolution,
+            data,
+            replace,
+            threads,
+            json,
+            quiet,
+        } => import_cli::run(import_cli::Args {
+            model,
+            scene,
+            resolution,
+            data,
+            replace,
+            threads,
+            json,
+            quiet,
+        }),
+        Cmd::Export {
+            scene,
+            out,
+            data,
+            json,
+        } => import_cli::export(&scene, &out, &data, json),
     }
+}
+
+/// Opens the store for an offline command, explaining the usual failure.
+fn open_store(data: &std::path::Path) -> anyhow::Result<Store> {
+    Store::open(data).map_err(|e| {
+        if e.is_locked() {
+            anyhow::anyhow!(
+                "{e}: a running server holds the store; stop it first (only `import` can hand a scene to a running server)"
+            )
+        } else {
+            e.into()
+        }
+    })
+}
+
+/// The per-component memory table of `stats` and `import`.
+fn print_memory(m: &brickcast_protocol::map::MemoryStats) {
+    let mib = |b: u64| b as f64 / (1 << 20) as f64;
+    println!("  solid voxels     {:>14}", m.solid_voxels);
+    println!("  bricks           {:>14}", m.bricks);
+    println!("  regions          {:>10.2} MiB", mib(m.region_bytes));
+    println!(
+        "  cell blocks      {:>10.2} MiB ({} blocks)",
+        mib(m.cell_bytes),
+        m.cell_blocks
+    );
+    println!("  masks            {:>10.2} MiB", mib(m.mask_bytes));
+    println!("  colour bases     {:>10.2} MiB", mib(m.colour_base_bytes));
+    println!(
+        "  colours          {:>10.2} MiB ({:.2} MiB live)",
+        mib(m.colour_bytes),
+        mib(m.colour_used_bytes)
+    );
+    println!("  total            {:>10.2} MiB", mib(m.total_bytes));
+    println!(
+        "  paper's formula  {:>10.2} MiB",
+        mib(m.paper_formula_bytes)
+    );
+    println!("  bytes per voxel  {:>14.2}", m.bytes_per_solid_voxel);
 }
 
 fn serve(listen: SocketAddr, data: PathBuf, auth: Option<PathBuf>) -> anyhow::Result<()> {

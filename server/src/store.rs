@@ -44,6 +44,20 @@ pub enum StoreError {
     BadName(String),
 }
 
+impl StoreError {
+    /// The store is held by another process (a running server): redb allows one writer
+    /// process per file.
+    pub fn is_locked(&self) -> bool {
+        matches!(
+            self,
+            StoreError::Open {
+                source: redb::DatabaseError::DatabaseAlreadyOpen,
+                ..
+            }
+        )
+    }
+}
+
 macro_rules! from_redb {
     ($($t:ty),*) => {$(
         impl From<$t> for StoreError {
@@ -183,8 +197,19 @@ impl Store {
             })
     }
 
-    /// Stores a new scene with all its bricks as the snapshot at sequence 0.
+    /// Stores a new scene with all its bricks as the snapshot at the map's sequence.
     pub fn create_scene(&self, name: &str, map: &BrickMap) -> Result<(), StoreError> {
+        self.create_scene_with_progress(name, map, &mut |_| {})
+    }
+
+    /// [`Store::create_scene`], calling `progress(bricks)` every 4,096 bricks written (an import
+    /// of a large scene writes hundreds of thousands of rows).
+    pub fn create_scene_with_progress(
+        &self,
+        name: &str,
+        map: &BrickMap,
+        progress: &mut dyn FnMut(u64),
+    ) -> Result<(), StoreError> {
         if !valid_scene_name(name) {
             return Err(StoreError::BadName(name.into()));
         }
@@ -209,15 +234,35 @@ impl Store {
             let bricks_name = bricks_table(name);
             let mut bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
             let mut row = Vec::with_capacity(64 + 1024);
-            for (brick, _) in map.bricks() {
+            for (i, (brick, _)) in map.bricks().enumerate() {
                 encode_brick(&brick.mask, &brick.colours, &mut row);
                 bricks.insert(map.cell_index(brick.cell), row.as_slice())?;
+                if i % 4096 == 4095 {
+                    progress(4096);
+                }
             }
+            progress(map.brick_count() % 4096);
             let log_name = log_table(name);
             txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
         }
         txn.commit()?;
         Ok(())
+    }
+
+    /// Removes a scene, its bricks and its log in one transaction. Returns whether it existed.
+    pub fn delete_scene(&self, name: &str) -> Result<bool, StoreError> {
+        let mut txn = self.db.begin_write()?;
+        txn.set_durability(Durability::Immediate)?;
+        let existed = {
+            let mut scenes = txn.open_table(SCENES)?;
+            scenes.remove(name)?.is_some()
+        };
+        if existed {
+            txn.delete_table(TableDefinition::<u32, &[u8]>::new(&bricks_table(name)))?;
+            txn.delete_table(TableDefinition::<u64, &[u8]>::new(&log_table(name)))?;
+        }
+        txn.commit()?;
+        Ok(existed)
     }
 
     /// Loads a scene: snapshot bricks, then every logged batch replayed in order.

@@ -1,0 +1,180 @@
+//! Handing a new scene to a running server.
+//!
+//! redb lets one process at a time open the store, so while a server runs, `brickcast-server
+//! import` cannot write into it. Instead the importer drops the scene into the store folder's
+//! `incoming/` spool (written under a temporary name, then renamed, so the server never sees half
+//! a file), and the server, which polls the spool, stores the scene, starts its owner and serves
+//! it at once. A scene the server cannot take (its name is taken, the file is damaged) is left
+//! beside a `NAME.error` file that says why, so nothing is lost and the importer can report it.
+//!
+//! A spool file is `MAGIC`, a format version, then bincode of [`Spooled`]: the scene's name,
+//! size and bricks as zstd [`BrickBlob`]s (the wire format's, so the scene costs about 100 bytes
+//! a brick).
+
+use std::path::{Path, PathBuf};
+
+use brickcast_protocol::BrickMap;
+use brickcast_protocol::brick::BrickData;
+use brickcast_protocol::wire::BrickBlob;
+use serde::{Deserialize, Serialize};
+
+const MAGIC: &[u8; 16] = b"brickcast-scene\n";
+const VERSION: u32 = 1;
+/// Bricks per blob: keeps each blob's decompressed size modest.
+const BLOB_BRICKS: usize = 4096;
+/// Extension of a complete spool file.
+pub const EXTENSION: &str = "scene";
+
+#[derive(Debug, thiserror::Error)]
+pub enum SpoolError {
+    #[error("spool I/O on {path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("spool file {path} is damaged: {detail}")]
+    Damaged { path: PathBuf, detail: String },
+}
+
+#[derive(Serialize, Deserialize)]
+struct Spooled {
+    name: String,
+    size: [u32; 3],
+    blobs: Vec<BrickBlob>,
+}
+
+/// The spool folder of a store folder.
+pub fn spool_dir(data: &Path) -> PathBuf {
+    data.join("incoming")
+}
+
+/// Where the server leaves its reason for refusing `file`.
+pub fn error_path(file: &Path) -> PathBuf {
+    file.with_extension("error")
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SpoolError + '_ {
+    move |source| SpoolError::Io {
+        path: path.into(),
+        source,
+    }
+}
+
+/// Writes `map` as scene `name` into the spool of store folder `data`; returns the file's path.
+pub fn write(data: &Path, name: &str, map: &BrickMap) -> Result<PathBuf, SpoolError> {
+    let dir = spool_dir(data);
+    std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+    let damaged = |detail: String| SpoolError::Damaged {
+        path: dir.clone(),
+        detail,
+    };
+    let bricks: Vec<BrickData> = map.bricks().map(|(b, _)| b).collect();
+    let blobs = bricks
+        .chunks(BLOB_BRICKS)
+        .map(|chunk| BrickBlob::encode(chunk, 3))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| damaged(e.to_string()))?;
+    drop(bricks);
+    let spooled = Spooled {
+        name: name.into(),
+        size: map.size(),
+        blobs,
+    };
+    let mut bytes = MAGIC.to_vec();
+    bytes.extend_from_slice(&VERSION.to_le_bytes());
+    bincode::serde::encode_into_std_write(&spooled, &mut bytes, bincode::config::standard())
+        .map_err(|e| damaged(e.to_string()))?;
+    let file = dir.join(format!("{name}.{EXTENSION}"));
+    let temporary = dir.join(format!(".{name}.{}.partial", std::process::id()));
+    std::fs::write(&temporary, &bytes).map_err(io(&temporary))?;
+    let _ = std::fs::remove_file(error_path(&file));
+    std::fs::rename(&temporary, &file).map_err(io(&file))?;
+    Ok(file)
+}
+
+/// Reads a spool file back into a scene name and map.
+pub fn read(file: &Path) -> Result<(String, BrickMap), SpoolError> {
+    let damaged = |detail: String| SpoolError::Damaged {
+        path: file.into(),
+        detail,
+    };
+    let bytes = std::fs::read(file).map_err(io(file))?;
+    if bytes.len() < MAGIC.len() + 4 || &bytes[..MAGIC.len()] != MAGIC {
+        return Err(damaged("not a brickcast scene file".into()));
+    }
+    let version = u32::from_le_bytes(
+        bytes[MAGIC.len()..MAGIC.len() + 4]
+            .try_into()
+            .map_err(|_| damaged("truncated header".into()))?,
+    );
+    if version != VERSION {
+        return Err(damaged(format!(
+            "format version {version}, this server reads {VERSION}"
+        )));
+    }
+    let config = bincode::config::standard().with_limit::<{ 1 << 30 }>();
+    let (spooled, _): (Spooled, usize) =
+        bincode::serde::decode_from_slice(&bytes[MAGIC.len() + 4..], config)
+            .map_err(|e| damaged(e.to_string()))?;
+    let mut map = BrickMap::new(spooled.size).map_err(|e| damaged(e.to_string()))?;
+    for blob in &spooled.blobs {
+        for brick in blob
+            .decode(BLOB_BRICKS as u32)
+            .map_err(|e| damaged(e.to_string()))?
+        {
+            map.put_brick(&brick).map_err(|e| damaged(e.to_string()))?;
+        }
+    }
+    map.rebuild_clearance();
+    Ok((spooled.name, map))
+}
+
+/// Complete spool files waiting in `data`'s spool, oldest name first, skipping those the server
+/// already refused (they have an `.error` beside them).
+pub fn pending(data: &Path) -> Vec<PathBuf> {
+    let Ok(entries) = std::fs::read_dir(spool_dir(data)) else {
+        return Vec::new();
+    };
+    let mut files: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == EXTENSION))
+        .filter(|p| !error_path(p).exists())
+        .collect();
+    files.sort();
+    files
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use brickcast_protocol::{BrushMode, Colour};
+
+    #[test]
+    fn spool_round_trip_and_damage() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut map = BrickMap::new([100, 40, 70]).unwrap();
+        map.sphere(
+            [50.0, 20.0, 35.0],
+            15.0,
+            BrushMode::Fill,
+            Colour::from_rgb8(9, 99, 199),
+        );
+        let file = write(dir.path(), "ball", &map).unwrap();
+        assert_eq!(pending(dir.path()), vec![file.clone()]);
+        let (name, back) = read(&file).unwrap();
+        assert_eq!(name, "ball");
+        assert_eq!(back.size(), map.size());
+        assert_eq!(back.content_hash(), map.content_hash());
+
+        std::fs::write(error_path(&file), "refused").unwrap();
+        assert!(pending(dir.path()).is_empty());
+
+        let mut bytes = std::fs::read(&file).unwrap();
+        let n = bytes.len();
+        bytes.truncate(n / 2);
+        std::fs::write(&file, &bytes).unwrap();
+        assert!(matches!(read(&file), Err(SpoolError::Damaged { .. })));
+        std::fs::write(&file, b"hello").unwrap();
+        assert!(matches!(read(&file), Err(SpoolError::Damaged { .. })));
+    }
+}
