@@ -650,6 +650,78 @@ mod tests {
         );
     }
 
+    /// The voxelizer's output is exactly the set of voxels the reference test says a triangle
+    /// overlaps (up to boxes a triangle merely touches), on random meshes of thin, axis-aligned
+    /// and ordinary triangles at several resolutions.
+    #[test]
+    fn voxel_set_is_exactly_the_overlapping_voxels() {
+        let mut rng = Rng(0x2545_F491_4F6C_DD1D);
+        for case in 0..24 {
+            let mut mesh = Mesh::new();
+            // Fix the placement: corners at 0 and 1 on every axis.
+            mesh.add_triangle([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.0, 0.0, 1.0]], None, 0);
+            for _ in 0..5 {
+                let mut t: [[f32; 3]; 3] =
+                    std::array::from_fn(|_| std::array::from_fn(|_| rng.next() as f32));
+                match case % 3 {
+                    0 => {
+                        t[2] = std::array::from_fn(|i| {
+                            (t[0][i] + t[1][i]) * 0.5 + 0.002 * rng.next() as f32
+                        })
+                    }
+                    1 => {
+                        let y = t[0][1];
+                        t[1][1] = y;
+                        t[2][1] = y;
+                    }
+                    _ => {}
+                }
+                mesh.add_triangle(t, None, 0);
+            }
+            let resolution = [8, 16, 32, 64][case % 4];
+            let options = ImportOptions {
+                resolution,
+                threads: 2,
+            };
+            let (map, _) = voxelize(&mesh, &options, &super::super::NoProgress).unwrap();
+            let placement = Placement::new(&mesh, resolution).unwrap();
+            let size = map.size();
+            let tris: Vec<[V3; 3]> = mesh
+                .triangles
+                .iter()
+                .map(|t| {
+                    t.corners
+                        .map(|c| placement.voxel(mesh.positions[c as usize]))
+                })
+                .collect();
+            let eps = 1e-6;
+            for z in 0..size[2] {
+                for y in 0..size[1] {
+                    for x in 0..size[0] {
+                        let lo = [x, y, z].map(f64::from);
+                        let inside = tris
+                            .iter()
+                            .any(|t| sat_reference(*t, lo.map(|c| c + eps), 1.0 - 2.0 * eps));
+                        let touching = tris
+                            .iter()
+                            .any(|t| sat_reference(*t, lo.map(|c| c - eps), 1.0 + 2.0 * eps));
+                        let solid = map.is_solid([x, y, z]);
+                        assert!(
+                            !inside || solid,
+                            "case {case}: voxel {:?} overlaps a triangle but is empty",
+                            [x, y, z]
+                        );
+                        assert!(
+                            !solid || touching,
+                            "case {case}: voxel {:?} is solid but touches no triangle",
+                            [x, y, z]
+                        );
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn closest_point_weights_are_barycentric() {
         let t = Triangle::new(
