@@ -90,6 +90,10 @@ type Socket = WebSocketStream<MaybeTlsStream<TcpStream>>;
 pub struct Link {
     ws: Socket,
     pub welcome: Welcome,
+    /// Websocket payload bytes received and sent on this connection (Hello and Welcome
+    /// included), for tools that report bandwidth.
+    pub bytes_in: u64,
+    pub bytes_out: u64,
 }
 
 impl Link {
@@ -114,10 +118,13 @@ impl Link {
             token: token.map(String::from),
             resume_from,
         };
-        ws.send(Message::Binary(encode_client(&hello)?.into()))
+        let hello = encode_client(&hello)?;
+        let bytes_out = hello.len() as u64;
+        ws.send(Message::Binary(hello.into()))
             .await
             .map_err(|e| LinkError::Socket(e.to_string()))?;
-        let first = tokio::time::timeout(WELCOME_TIMEOUT, read_msg(&mut ws))
+        let mut bytes_in = 0;
+        let first = tokio::time::timeout(WELCOME_TIMEOUT, read_msg(&mut ws, &mut bytes_in))
             .await
             .map_err(|_| LinkError::Timeout(WELCOME_TIMEOUT))??;
         match first {
@@ -141,6 +148,8 @@ impl Link {
                     limits,
                     total_bricks,
                 },
+                bytes_in,
+                bytes_out,
             }),
             Some(ServerMsg::Error { code, message }) => Err(LinkError::Refused { code, message }),
             Some(_) => Err(LinkError::Unexpected("another message")),
@@ -150,12 +159,28 @@ impl Link {
 
     /// The next message from the server; `None` once it has closed the connection.
     pub async fn next(&mut self) -> Result<Option<ServerMsg>, LinkError> {
-        read_msg(&mut self.ws).await
+        read_msg(&mut self.ws, &mut self.bytes_in).await
     }
 
     pub async fn send(&mut self, msg: &ClientMsg) -> Result<(), LinkError> {
+        self.feed(msg).await?;
+        self.flush().await
+    }
+
+    /// Queues a message without flushing the socket, so a burst of messages costs one write;
+    /// [`Link::flush`] (or the next [`Link::send`]) puts them on the wire.
+    pub async fn feed(&mut self, msg: &ClientMsg) -> Result<(), LinkError> {
+        let frame = encode_client(msg)?;
+        self.bytes_out += frame.len() as u64;
         self.ws
-            .send(Message::Binary(encode_client(msg)?.into()))
+            .feed(Message::Binary(frame.into()))
+            .await
+            .map_err(|e| LinkError::Socket(e.to_string()))
+    }
+
+    pub async fn flush(&mut self) -> Result<(), LinkError> {
+        self.ws
+            .flush()
             .await
             .map_err(|e| LinkError::Socket(e.to_string()))
     }
@@ -166,10 +191,11 @@ impl Link {
 }
 
 /// The next server message on `ws`, skipping pings and text; `None` once the server has closed.
-async fn read_msg(ws: &mut Socket) -> Result<Option<ServerMsg>, LinkError> {
+async fn read_msg(ws: &mut Socket, bytes_in: &mut u64) -> Result<Option<ServerMsg>, LinkError> {
     loop {
         match ws.next().await {
             Some(Ok(Message::Binary(bytes))) => {
+                *bytes_in += bytes.len() as u64;
                 return Ok(Some(decode_server(&bytes, &Limits::hard_caps())?));
             }
             Some(Ok(Message::Close(_))) | None => return Ok(None),

@@ -1,4 +1,5 @@
-//! `brickcast`: view a scene in a window, or render one frame of it to a PNG.
+//! `brickcast`: view a scene in a window, render one frame of it to a PNG, or load-test the
+//! server that holds it.
 
 use std::path::PathBuf;
 
@@ -65,6 +66,14 @@ enum Command {
         #[arg(long)]
         vulkan: bool,
     },
+    /// Load-test a server: many clients edit one scene; report throughput and latency, and
+    /// check that every client's copy ends equal to the server's (non-zero exit if not).
+    Load {
+        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/demo
+        url: String,
+        #[command(flatten)]
+        args: brickcast_client::load::LoadArgs,
+    },
 }
 
 fn parse_vec3(text: &str) -> Result<[f32; 3], String> {
@@ -90,6 +99,26 @@ fn main() -> Result<()> {
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {
+        Command::Load { url, args } => {
+            let outcome = brickcast_client::load::run_blocking(&url, &args)?;
+            let table = outcome.table();
+            if args.json {
+                eprint!("{table}");
+                println!(
+                    "{}",
+                    serde_json::to_string(&outcome.report).context("encoding the report")?
+                );
+            } else {
+                print!("{table}");
+            }
+            if !outcome.failures.is_empty() {
+                bail!(
+                    "the run failed its checks ({} problems, listed above)",
+                    outcome.failures.len()
+                );
+            }
+            Ok(())
+        }
         Command::View { url, token, view } => brickcast_client::viewer::run(&url, token, view),
         Command::Render {
             url,

@@ -41,6 +41,9 @@ pub struct Replica {
     deltas_since_rebuild: u32,
     decoder: BlobDecoder,
     max_bricks: u32,
+    /// Whether the map keeps a GPU change log; off for copies no GPU drains (the load
+    /// generator), whose log would otherwise grow with every delta.
+    gpu_log: bool,
 }
 
 /// How many deltas between clearance rebuilds. A rebuild is a few passes over the region grid
@@ -64,7 +67,14 @@ impl Replica {
             deltas_since_rebuild: 0,
             decoder: BlobDecoder::new()?,
             max_bricks: Limits::hard_caps().max_bricks_per_frame,
+            gpu_log: true,
         })
+    }
+
+    /// Turns the map's GPU change log on or off, now and after every reset.
+    pub fn record_gpu_changes(&mut self, on: bool) {
+        self.gpu_log = on;
+        self.map.record_gpu_changes(on);
     }
 
     /// Where a reconnect can resume from: the sequence of a complete copy, if there is one.
@@ -96,7 +106,7 @@ impl Replica {
 
     fn clear(&mut self, scene: &str, size: [u32; 3]) -> Result<(), ReplicaError> {
         self.map = BrickMap::new(size)?;
-        self.map.record_gpu_changes(true);
+        self.map.record_gpu_changes(self.gpu_log);
         self.scene = scene.to_string();
         self.seq = 0;
         self.reset = true;

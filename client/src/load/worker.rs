@@ -1,0 +1,574 @@
+//! One load client: a tokio task with its own websocket and its own copy of the scene.
+//!
+//! Editors send edit batches (paced, or as fast as a bounded number of unacknowledged batches
+//! allows) and time their acks; every client, editor or viewer, applies every delta to its copy
+//! and logs when each delta arrived so the editor it observes can time edit→visible. At the end
+//! each copy is hashed against a fresh copy of the server's scene.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use brickcast_protocol::BrickMap;
+use brickcast_protocol::wire::{BlobDecoder, ClientMsg, ErrorCode, Limits, Role, ServerMsg};
+use tokio::sync::{mpsc, watch};
+
+use super::histogram::Histogram;
+use super::observe::ObserverLog;
+use super::ops::{NothingToPaint, OpGen};
+use super::options::{OpKind, VoxelBox};
+use crate::link::{self, Link, LinkError};
+use crate::replica::{Replica, ReplicaError};
+
+/// Unacknowledged edit batches one client may have out. It bounds what a client queues in the
+/// server (so "as fast as acks allow" measures the server, not an ever-growing backlog) and,
+/// with group commit, sets how many ops one commit can carry: clients × this × batch.
+pub const MAX_UNACKED: usize = 32;
+
+/// Where the whole run is; the coordinator moves it forward, every client follows.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Phase {
+    /// Clients connect and sync; nobody edits yet.
+    Setup,
+    /// Edit from `start` until `end`, then wait for the outstanding acks.
+    Run { start: Instant, end: Instant },
+    /// Editing is over: keep applying deltas until the copy hashes to `hash` or `deadline`.
+    Verify { hash: u64, deadline: Instant },
+    /// Something failed: stop now.
+    Abort,
+}
+
+/// What clients tell the coordinator.
+#[derive(Debug)]
+pub enum Event {
+    /// Connected and synced (or why not).
+    Ready {
+        index: usize,
+        result: Result<(), String>,
+    },
+    /// An editor stopped sending and every batch it sent is acknowledged.
+    Drained {
+        index: usize,
+        last_ack: Option<Instant>,
+    },
+}
+
+/// Counters the progress line reads while the run goes.
+#[derive(Default)]
+pub struct Live {
+    pub ops_acked: AtomicU64,
+    pub acks: AtomicU64,
+    pub ack_ns: AtomicU64,
+    pub rejected: AtomicU64,
+    pub resyncs: AtomicU64,
+    pub errors: AtomicU64,
+}
+
+/// State every client task shares.
+pub struct Shared {
+    /// One per connection: what that connection saw, for the editor it observes.
+    pub observers: Vec<Mutex<ObserverLog>>,
+    pub live: Live,
+}
+
+impl Shared {
+    pub fn new(connections: usize) -> Shared {
+        Shared {
+            observers: (0..connections).map(|_| Mutex::default()).collect(),
+            live: Live::default(),
+        }
+    }
+
+    pub fn observer(&self, index: usize) -> MutexGuard<'_, ObserverLog> {
+        // A panicking client task cannot leave a log half-updated in a way that matters more
+        // than losing the whole run would.
+        self.observers[index]
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// What an editing client does.
+#[derive(Clone, Debug)]
+pub struct EditorPlan {
+    pub op: OpKind,
+    pub area: VoxelBox,
+    pub radius: f32,
+    pub batch: u32,
+    /// Time between batches; `None`: as fast as [`MAX_UNACKED`] allows.
+    pub interval: Option<Duration>,
+    /// The connection whose arrivals time this editor's edits (`None` with nobody else).
+    pub observer: Option<usize>,
+}
+
+/// One client of the run.
+#[derive(Clone, Debug)]
+pub struct ClientPlan {
+    pub index: usize,
+    pub url: String,
+    pub token: Option<String>,
+    /// `None`: a viewer.
+    pub editor: Option<EditorPlan>,
+    /// Whether this client also counts the voxels each delta changes in its copy (one client
+    /// does, so the run reports voxels broadcast even without the server's metrics).
+    pub count_voxels: bool,
+}
+
+/// The outcome of the end-of-run check.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    /// The client stopped before the check (see its errors).
+    NotChecked,
+    Match,
+    /// The copy still differed from the fresh one at the deadline.
+    Mismatch {
+        hash: u64,
+        seq: u64,
+    },
+}
+
+/// What one client measured.
+pub struct ClientReport {
+    pub index: usize,
+    pub editor: bool,
+    pub bytes_in: u64,
+    pub bytes_out: u64,
+    pub ops_acked: u64,
+    pub rejected: u64,
+    pub resyncs: u64,
+    pub ack_latency: Histogram,
+    pub last_ack: Option<Instant>,
+    /// Voxels the received deltas changed in this copy (only with `count_voxels`).
+    pub voxels_seen: u64,
+    pub errors: Vec<String>,
+    pub verdict: Verdict,
+}
+
+impl ClientReport {
+    /// Nothing measured yet.
+    pub fn new(index: usize, editor: bool) -> ClientReport {
+        ClientReport {
+            index,
+            editor,
+            bytes_in: 0,
+            bytes_out: 0,
+            ops_acked: 0,
+            rejected: 0,
+            resyncs: 0,
+            ack_latency: Histogram::default(),
+            last_ack: None,
+            voxels_seen: 0,
+            errors: Vec::new(),
+            verdict: Verdict::NotChecked,
+        }
+    }
+}
+
+/// Why a client stopped early.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    #[error(transparent)]
+    Link(#[from] LinkError),
+    #[error("its copy of the scene broke: {0}")]
+    Replica(#[from] ReplicaError),
+    #[error("the server said {code:?}: {message}")]
+    Server { code: ErrorCode, message: String },
+    #[error("the server gave it the {0:?} role, which may not edit (pass an editor --token)")]
+    NotEditor(Role),
+    #[error("the server closed the connection")]
+    Closed,
+    #[error(
+        "the server acknowledged batch {0}, which this client never sent or was already acknowledged"
+    )]
+    UnknownAck(u64),
+    #[error(transparent)]
+    Paint(#[from] NothingToPaint),
+    #[error("a delta could not be decoded for counting: {0}")]
+    Count(#[from] brickcast_protocol::wire::WireError),
+    #[error("stopped: another client failed")]
+    Aborted,
+}
+
+/// Runs one client to the end of the run. Always answers `Ready` (and, for editors, `Drained`)
+/// so the coordinator never waits on a client that failed.
+pub async fn client(
+    plan: ClientPlan,
+    shared: Arc<Shared>,
+    control: watch::Receiver<Phase>,
+    events: mpsc::UnboundedSender<Event>,
+) -> ClientReport {
+    let mut c = Client {
+        plan,
+        shared,
+        control,
+        events,
+        ready_sent: false,
+        drained_sent: false,
+        inflight: VecDeque::new(),
+        counter: None,
+    };
+    let mut report = ClientReport::new(c.plan.index, c.plan.editor.is_some());
+    let mut link = None;
+    let result = c.run(&mut link, &mut report).await;
+    if let Some(link) = link {
+        report.bytes_in = link.bytes_in;
+        report.bytes_out = link.bytes_out;
+        link.close().await;
+    }
+    if let Err(e) = result {
+        c.shared.live.errors.fetch_add(1, Relaxed);
+        let text = format!("client {}: {e}", c.plan.index);
+        if !c.ready_sent {
+            let _ = c.events.send(Event::Ready {
+                index: c.plan.index,
+                result: Err(text.clone()),
+            });
+            c.ready_sent = true;
+        }
+        report.errors.push(text);
+    }
+    if c.plan.editor.is_some() && !c.drained_sent {
+        let _ = c.events.send(Event::Drained {
+            index: c.plan.index,
+            last_ack: report.last_ack,
+        });
+    }
+    report
+}
+
+/// Counts how many voxels a delta changes in a copy, before the copy applies it.
+struct VoxelCounter {
+    decoder: BlobDecoder,
+}
+
+impl VoxelCounter {
+    fn count(&mut self, map: &BrickMap, msg: &ServerMsg) -> Result<u64, ClientError> {
+        let ServerMsg::Delta {
+            bricks, removed, ..
+        } = msg
+        else {
+            return Ok(0);
+        };
+        let mut changed = 0u64;
+        self.decoder
+            .for_each(bricks, Limits::hard_caps().max_bricks_per_frame, |brick| {
+                let new = brick.to_brick();
+                changed += match map.brick(new.cell) {
+                    Some(old) => brick_difference(&old, &new),
+                    None => new.colours.len() as u64,
+                };
+            })?;
+        for &cell in removed {
+            changed += map.brick(cell).map_or(0, |b| b.colours.len() as u64);
+        }
+        Ok(changed)
+    }
+}
+
+/// Voxels whose solidity or colour differs between two versions of a brick.
+fn brick_difference(
+    old: &brickcast_protocol::BrickData,
+    new: &brickcast_protocol::BrickData,
+) -> u64 {
+    if old.mask == new.mask {
+        return old
+            .colours
+            .iter()
+            .zip(&new.colours)
+            .filter(|(a, b)| a != b)
+            .count() as u64;
+    }
+    let mut changed = 0u64;
+    let (mut i, mut j) = (0usize, 0usize);
+    for w in 0..8 {
+        let (a, b) = (old.mask[w], new.mask[w]);
+        changed += u64::from((a ^ b).count_ones());
+        let mut any = a | b;
+        while any != 0 {
+            let bit = 1u64 << any.trailing_zeros();
+            any &= any - 1;
+            match (a & bit != 0, b & bit != 0) {
+                (true, true) => {
+                    changed += u64::from(old.colours.get(i) != new.colours.get(j));
+                    i += 1;
+                    j += 1;
+                }
+                (true, false) => i += 1,
+                (false, true) => j += 1,
+                (false, false) => {}
+            }
+        }
+    }
+    changed
+}
+
+struct Client {
+    plan: ClientPlan,
+    shared: Arc<Shared>,
+    control: watch::Receiver<Phase>,
+    events: mpsc::UnboundedSender<Event>,
+    ready_sent: bool,
+    drained_sent: bool,
+    /// Sent, unacknowledged batches: (client_seq, when sent).
+    inflight: VecDeque<(u64, Instant)>,
+    counter: Option<VoxelCounter>,
+}
+
+impl Client {
+    async fn run(
+        &mut self,
+        slot: &mut Option<Link>,
+        report: &mut ClientReport,
+    ) -> Result<(), ClientError> {
+        let index = self.plan.index;
+        let name = match self.plan.editor {
+            Some(_) => format!("brickcast load editor {index}"),
+            None => format!("brickcast load viewer {index}"),
+        };
+        // Connect and sync, unless the run is aborted meanwhile.
+        let mut abort = self.control.clone();
+        let setup = async {
+            let mut link =
+                Link::connect(&self.plan.url, &name, self.plan.token.as_deref(), None).await?;
+            let welcome = link.welcome.clone();
+            if self.plan.editor.is_some() && welcome.role != Role::Editor {
+                return Err(ClientError::NotEditor(welcome.role));
+            }
+            let mut replica = Replica::new(&welcome.scene, welcome.size)?;
+            replica.record_gpu_changes(false);
+            replica.sync_total = welcome.total_bricks;
+            link::sync(&mut link, &mut replica, |_| {}).await?;
+            Ok::<_, ClientError>((link, replica))
+        };
+        let (link, mut replica) = tokio::select! {
+            done = setup => done?,
+            _ = abort.wait_for(|p| *p == Phase::Abort) => return Err(ClientError::Aborted),
+        };
+        let link = slot.insert(link);
+        self.shared.observer(index).synced(replica.seq);
+        let mut ops = match &self.plan.editor {
+            Some(e) => Some(OpGen::new(
+                e.op,
+                e.area,
+                e.radius,
+                index as u64,
+                &replica.map,
+            )?),
+            None => None,
+        };
+        if self.plan.count_voxels {
+            self.counter = Some(VoxelCounter {
+                decoder: BlobDecoder::new().map_err(ClientError::Count)?,
+            });
+        }
+        let _ = self.events.send(Event::Ready {
+            index,
+            result: Ok(()),
+        });
+        self.ready_sent = true;
+
+        let mut next_client_seq = 1u64;
+        let mut due: Option<Instant> = None;
+        // Whether the copy changed since it was last hashed.
+        let mut dirty = true;
+        loop {
+            let phase = *self.control.borrow_and_update();
+            let mut wake = None;
+            match phase {
+                Phase::Abort => return Err(ClientError::Aborted),
+                Phase::Setup => {}
+                Phase::Run { start, end } => {
+                    if let (Some(plan), Some(ops)) = (&self.plan.editor, &mut ops) {
+                        let now = Instant::now();
+                        if now < end {
+                            // Spread the clients' first batches over one interval so paced
+                            // clients do not send in lockstep.
+                            let due = due.get_or_insert_with(|| match plan.interval {
+                                Some(iv) => start + iv.mul_f64(index as f64 / (index as f64 + 1.0)),
+                                None => start,
+                            });
+                            let mut fed = false;
+                            while self.inflight.len() < MAX_UNACKED && now >= *due {
+                                let batch = (0..plan.batch).map(|_| ops.next_op()).collect();
+                                let sent = Instant::now();
+                                link.feed(&ClientMsg::Edit {
+                                    client_seq: next_client_seq,
+                                    ops: batch,
+                                })
+                                .await?;
+                                self.inflight.push_back((next_client_seq, sent));
+                                next_client_seq += 1;
+                                fed = true;
+                                if let Some(iv) = plan.interval {
+                                    *due += iv;
+                                }
+                            }
+                            if fed {
+                                link.flush().await?;
+                            }
+                            wake = Some(match plan.interval {
+                                Some(_) if self.inflight.len() < MAX_UNACKED => (*due).min(end),
+                                _ => end,
+                            });
+                        } else if self.inflight.is_empty() && !self.drained_sent {
+                            let _ = self.events.send(Event::Drained {
+                                index,
+                                last_ack: report.last_ack,
+                            });
+                            self.drained_sent = true;
+                        }
+                    }
+                }
+                Phase::Verify { hash, deadline } => {
+                    if !self.inflight.is_empty() {
+                        report.errors.push(format!(
+                            "client {index}: {} batches were never acknowledged",
+                            self.inflight.len()
+                        ));
+                        self.shared.live.errors.fetch_add(1, Relaxed);
+                        self.inflight.clear();
+                    }
+                    if dirty {
+                        dirty = false;
+                        if replica.synced && replica.map.content_hash() == hash {
+                            report.verdict = Verdict::Match;
+                            return Ok(());
+                        }
+                    }
+                    if Instant::now() >= deadline {
+                        report.verdict = Verdict::Mismatch {
+                            hash: replica.map.content_hash(),
+                            seq: replica.seq,
+                        };
+                        return Ok(());
+                    }
+                    wake = Some(deadline);
+                }
+            }
+            let sleep = async {
+                match wake {
+                    Some(at) => tokio::time::sleep_until(at.into()).await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                biased;
+                changed = self.control.changed() => {
+                    if changed.is_err() {
+                        return Err(ClientError::Aborted);
+                    }
+                }
+                msg = link.next() => {
+                    let at = Instant::now();
+                    let msg = msg?.ok_or(ClientError::Closed)?;
+                    self.handle(&msg, at, &mut replica, report)?;
+                    dirty = true;
+                }
+                () = sleep => {}
+            }
+        }
+    }
+
+    fn handle(
+        &mut self,
+        msg: &ServerMsg,
+        at: Instant,
+        replica: &mut Replica,
+        report: &mut ClientReport,
+    ) -> Result<(), ClientError> {
+        let live = &self.shared.live;
+        match msg {
+            ServerMsg::Ack {
+                client_seq,
+                seq,
+                applied,
+                rejected,
+            } => {
+                let i = self
+                    .inflight
+                    .iter()
+                    .position(|&(c, _)| c == *client_seq)
+                    .ok_or(ClientError::UnknownAck(*client_seq))?;
+                let (_, sent) = self
+                    .inflight
+                    .remove(i)
+                    .ok_or(ClientError::UnknownAck(*client_seq))?;
+                let took = at.saturating_duration_since(sent);
+                report.ack_latency.record(took);
+                report.ops_acked += u64::from(*applied);
+                report.rejected += rejected.len() as u64;
+                report.last_ack = Some(at);
+                live.ops_acked.fetch_add(u64::from(*applied), Relaxed);
+                live.acks.fetch_add(1, Relaxed);
+                live.ack_ns
+                    .fetch_add(took.as_nanos().min(u128::from(u64::MAX)) as u64, Relaxed);
+                live.rejected.fetch_add(rejected.len() as u64, Relaxed);
+                if let (Some(seq), Some(observer)) =
+                    (seq, self.plan.editor.as_ref().and_then(|e| e.observer))
+                {
+                    self.shared.observer(observer).acked(*seq, sent);
+                }
+            }
+            ServerMsg::Error { code, message } => {
+                return Err(ClientError::Server {
+                    code: *code,
+                    message: message.clone(),
+                });
+            }
+            ServerMsg::Resync { .. } => {
+                report.resyncs += 1;
+                live.resyncs.fetch_add(1, Relaxed);
+            }
+            _ => {}
+        }
+        if let Some(counter) = &mut self.counter {
+            report.voxels_seen += counter.count(&replica.map, msg)?;
+        }
+        replica.apply(msg)?;
+        match msg {
+            ServerMsg::Delta {
+                from_seq, to_seq, ..
+            } => self
+                .shared
+                .observer(self.plan.index)
+                .delta(*from_seq, *to_seq, at),
+            ServerMsg::SyncDone { seq } => self.shared.observer(self.plan.index).synced(*seq),
+            _ => {}
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use brickcast_protocol::{BrickData, Colour};
+
+    fn brick(voxels: &[(u32, u16)]) -> BrickData {
+        let mut mask = [0u64; 8];
+        let mut sorted = voxels.to_vec();
+        sorted.sort_unstable();
+        for &(b, _) in &sorted {
+            mask[(b / 64) as usize] |= 1 << (b % 64);
+        }
+        BrickData {
+            cell: [0, 0, 0],
+            mask,
+            colours: sorted.iter().map(|&(_, c)| Colour(c)).collect(),
+        }
+    }
+
+    #[test]
+    fn brick_difference_counts_solidity_and_colour_changes() {
+        let a = brick(&[(0, 1), (5, 2), (64, 3), (511, 4)]);
+        assert_eq!(brick_difference(&a, &a), 0);
+        // Recolour one voxel, same mask.
+        let b = brick(&[(0, 1), (5, 9), (64, 3), (511, 4)]);
+        assert_eq!(brick_difference(&a, &b), 1);
+        // Remove voxel 5, add voxel 6, recolour 511: the colour lists shift against each other.
+        let c = brick(&[(0, 1), (6, 2), (64, 3), (511, 7)]);
+        assert_eq!(brick_difference(&a, &c), 3);
+        assert_eq!(brick_difference(&c, &a), 3);
+    }
+}
