@@ -13,7 +13,10 @@
 //!
 //! Updates are incremental: the map's GPU change log names the entries that changed and only
 //! those are written (coalesced into runs). A pool that runs out of room is reallocated with
-//! headroom, and only the pages that changed size are re-filled.
+//! headroom, and only the pages that changed size are re-filled. How much headroom depends on
+//! why the pool grew: a full upload of a synced scene gets 1/8 (room for edits; a 2048³ scene
+//! is 69 MB and should not cost 100), a pool outgrown by streaming bricks gets half again (so a
+//! scene arriving in batches reallocates O(log n) times).
 //!
 //! The three pools that grow with the scene (cells, masks, colours) may be larger than one
 //! storage binding (128 MiB on lavapipe and many GPUs), so each is split into up to
@@ -31,6 +34,10 @@ pub const PAGES: usize = 4;
 
 /// Smallest buffer ever created: bindings may not be empty.
 const MIN_WORDS: u64 = 64;
+/// Headroom of a pool sized by a full upload: 1/8 of the scene's own size.
+const FULL_UPLOAD_HEADROOM: u64 = 8;
+/// Headroom of a pool outgrown by an update: half again.
+const GROWTH_HEADROOM: u64 = 2;
 
 #[cfg(not(target_endian = "little"))]
 compile_error!("the GPU upload reinterprets mask words in place and assumes a little-endian host");
@@ -127,9 +134,15 @@ impl PagedArray {
         self.page_words * self.array.max_pages() as u64
     }
 
-    /// Makes room for `needed` words. Returns the word range whose buffers were replaced (their
-    /// contents must be written again), or `None` when everything already fitted.
-    fn reserve(&mut self, ctx: &GpuContext, needed: u64) -> Result<Option<Range<u64>>, GpuError> {
+    /// Makes room for `needed` words, plus `needed / headroom_divisor` when it must reallocate.
+    /// Returns the word range whose buffers were replaced (their contents must be written
+    /// again), or `None` when everything already fitted.
+    fn reserve(
+        &mut self,
+        ctx: &GpuContext,
+        needed: u64,
+        headroom_divisor: u64,
+    ) -> Result<Option<Range<u64>>, GpuError> {
         if needed <= self.capacity_words && !self.pages.is_empty() {
             return Ok(None);
         }
@@ -141,8 +154,9 @@ impl PagedArray {
                 max: self.max_words() * 4,
             });
         }
-        // Grow by half again so a scene streaming in reallocates O(log n) times.
-        let want = (needed + needed / 2).max(MIN_WORDS).min(self.max_words());
+        let want = (needed + needed / headroom_divisor)
+            .max(MIN_WORDS)
+            .min(self.max_words());
         // Only the last page can be short; full pages stay as they are, contents and all.
         let last_is_full = self
             .pages
@@ -279,7 +293,7 @@ impl GpuScene {
         let mut stats = UploadStats::default();
         for array in &mut self.arrays {
             let len = array.array.len_words(map);
-            if array.reserve(ctx, len)?.is_some() {
+            if array.reserve(ctx, len, FULL_UPLOAD_HEADROOM)?.is_some() {
                 stats.reallocations += 1;
             }
             if len > 0 {
@@ -307,7 +321,7 @@ impl GpuScene {
         }
         for array in &mut self.arrays {
             let len = array.array.len_words(map);
-            let fresh = array.reserve(ctx, len)?;
+            let fresh = array.reserve(ctx, len, GROWTH_HEADROOM)?;
             if let Some(range) = &fresh {
                 stats.reallocations += 1;
                 let end = range.end.min(len);
