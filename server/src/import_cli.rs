@@ -15,15 +15,30 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 /// be taken when a server next runs.
 const ADOPT_WAIT: Duration = Duration::from_secs(60);
 
+#[derive(clap::Args)]
 pub struct Args {
-    pub model: PathBuf,
-    pub scene: String,
-    pub resolution: Option<u32>,
-    pub data: PathBuf,
-    pub replace: bool,
-    pub threads: usize,
-    pub json: bool,
-    pub quiet: bool,
+    /// Model file: `.obj` or `.vox`.
+    model: PathBuf,
+    /// Name of the new scene.
+    #[arg(long)]
+    scene: String,
+    /// Voxels along the mesh's longest axis: a power of two, 8..=8192 (meshes only).
+    #[arg(long)]
+    resolution: Option<u32>,
+    #[arg(long, default_value = "./brickcast-data")]
+    data: PathBuf,
+    /// Replace an existing scene of that name (only while no server runs on the store).
+    #[arg(long)]
+    replace: bool,
+    /// Voxelizing threads (default: one per core).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Print the summary as one JSON object.
+    #[arg(long)]
+    json: bool,
+    /// No progress bars.
+    #[arg(long)]
+    quiet: bool,
 }
 
 /// One progress bar per phase on stderr (hidden when stderr is not a terminal or with --quiet).

@@ -61,30 +61,7 @@ enum Cmd {
     /// Import a mesh (OBJ with its MTL and textures) or a MagicaVoxel .vox as a new scene.
     ///
     /// With a server running on the same store, the scene is handed to it and served at once.
-    Import {
-        /// Model file: `.obj` or `.vox`.
-        model: PathBuf,
-        /// Name of the new scene.
-        #[arg(long)]
-        scene: String,
-        /// Voxels along the mesh's longest axis: a power of two, 8..=8192 (meshes only).
-        #[arg(long)]
-        resolution: Option<u32>,
-        #[arg(long, default_value = "./brickcast-data")]
-        data: PathBuf,
-        /// Replace an existing scene of that name (only while no server runs on the store).
-        #[arg(long)]
-        replace: bool,
-        /// Voxelizing threads (default: one per core).
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        /// Print the summary as one JSON object.
-        #[arg(long)]
-        json: bool,
-        /// No progress bars.
-        #[arg(long)]
-        quiet: bool,
-    },
+    Import(import_cli::Args),
     /// Export a scene as a MagicaVoxel .vox file (models of at most 256³, 255 colours).
     Export {
         #[arg(long)]
@@ -152,25 +129,7 @@ fn main() -> anyhow::Result<()> {
             );
             Ok(())
         }
-        Cmd::Import {
-            model,
-            scene,
-            resolution,
-            data,
-            replace,
-            threads,
-            json,
-            quiet,
-        } => import_cli::run(import_cli::Args {
-            model,
-            scene,
-            resolution,
-            data,
-            replace,
-            threads,
-            json,
-            quiet,
-        }),
+        Cmd::Import(args) => import_cli::run(args),
         Cmd::Export {
             scene,
             out,
