@@ -513,6 +513,35 @@ fn vox_axes_palette_and_scene_graph_placement() {
         vox::import_vox(b"VOX nonsense", Path::new("bad.vox")),
         Err(ImportError::BadVox { .. })
     ));
+    // A group that lists itself: refused, not expanded forever.
+    let cyclic = DotVoxData {
+        models: vec![model(
+            1,
+            1,
+            1,
+            vec![Voxel {
+                x: 0,
+                y: 0,
+                z: 0,
+                i: 1,
+            }],
+        )],
+        scenes: vec![SceneNode::Group {
+            attributes: Default::default(),
+            children: vec![0, 0],
+        }],
+        palette: data.palette.clone(),
+        index_map: data.index_map.clone(),
+        materials: vec![],
+        layers: vec![],
+        version: 150,
+    };
+    let mut bytes = Vec::new();
+    cyclic.write_vox(&mut bytes).unwrap();
+    let err = vox::import_vox(&bytes, Path::new("loop.vox"))
+        .err()
+        .unwrap();
+    assert!(err.to_string().contains("refer back"), "{err}");
     let empty = DotVoxData {
         models: vec![model(4, 4, 4, vec![])],
         scenes: vec![],

@@ -55,23 +55,30 @@ fn rotation_matrix(r: Rotation) -> [[i32; 3]; 3] {
     std::array::from_fn(|row| std::array::from_fn(|col| cols[col][row].round() as i32))
 }
 
+/// Scene-graph nodes visited at most: a file whose graph refers back to itself would otherwise
+/// expand without end.
+const MAX_GRAPH_VISITS: usize = 1 << 20;
+
 /// Every model instance the scene graph places (or each model at the origin without a graph).
-fn instances(data: &DotVoxData) -> Vec<Instance> {
+fn instances(data: &DotVoxData) -> Result<Vec<Instance>, String> {
     if data.scenes.is_empty() {
-        return (0..data.models.len())
+        return Ok((0..data.models.len())
             .map(|model| Instance {
                 model,
                 rotation: IDENTITY,
                 translation: [0; 3],
             })
-            .collect();
+            .collect());
     }
     let mut out = Vec::new();
-    // (node, rotation, translation, depth): depth bounds a malicious cyclic graph.
-    let mut stack = vec![(0u32, IDENTITY, [0i32; 3], 0u32)];
-    while let Some((node, rotation, translation, depth)) = stack.pop() {
-        if depth > 64 {
-            continue;
+    let mut stack = vec![(0u32, IDENTITY, [0i32; 3])];
+    let mut visits = 0;
+    while let Some((node, rotation, translation)) = stack.pop() {
+        visits += 1;
+        if visits > MAX_GRAPH_VISITS {
+            return Err(format!(
+                "its scene graph expands to over {MAX_GRAPH_VISITS} nodes (does it refer back to itself?)"
+            ));
         }
         match data.scenes.get(node as usize) {
             Some(SceneNode::Transform { frames, child, .. }) => {
@@ -86,11 +93,11 @@ fn instances(data: &DotVoxData) -> Vec<Instance> {
                     (0..3).map(|col| rotation[row][col] * local_t[col]).sum()
                 });
                 let t = std::array::from_fn(|i| translation[i] + rotated[i]);
-                stack.push((*child, matmul(rotation, local_r), t, depth + 1));
+                stack.push((*child, matmul(rotation, local_r), t));
             }
             Some(SceneNode::Group { children, .. }) => {
                 for &c in children {
-                    stack.push((c, rotation, translation, depth + 1));
+                    stack.push((c, rotation, translation));
                 }
             }
             Some(SceneNode::Shape { models, .. }) => {
@@ -107,7 +114,7 @@ fn instances(data: &DotVoxData) -> Vec<Instance> {
             None => {}
         }
     }
-    out
+    Ok(out)
 }
 
 /// Reads a `.vox` file's bytes into a scene.
@@ -116,7 +123,10 @@ pub fn import_vox(bytes: &[u8], path: &Path) -> Result<BrickMap, ImportError> {
         path: path.into(),
         detail: e.to_string(),
     })?;
-    let instances = instances(&data);
+    let instances = instances(&data).map_err(|detail| ImportError::BadVox {
+        path: path.into(),
+        detail,
+    })?;
     // The scene is the box spanned by every placed model (its corners, not just its voxels, so
     // empty margins survive a round trip).
     let mut lo = [i32::MAX; 3];
