@@ -10,6 +10,7 @@
 //! time of an edit batch to the arrival, at another client, of the delta containing its
 //! sequence; see [`observe`]); ack latency; bytes per client; resyncs, rejected ops, errors.
 
+pub mod copy;
 pub mod histogram;
 pub mod observe;
 pub mod ops;

@@ -10,10 +10,10 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use brickcast_protocol::BrickMap;
-use brickcast_protocol::wire::{BlobDecoder, ClientMsg, ErrorCode, Limits, Role, ServerMsg};
+use brickcast_protocol::wire::{ClientMsg, ErrorCode, Role, ServerMsg};
 use tokio::sync::{mpsc, watch};
 
+use super::copy::{DeltaCache, LazyCopy};
 use super::histogram::Histogram;
 use super::observe::ObserverLog;
 use super::ops::{NothingToPaint, OpGen};
@@ -70,6 +70,7 @@ pub struct Shared {
     /// One per connection: what that connection saw, for the editor it observes.
     pub observers: Vec<Mutex<ObserverLog>>,
     pub live: Live,
+    pub cache: DeltaCache,
 }
 
 impl Shared {
@@ -77,6 +78,7 @@ impl Shared {
         Shared {
             observers: (0..connections).map(|_| Mutex::default()).collect(),
             live: Live::default(),
+            cache: DeltaCache::default(),
         }
     }
 
@@ -110,8 +112,8 @@ pub struct ClientPlan {
     pub token: Option<String>,
     /// `None`: a viewer.
     pub editor: Option<EditorPlan>,
-    /// Whether this client also counts the voxels each delta changes in its copy (one client
-    /// does, so the run reports voxels broadcast even without the server's metrics).
+    /// Whether this client also counts the voxels each delta changes in its copy (see
+    /// [`LazyCopy`]).
     pub count_voxels: bool,
 }
 
@@ -184,8 +186,6 @@ pub enum ClientError {
     UnknownAck(u64),
     #[error(transparent)]
     Paint(#[from] NothingToPaint),
-    #[error("a delta could not be decoded for counting: {0}")]
-    Count(#[from] brickcast_protocol::wire::WireError),
     #[error("stopped: another client failed")]
     Aborted,
 }
@@ -206,7 +206,6 @@ pub async fn client(
         ready_sent: false,
         drained_sent: false,
         inflight: VecDeque::new(),
-        counter: None,
     };
     let mut report = ClientReport::new(c.plan.index, c.plan.editor.is_some());
     let mut link = None;
@@ -237,72 +236,6 @@ pub async fn client(
     report
 }
 
-/// Counts how many voxels a delta changes in a copy, before the copy applies it.
-struct VoxelCounter {
-    decoder: BlobDecoder,
-}
-
-impl VoxelCounter {
-    fn count(&mut self, map: &BrickMap, msg: &ServerMsg) -> Result<u64, ClientError> {
-        let ServerMsg::Delta {
-            bricks, removed, ..
-        } = msg
-        else {
-            return Ok(0);
-        };
-        let mut changed = 0u64;
-        self.decoder
-            .for_each(bricks, Limits::hard_caps().max_bricks_per_frame, |brick| {
-                let new = brick.to_brick();
-                changed += match map.brick(new.cell) {
-                    Some(old) => brick_difference(&old, &new),
-                    None => new.colours.len() as u64,
-                };
-            })?;
-        for &cell in removed {
-            changed += map.brick(cell).map_or(0, |b| b.colours.len() as u64);
-        }
-        Ok(changed)
-    }
-}
-
-/// Voxels whose solidity or colour differs between two versions of a brick.
-fn brick_difference(
-    old: &brickcast_protocol::BrickData,
-    new: &brickcast_protocol::BrickData,
-) -> u64 {
-    if old.mask == new.mask {
-        return old
-            .colours
-            .iter()
-            .zip(&new.colours)
-            .filter(|(a, b)| a != b)
-            .count() as u64;
-    }
-    let mut changed = 0u64;
-    let (mut i, mut j) = (0usize, 0usize);
-    for w in 0..8 {
-        let (a, b) = (old.mask[w], new.mask[w]);
-        changed += u64::from((a ^ b).count_ones());
-        let mut any = a | b;
-        while any != 0 {
-            let bit = 1u64 << any.trailing_zeros();
-            any &= any - 1;
-            match (a & bit != 0, b & bit != 0) {
-                (true, true) => {
-                    changed += u64::from(old.colours.get(i) != new.colours.get(j));
-                    i += 1;
-                    j += 1;
-                }
-                (true, false) => i += 1,
-                (false, true) => j += 1,
-                (false, false) => {}
-            }
-        }
-    }
-    changed
-}
-
 struct Client {
     plan: ClientPlan,
     shared: Arc<Shared>,
@@ -312,7 +245,6 @@ struct Client {
     drained_sent: bool,
     /// Sent, unacknowledged batches: (client_seq, when sent).
     inflight: VecDeque<(u64, Instant)>,
-    counter: Option<VoxelCounter>,
 }
 
 impl Client {
@@ -341,13 +273,13 @@ impl Client {
             link::sync(&mut link, &mut replica, |_| {}).await?;
             Ok::<_, ClientError>((link, replica))
         };
-        let (link, mut replica) = tokio::select! {
+        let (link, replica) = tokio::select! {
             done = setup => done?,
             _ = abort.wait_for(|p| *p == Phase::Abort) => return Err(ClientError::Aborted),
         };
         let link = slot.insert(link);
         self.shared.observer(index).synced(replica.seq);
-        let mut ops = match &self.plan.editor {
+        let ops = match &self.plan.editor {
             Some(e) => Some(OpGen::new(
                 e.op,
                 e.area,
@@ -357,17 +289,26 @@ impl Client {
             )?),
             None => None,
         };
-        if self.plan.count_voxels {
-            self.counter = Some(VoxelCounter {
-                decoder: BlobDecoder::new().map_err(ClientError::Count)?,
-            });
-        }
+        let mut copy = LazyCopy::new(replica, self.plan.count_voxels)?;
         let _ = self.events.send(Event::Ready {
             index,
             result: Ok(()),
         });
         self.ready_sent = true;
+        let result = self.edit_and_check(link, &mut copy, ops, report).await;
+        report.voxels_seen = copy.voxels_seen;
+        result
+    }
 
+    /// The run after setup: edit (editors), follow the scene, and finally check the copy.
+    async fn edit_and_check(
+        &mut self,
+        link: &mut Link,
+        copy: &mut LazyCopy,
+        mut ops: Option<OpGen>,
+        report: &mut ClientReport,
+    ) -> Result<(), ClientError> {
+        let index = self.plan.index;
         let mut next_client_seq = 1u64;
         let mut due: Option<Instant> = None;
         // Whether the copy changed since it was last hashed.
@@ -431,12 +372,14 @@ impl Client {
                     }
                     if dirty {
                         dirty = false;
+                        let replica = copy.current()?;
                         if replica.synced && replica.map.content_hash() == hash {
                             report.verdict = Verdict::Match;
                             return Ok(());
                         }
                     }
                     if Instant::now() >= deadline {
+                        let replica = copy.current()?;
                         report.verdict = Verdict::Mismatch {
                             hash: replica.map.content_hash(),
                             seq: replica.seq,
@@ -462,7 +405,7 @@ impl Client {
                 msg = link.next() => {
                     let at = Instant::now();
                     let msg = msg?.ok_or(ClientError::Closed)?;
-                    self.handle(&msg, at, &mut replica, report)?;
+                    self.handle(&msg, at, copy, report)?;
                     dirty = true;
                 }
                 () = sleep => {}
@@ -474,7 +417,7 @@ impl Client {
         &mut self,
         msg: &ServerMsg,
         at: Instant,
-        replica: &mut Replica,
+        copy: &mut LazyCopy,
         report: &mut ClientReport,
     ) -> Result<(), ClientError> {
         let live = &self.shared.live;
@@ -522,10 +465,7 @@ impl Client {
             }
             _ => {}
         }
-        if let Some(counter) = &mut self.counter {
-            report.voxels_seen += counter.count(&replica.map, msg)?;
-        }
-        replica.apply(msg)?;
+        copy.apply(msg, &self.shared.cache)?;
         match msg {
             ServerMsg::Delta {
                 from_seq, to_seq, ..
@@ -537,38 +477,5 @@ impl Client {
             _ => {}
         }
         Ok(())
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use brickcast_protocol::{BrickData, Colour};
-
-    fn brick(voxels: &[(u32, u16)]) -> BrickData {
-        let mut mask = [0u64; 8];
-        let mut sorted = voxels.to_vec();
-        sorted.sort_unstable();
-        for &(b, _) in &sorted {
-            mask[(b / 64) as usize] |= 1 << (b % 64);
-        }
-        BrickData {
-            cell: [0, 0, 0],
-            mask,
-            colours: sorted.iter().map(|&(_, c)| Colour(c)).collect(),
-        }
-    }
-
-    #[test]
-    fn brick_difference_counts_solidity_and_colour_changes() {
-        let a = brick(&[(0, 1), (5, 2), (64, 3), (511, 4)]);
-        assert_eq!(brick_difference(&a, &a), 0);
-        // Recolour one voxel, same mask.
-        let b = brick(&[(0, 1), (5, 9), (64, 3), (511, 4)]);
-        assert_eq!(brick_difference(&a, &b), 1);
-        // Remove voxel 5, add voxel 6, recolour 511: the colour lists shift against each other.
-        let c = brick(&[(0, 1), (6, 2), (64, 3), (511, 7)]);
-        assert_eq!(brick_difference(&a, &c), 3);
-        assert_eq!(brick_difference(&c, &a), 3);
     }
 }
