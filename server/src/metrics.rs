@@ -3,6 +3,10 @@
 //! Plain atomics written from the scene owners and sessions; rendering is a string build on
 //! request. No metrics crate: the set is small and fixed, and this keeps the hot path to one
 //! relaxed add per event.
+//!
+//! Besides events, the owners and sessions account for their time per phase (decode, apply,
+//! commit, encode, send, ...), so "where does the time go" under load is answered by two scrapes
+//! of `/metrics` rather than by a profiler (`brickcast load` prints the breakdown).
 
 use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -12,6 +16,73 @@ use std::time::Duration;
 const COMMIT_BUCKETS_US: [u64; 12] = [
     100, 250, 500, 1_000, 2_500, 5_000, 10_000, 25_000, 50_000, 100_000, 250_000, 1_000_000,
 ];
+
+/// The phases of a scene owner's turn whose wall time is accounted for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OwnerPhase {
+    /// Waiting for commands (idle).
+    Wait,
+    /// Applying edit ops to the map (including ray tracing and validation).
+    Apply,
+    /// The durable log commit (redb, fsync).
+    Commit,
+    /// Encoding acks and queueing them.
+    Ack,
+    /// Building and compressing the delta frames of a turn.
+    Encode,
+    /// Queueing delta frames to every subscriber.
+    Fanout,
+    /// Encoding and queueing sync and resync batches.
+    Sync,
+    /// Writing snapshots.
+    Snapshot,
+}
+
+impl OwnerPhase {
+    pub const ALL: [OwnerPhase; 8] = [
+        OwnerPhase::Wait,
+        OwnerPhase::Apply,
+        OwnerPhase::Commit,
+        OwnerPhase::Ack,
+        OwnerPhase::Encode,
+        OwnerPhase::Fanout,
+        OwnerPhase::Sync,
+        OwnerPhase::Snapshot,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            OwnerPhase::Wait => "wait",
+            OwnerPhase::Apply => "apply",
+            OwnerPhase::Commit => "commit",
+            OwnerPhase::Ack => "ack",
+            OwnerPhase::Encode => "encode",
+            OwnerPhase::Fanout => "fanout",
+            OwnerPhase::Sync => "sync",
+            OwnerPhase::Snapshot => "snapshot",
+        }
+    }
+}
+
+/// The phases of a session whose time is accounted for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SessionPhase {
+    /// Decoding client frames (and checking them).
+    Decode,
+    /// Writing frames to the websocket, flushes included (wall time: a full socket counts).
+    Send,
+}
+
+impl SessionPhase {
+    pub const ALL: [SessionPhase; 2] = [SessionPhase::Decode, SessionPhase::Send];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            SessionPhase::Decode => "decode",
+            SessionPhase::Send => "send",
+        }
+    }
+}
 
 #[derive(Default)]
 pub struct Metrics {
@@ -30,11 +101,25 @@ pub struct Metrics {
     pub snapshots: AtomicU64,
     commit_buckets: [AtomicU64; COMMIT_BUCKETS_US.len()],
     commit_sum_us: AtomicU64,
+    /// Owner turns (one group commit each, when they carried edits).
+    pub owner_turns: AtomicU64,
+    owner_ns: [AtomicU64; OwnerPhase::ALL.len()],
+    session_ns: [AtomicU64; SessionPhase::ALL.len()],
 }
 
 impl Metrics {
     pub fn add(counter: &AtomicU64, n: u64) {
         counter.fetch_add(n, Relaxed);
+    }
+
+    /// Adds wall time to an owner phase.
+    pub fn owner_time(&self, phase: OwnerPhase, took: Duration) {
+        self.owner_ns[phase as usize].fetch_add(nanos(took), Relaxed);
+    }
+
+    /// Adds time to a session phase.
+    pub fn session_time(&self, phase: SessionPhase, took: Duration) {
+        self.session_ns[phase as usize].fetch_add(nanos(took), Relaxed);
     }
 
     /// Records one durable commit of the edit log.
@@ -129,6 +214,12 @@ impl Metrics {
             "Scene snapshots written.",
             get(&self.snapshots),
         );
+        metric(
+            "owner_turns_total",
+            "counter",
+            "Scene owner turns (each drains the queued commands and commits once).",
+            get(&self.owner_turns),
+        );
         let _ = writeln!(
             out,
             "# HELP brickcast_log_commit_seconds Durable edit-log commit latency."
@@ -154,7 +245,56 @@ impl Metrics {
             get(&self.commit_sum_us) as f64 / 1e6
         );
         let _ = writeln!(out, "brickcast_log_commit_seconds_count {count}");
+        let seconds = |ns: &AtomicU64| get(ns) as f64 / 1e9;
+        let _ = writeln!(
+            out,
+            "# HELP brickcast_owner_seconds_total Wall time scene owners spent per phase.\n# TYPE brickcast_owner_seconds_total counter"
+        );
+        for phase in OwnerPhase::ALL {
+            let _ = writeln!(
+                out,
+                "brickcast_owner_seconds_total{{phase=\"{}\"}} {}",
+                phase.name(),
+                seconds(&self.owner_ns[phase as usize])
+            );
+        }
+        let _ = writeln!(
+            out,
+            "# HELP brickcast_session_seconds_total Time sessions spent decoding frames and writing them.\n# TYPE brickcast_session_seconds_total counter"
+        );
+        for phase in SessionPhase::ALL {
+            let _ = writeln!(
+                out,
+                "brickcast_session_seconds_total{{phase=\"{}\"}} {}",
+                phase.name(),
+                seconds(&self.session_ns[phase as usize])
+            );
+        }
         out
+    }
+}
+
+fn nanos(d: Duration) -> u64 {
+    d.as_nanos().min(u128::from(u64::MAX)) as u64
+}
+
+/// Times consecutive phases with one clock read per phase boundary.
+pub struct PhaseClock {
+    at: std::time::Instant,
+}
+
+impl PhaseClock {
+    pub fn start() -> PhaseClock {
+        PhaseClock {
+            at: std::time::Instant::now(),
+        }
+    }
+
+    /// Charges the time since the last mark to `phase`.
+    pub fn mark(&mut self, metrics: &Metrics, phase: OwnerPhase) {
+        let now = std::time::Instant::now();
+        metrics.owner_time(phase, now.duration_since(self.at));
+        self.at = now;
     }
 }
 
@@ -176,5 +316,28 @@ mod tests {
         assert!(text.contains("brickcast_log_commit_seconds_bucket{le=\"0.005\"} 2"));
         assert!(text.contains("brickcast_log_commit_seconds_bucket{le=\"+Inf\"} 3"));
         assert!(text.contains("brickcast_log_commit_seconds_count 3"));
+    }
+
+    #[test]
+    fn phase_times_are_exported_per_phase() {
+        let m = Metrics::default();
+        m.owner_time(OwnerPhase::Apply, Duration::from_millis(1500));
+        m.owner_time(OwnerPhase::Apply, Duration::from_millis(250));
+        m.owner_time(OwnerPhase::Fanout, Duration::from_micros(5));
+        m.session_time(SessionPhase::Decode, Duration::from_millis(20));
+        let text = m.render();
+        for line in [
+            "brickcast_owner_seconds_total{phase=\"apply\"} 1.75",
+            "brickcast_owner_seconds_total{phase=\"fanout\"} 0.000005",
+            "brickcast_owner_seconds_total{phase=\"commit\"} 0",
+            "brickcast_session_seconds_total{phase=\"decode\"} 0.02",
+            "brickcast_session_seconds_total{phase=\"send\"} 0",
+        ] {
+            assert!(text.lines().any(|l| l == line), "{line} missing:\n{text}");
+        }
+        let mut clock = PhaseClock::start();
+        std::thread::sleep(Duration::from_millis(2));
+        clock.mark(&m, OwnerPhase::Wait);
+        assert!(m.owner_ns[OwnerPhase::Wait as usize].load(Relaxed) >= 2_000_000);
     }
 }

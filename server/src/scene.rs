@@ -20,6 +20,7 @@ use std::time::{Duration, Instant};
 
 use brickcast_protocol::BrickMap;
 use brickcast_protocol::apply::apply_op;
+use brickcast_protocol::brick::popcount;
 use brickcast_protocol::wire::{
     BlobEncoder, BrickBlob, EditOp, Limits, MAX_REMOVED_PER_FRAME, OpRejection, PROTOCOL_VERSION,
     Rejection, Role, ServerMsg, encode_server,
@@ -27,7 +28,7 @@ use brickcast_protocol::wire::{
 use bytes::Bytes;
 use tokio::sync::{mpsc, oneshot};
 
-use crate::metrics::Metrics;
+use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
 use crate::store::Store;
 
 /// Identifies a session within the server.
@@ -36,8 +37,19 @@ pub type SessionId = u64;
 /// Most ops applied in one turn before committing: bounds the latency a huge backlog adds to the
 /// first edit in it.
 const MAX_OPS_PER_TURN: usize = 65_536;
-/// Snapshot after this many log entries, so recovery replays a bounded log.
-const SNAPSHOT_EVERY_ENTRIES: u64 = 20_000;
+/// Snapshot once replaying the log would cost about this many single-voxel ops (about a second
+/// of recovery: 7.2 M logged voxel ops replayed in 2.0 s on the dev VM; see
+/// [`Owner::replay_cost`]). A snapshot rewrites every brick touched since the
+/// last one and stalls the owner meanwhile (about 1 µs per brick: a quarter of a second for a
+/// scene whose every brick was edited), so it is sized by what recovery would replay, not by how
+/// many edit messages carried it: counting messages made small batches snapshot the whole scene
+/// every two seconds under load.
+const SNAPSHOT_REPLAY_BUDGET: u64 = 4_000_000;
+/// Voxels a sphere or box brush changes per single-voxel op of replay time (~10 ns per brushed
+/// voxel against ~300 ns per op).
+const VOXELS_PER_OP_COST: u64 = 32;
+/// ...or after this many log entries, each of which costs a decode at recovery.
+const SNAPSHOT_EVERY_ENTRIES: u64 = 200_000;
 /// ...or after this long with any entries, so an idle server's log is short too.
 const SNAPSHOT_EVERY: Duration = Duration::from_secs(60);
 /// Keep tombstones for at least this many sequence numbers: a client that reconnects within that
@@ -221,8 +233,10 @@ pub fn spawn(
         encoder: BlobEncoder::new(ZSTD_LEVEL).map_err(std::io::Error::other)?,
         // Bricks the replayed log changed are not in the snapshot yet: the next snapshot must
         // write them before it trims the log that holds them.
-        unsnapshotted: replay_touched,
+        unsnapshotted: CellSet::from_cells(&replay_touched),
         log_entries: replayed,
+        log_ops: 0,
+        log_voxels: 0,
         last_snapshot: Instant::now(),
         rx,
         runtime,
@@ -248,8 +262,11 @@ struct Owner {
     subs: HashMap<SessionId, Subscriber>,
     encoder: BlobEncoder,
     /// Cells touched since the last snapshot (may repeat).
-    unsnapshotted: Vec<u32>,
+    unsnapshotted: CellSet,
     log_entries: u64,
+    /// Ops and voxels changed in the log since the snapshot (replay cost).
+    log_ops: u64,
+    log_voxels: u64,
     last_snapshot: Instant,
     rx: mpsc::Receiver<Command>,
     runtime: tokio::runtime::Handle,
@@ -273,6 +290,7 @@ impl Owner {
             } else {
                 Duration::from_secs(1)
             };
+            let mut clock = PhaseClock::start();
             let first = if self.has_ready_work() {
                 self.rx.try_recv().ok()
             } else {
@@ -294,18 +312,29 @@ impl Owner {
                     Err(_) => break,
                 }
             }
-            let stop = self.turn(commands)?;
+            clock.mark(&self.metrics, OwnerPhase::Wait);
+            let stop = self.turn(commands, &mut clock)?;
             self.pump_syncs();
+            clock.mark(&self.metrics, OwnerPhase::Sync);
             self.maybe_snapshot(false)?;
             self.publish_info();
+            clock.mark(&self.metrics, OwnerPhase::Snapshot);
             if stop {
                 return self.stop();
             }
         }
     }
 
-    /// Processes one group of commands. Returns true on shutdown.
-    fn turn(&mut self, commands: Vec<Command>) -> Result<bool, crate::store::StoreError> {
+    /// Processes one group of commands, charging each phase's time to `clock`. Returns true on
+    /// shutdown.
+    fn turn(
+        &mut self,
+        commands: Vec<Command>,
+        clock: &mut PhaseClock,
+    ) -> Result<bool, crate::store::StoreError> {
+        if !commands.is_empty() {
+            Metrics::add(&self.metrics.owner_turns, 1);
+        }
         let mut acks: Vec<PendingAck> = Vec::new();
         let mut log: Vec<(u64, Vec<EditOp>)> = Vec::new();
         let mut stop = false;
@@ -349,6 +378,7 @@ impl Owner {
                 Command::Shutdown => stop = true,
             }
         }
+        clock.mark(&self.metrics, OwnerPhase::Apply);
         if !log.is_empty() {
             let started = Instant::now();
             let batches: Vec<(u64, &[EditOp])> =
@@ -357,6 +387,7 @@ impl Owner {
             self.metrics.observe_commit(started.elapsed());
             self.log_entries += log.len() as u64;
         }
+        clock.mark(&self.metrics, OwnerPhase::Commit);
         // Durable: acknowledge, then show everyone.
         for ack in acks {
             if let Some(sub) = self.subs.get(&ack.session) {
@@ -371,11 +402,13 @@ impl Owner {
                 }
             }
         }
-        self.broadcast_delta();
+        clock.mark(&self.metrics, OwnerPhase::Ack);
+        self.broadcast_delta(clock);
         for done in snapshot_requests {
             let result = self.maybe_snapshot(true).map_err(|e| e.to_string());
             let _ = done.send(result);
         }
+        clock.mark(&self.metrics, OwnerPhase::Snapshot);
         Ok(stop)
     }
 
@@ -430,6 +463,8 @@ impl Owner {
             // Only batches that applied something take a sequence number and a log entry; ops
             // that changed no voxel are still logged so replay matches op for op.
             self.seq = seq;
+            self.log_ops += applied.len() as u64;
+            self.log_voxels += voxels;
             Metrics::add(&self.metrics.edit_batches, 1);
             log.push((seq, applied));
             Some(seq)
@@ -550,12 +585,12 @@ impl Owner {
     }
 
     /// Sends everything touched this turn to every subscriber that keeps up.
-    fn broadcast_delta(&mut self) {
+    fn broadcast_delta(&mut self, clock: &mut PhaseClock) {
         let touched = self.map.take_touched();
         if touched.is_empty() {
             return;
         }
-        self.unsnapshotted.extend_from_slice(&touched);
+        self.unsnapshotted.insert_all(&touched);
         let from = self.info.seq.load(Relaxed);
         let to = self.seq;
         let frames = match self.encode_cells(&touched, |bricks, removed| ServerMsg::Delta {
@@ -570,6 +605,7 @@ impl Owner {
                 return;
             }
         };
+        clock.mark(&self.metrics, OwnerPhase::Encode);
         let seq = self.seq;
         let bytes: usize = frames.iter().map(|f| f.len()).sum();
         for sub in self.subs.values_mut() {
@@ -587,6 +623,7 @@ impl Owner {
             sub.delivered = seq;
             Metrics::add(&self.metrics.deltas_sent, frames.len() as u64);
         }
+        clock.mark(&self.metrics, OwnerPhase::Fanout);
     }
 
     /// Encodes the current state of `cells` as frames: bricks that exist go in blobs cut to
@@ -609,17 +646,24 @@ impl Owner {
                 frames.push(Bytes::from(encode_server(&msg)?));
                 Ok::<(), brickcast_protocol::wire::WireError>(())
             };
+        let map = &self.map;
         for &cell in cells {
-            let coords = self.map.cell_coords(cell);
-            match self.map.brick(coords) {
-                Some(b) => {
+            let coords = map.cell_coords(cell);
+            match map.slot_of_cell(coords) {
+                Some(slot) => {
+                    // Straight from the map's arrays: a delta re-sends every brick it touched,
+                    // and copying each into a `BrickData` first cost as much as compressing it.
+                    let s = slot as usize;
+                    let mask = &map.masks()[s];
+                    let base = map.colour_bases()[s] as usize;
+                    let colours = &map.colour_pool()[base..base + popcount(mask) as usize];
                     // Brick rows compress ~3x but may not; budget raw bytes against half the frame.
                     if self.encoder.len() >= max_bricks
-                        || self.encoder.raw_len() + 70 + 2 * b.colours.len() > max_raw
+                        || self.encoder.raw_len() + 70 + 2 * colours.len() > max_raw
                     {
                         finish(&mut self.encoder, &mut removed, &mut frames)?;
                     }
-                    self.encoder.push(b.cell, &b.mask, &b.colours)?;
+                    self.encoder.push(coords, mask, colours)?;
                 }
                 None => {
                     if removed.len() >= MAX_REMOVED_PER_FRAME {
@@ -704,22 +748,30 @@ impl Owner {
     }
 
     fn maybe_snapshot(&mut self, force: bool) -> Result<(), crate::store::StoreError> {
-        let due = self.log_entries >= SNAPSHOT_EVERY_ENTRIES
+        let due = self.replay_cost() >= SNAPSHOT_REPLAY_BUDGET
+            || self.log_entries >= SNAPSHOT_EVERY_ENTRIES
             || (self.log_entries > 0 && self.last_snapshot.elapsed() >= SNAPSHOT_EVERY);
         if !(force || due) {
             return Ok(());
         }
-        let mut cells = std::mem::take(&mut self.unsnapshotted);
-        cells.sort_unstable();
-        cells.dedup();
+        let started = Instant::now();
+        let cells = self.unsnapshotted.take_sorted();
         self.store.snapshot(&self.name, &self.map, &cells)?;
+        tracing::debug!(scene = %self.name, seq = self.seq, entries = self.log_entries, bricks = cells.len(), took = ?started.elapsed(), "snapshot");
         self.log_entries = 0;
+        self.log_ops = 0;
+        self.log_voxels = 0;
         self.last_snapshot = Instant::now();
         Metrics::add(&self.metrics.snapshots, 1);
         if self.seq > TOMBSTONE_WINDOW {
             self.map.prune_tombstones(self.seq - TOMBSTONE_WINDOW);
         }
         Ok(())
+    }
+
+    /// What replaying the log since the snapshot would cost, in single-voxel ops.
+    fn replay_cost(&self) -> u64 {
+        self.log_ops + self.log_voxels / VOXELS_PER_OP_COST
     }
 
     fn publish_info(&self) {
@@ -738,7 +790,7 @@ impl Owner {
         while let Ok(cmd) = self.rx.try_recv() {
             rest.push(cmd);
         }
-        self.turn(rest)?;
+        self.turn(rest, &mut PhaseClock::start())?;
         if self.log_entries > 0 {
             self.maybe_snapshot(true)?;
         }
@@ -762,6 +814,49 @@ impl Owner {
     }
 }
 
+/// Linear cell indices, each once: the bricks a snapshot must rewrite. A bitset rather than a
+/// list because under load the same cells are touched turn after turn between snapshots.
+#[derive(Default)]
+struct CellSet {
+    bits: Vec<u64>,
+    len: usize,
+}
+
+impl CellSet {
+    fn from_cells(cells: &[u32]) -> CellSet {
+        let mut set = CellSet::default();
+        set.insert_all(cells);
+        set
+    }
+
+    fn insert_all(&mut self, cells: &[u32]) {
+        for &c in cells {
+            let (word, bit) = ((c / 64) as usize, 1u64 << (c % 64));
+            if word >= self.bits.len() {
+                self.bits.resize(word + 1, 0);
+            }
+            if self.bits[word] & bit == 0 {
+                self.bits[word] |= bit;
+                self.len += 1;
+            }
+        }
+    }
+
+    /// The cells in ascending order; the set is left empty.
+    fn take_sorted(&mut self) -> Vec<u32> {
+        let mut out = Vec::with_capacity(self.len);
+        for (w, word) in self.bits.iter_mut().enumerate() {
+            let mut bits = std::mem::take(word);
+            while bits != 0 {
+                out.push(w as u32 * 64 + bits.trailing_zeros());
+                bits &= bits - 1;
+            }
+        }
+        self.len = 0;
+        out
+    }
+}
+
 fn command_ops(cmd: &Command) -> usize {
     match cmd {
         Command::Edit { ops, .. } => ops.len().max(1),
@@ -779,4 +874,20 @@ fn sort_far_to_near(map: &BrickMap, cells: &mut [u32], eye: [f32; 3]) {
         std::cmp::Reverse((d * 16.0) as u64)
     };
     cells.sort_unstable_by_key(key);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cell_set_keeps_each_cell_once_in_order() {
+        let mut set = CellSet::from_cells(&[70, 3, 3, 200_000]);
+        set.insert_all(&[64, 70, 0]);
+        assert_eq!(set.len, 5);
+        assert_eq!(set.take_sorted(), vec![0, 3, 64, 70, 200_000]);
+        assert!(set.take_sorted().is_empty());
+        set.insert_all(&[5]);
+        assert_eq!(set.take_sorted(), vec![5]);
+    }
 }

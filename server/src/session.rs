@@ -21,11 +21,14 @@ use tokio::sync::mpsc;
 
 use crate::App;
 use crate::auth::Access;
-use crate::metrics::Metrics;
+use crate::metrics::{Metrics, SessionPhase};
 use crate::scene::{Command, Outbox, SceneHandle, SessionId};
 
 /// How long a closing connection keeps reading so its peer can receive the close.
 const CLOSE_GRACE: Duration = Duration::from_secs(2);
+/// Bytes of queued frames one flush may carry, so a long queue still goes out in bounded writes
+/// and the byte count the owner reads keeps moving.
+const MAX_WRITE_BATCH: usize = 1 << 20;
 /// How long a new connection may take to say Hello.
 const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 
@@ -223,7 +226,11 @@ async fn read_loop(
                 "the client sends but does not read its replies".into(),
             );
         }
-        let msg = match decode_client(&bytes, limits) {
+        let started = Instant::now();
+        let decoded = decode_client(&bytes, limits);
+        app.metrics
+            .session_time(SessionPhase::Decode, started.elapsed());
+        let msg = match decoded {
             Ok(msg) => msg,
             Err(e) => return reject(frame_error_code(&e), e.to_string()),
         };
@@ -298,8 +305,23 @@ async fn write_loop(
     metrics: Arc<Metrics>,
 ) {
     while let Some(frame) = rx.recv().await {
-        let len = frame.len();
-        let sent = sink.send(Message::Binary(frame)).await;
+        let started = Instant::now();
+        // Everything already queued goes out with one flush: an ack and the delta of the same
+        // turn, or a burst of deltas, leave in one write instead of one small segment each.
+        // Separate small writes also meet Nagle's algorithm, which holds a segment back until the
+        // previous one is acknowledged, and a client's delayed ACK can put that off until it
+        // next sends: the ack of one edit arrived only after the client's following edit.
+        let mut len = frame.len();
+        let mut sent = sink.feed(Message::Binary(frame)).await;
+        while sent.is_ok() && len < MAX_WRITE_BATCH {
+            let Ok(frame) = rx.try_recv() else { break };
+            len += frame.len();
+            sent = sink.feed(Message::Binary(frame)).await;
+        }
+        if sent.is_ok() {
+            sent = sink.flush().await;
+        }
+        metrics.session_time(SessionPhase::Send, started.elapsed());
         queued.fetch_sub(len, Relaxed);
         if sent.is_err() {
             // The peer is gone; keep draining so the owner's byte count stays true.
