@@ -105,13 +105,15 @@ impl Link {
         token: Option<&str>,
         resume_from: Option<u64>,
     ) -> Result<Link, LinkError> {
-        let (mut ws, _) =
-            tokio_tungstenite::connect_async(url)
-                .await
-                .map_err(|e| LinkError::Connect {
-                    url: url.to_string(),
-                    reason: e.to_string(),
-                })?;
+        // Nagle's algorithm would hold a small edit back until the previous frame is
+        // acknowledged, which the server's delayed ACK can put off until our *next* send: an
+        // edit would wait for the one after it.
+        let (mut ws, _) = tokio_tungstenite::connect_async_with_config(url, None, true)
+            .await
+            .map_err(|e| LinkError::Connect {
+                url: url.to_string(),
+                reason: e.to_string(),
+            })?;
         let hello = ClientMsg::Hello {
             protocol: PROTOCOL_VERSION,
             name: name.to_string(),

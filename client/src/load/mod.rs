@@ -17,6 +17,7 @@ pub mod ops;
 pub mod options;
 pub mod worker;
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::io::IsTerminal;
 use std::sync::Arc;
@@ -131,6 +132,8 @@ pub struct LoadDetails {
     pub final_seq: u64,
     pub verified: usize,
     pub connections: usize,
+    /// The server's own time accounting over the edit window, when `/metrics` answers.
+    pub server: Option<ServerTimes>,
 }
 
 /// A finished run: the report, the details, and what failed (empty when the run passed).
@@ -234,7 +237,7 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     }
     let setup_s = setup_started.elapsed().as_secs_f64();
 
-    let voxels_before = server_voxels_changed(&url).await;
+    let metrics_before = server_metrics(&url).await;
     let start = Instant::now();
     let end = start + Duration::from_secs_f64(args.duration);
     let _ = control.send(Phase::Run { start, end });
@@ -279,7 +282,7 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     }
     let window_end = last_ack.map_or(end, |a| a.max(end));
     let duration_s = window_end.duration_since(start).as_secs_f64();
-    let voxels_after = server_voxels_changed(&url).await;
+    let metrics_after = server_metrics(&url).await;
     progress.done();
 
     // Every acknowledged edit is in the server's scene now: that scene, fetched afresh, is what
@@ -349,10 +352,11 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
         }
     }
     let per = |total: u64, n: usize| if n == 0 { 0 } else { total / n as u64 };
-    let voxels_applied_per_s = match (voxels_before, voxels_after) {
-        (Some(a), Some(b)) => Some(b.saturating_sub(a) as f64 / duration_s),
+    let server = match (&metrics_before, &metrics_after) {
+        (Some(a), Some(b)) => Some(ServerTimes::between(a, b)),
         _ => None,
     };
+    let voxels_applied_per_s = server.as_ref().map(|s| s.voxels_changed / duration_s);
     let voxels_seen_per_s = voxels_seen as f64 / duration_s;
     let report = LoadReport {
         clients: args.clients,
@@ -395,6 +399,7 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
         final_seq,
         verified,
         connections,
+        server,
     };
     Ok(LoadOutcome {
         report,
@@ -417,9 +422,9 @@ async fn fetch(url: &str, token: Option<&str>) -> Result<Replica, LoadError> {
     Ok(replica)
 }
 
-/// The server's `brickcast_voxels_changed_total`, read from `/metrics` on the scene's host;
-/// `None` when that does not answer (a proxy may expose only the websocket).
-async fn server_voxels_changed(ws_url: &str) -> Option<u64> {
+/// The server's counters, read from `/metrics` on the scene's host: series (labels included) →
+/// value. `None` when that does not answer (a proxy may expose only the websocket).
+async fn server_metrics(ws_url: &str) -> Option<BTreeMap<String, f64>> {
     let host = ws_url.strip_prefix("ws://")?.split('/').next()?.to_string();
     let get = async {
         let mut stream = tokio::net::TcpStream::connect(&host).await.ok()?;
@@ -427,7 +432,7 @@ async fn server_voxels_changed(ws_url: &str) -> Option<u64> {
         stream.write_all(request.as_bytes()).await.ok()?;
         let mut body = Vec::new();
         stream.take(4 << 20).read_to_end(&mut body).await.ok()?;
-        parse_voxels_changed(&String::from_utf8_lossy(&body))
+        parse_metrics(&String::from_utf8_lossy(&body))
     };
     tokio::time::timeout(Duration::from_secs(5), get)
         .await
@@ -435,15 +440,54 @@ async fn server_voxels_changed(ws_url: &str) -> Option<u64> {
         .flatten()
 }
 
-/// The counter's value in an HTTP response carrying Prometheus text.
-fn parse_voxels_changed(response: &str) -> Option<u64> {
+/// The series of an HTTP response carrying Prometheus text.
+fn parse_metrics(response: &str) -> Option<BTreeMap<String, f64>> {
     let (head, body) = response.split_once("\r\n\r\n")?;
     if !head.starts_with("HTTP/1.1 200") {
         return None;
     }
-    body.lines()
-        .find_map(|l| l.strip_prefix("brickcast_voxels_changed_total "))
-        .and_then(|v| v.trim().parse().ok())
+    let series: BTreeMap<String, f64> = body
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let (name, value) = l.rsplit_once(' ')?;
+            Some((name.to_string(), value.trim().parse().ok()?))
+        })
+        .collect();
+    (!series.is_empty()).then_some(series)
+}
+
+/// What the server's own accounting says about the run: counter increases between two scrapes.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ServerTimes {
+    pub voxels_changed: f64,
+    pub turns: f64,
+    /// (phase, seconds) of the scene owners' wall time.
+    pub owner: Vec<(String, f64)>,
+    /// (phase, seconds) of the sessions' time.
+    pub session: Vec<(String, f64)>,
+}
+
+impl ServerTimes {
+    fn between(before: &BTreeMap<String, f64>, after: &BTreeMap<String, f64>) -> ServerTimes {
+        let delta = |name: &str| after.get(name).unwrap_or(&0.0) - before.get(name).unwrap_or(&0.0);
+        let phases = |family: &str| -> Vec<(String, f64)> {
+            let prefix = format!("{family}{{phase=\"");
+            after
+                .keys()
+                .filter_map(|k| {
+                    let phase = k.strip_prefix(&prefix)?.strip_suffix("\"}")?;
+                    Some((phase.to_string(), delta(k)))
+                })
+                .collect()
+        };
+        ServerTimes {
+            voxels_changed: delta("brickcast_voxels_changed_total"),
+            turns: delta("brickcast_owner_turns_total"),
+            owner: phases("brickcast_owner_seconds_total"),
+            session: phases("brickcast_session_seconds_total"),
+        }
+    }
 }
 
 /// The progress line on stderr: rewritten in place on a terminal, one line per second otherwise.
@@ -539,6 +583,25 @@ impl LoadOutcome {
                 ),
             );
         }
+        if let Some(server) = &d.server {
+            let list = |phases: &[(String, f64)]| {
+                phases
+                    .iter()
+                    .map(|(p, secs)| format!("{p} {secs:.2}"))
+                    .collect::<Vec<_>>()
+                    .join("  ")
+            };
+            row(
+                "server owner s",
+                format!(
+                    "{}  ({:.0} turns, {:.0} ops/turn)",
+                    list(&server.owner),
+                    server.turns,
+                    r.ops_acked as f64 / server.turns.max(1.0)
+                ),
+            );
+            row("server sessions s", list(&server.session));
+        }
         row(
             "resyncs / rejected / errors",
             format!("{} / {} / {}", r.resyncs, r.rejected, r.errors),
@@ -571,20 +634,39 @@ mod tests {
     use super::*;
 
     #[test]
-    fn metrics_counter_is_read_from_an_http_answer() {
-        let ok = "HTTP/1.1 200 OK\r\ncontent-type: text/plain\r\n\r\n# HELP brickcast_voxels_changed_total x\n# TYPE brickcast_voxels_changed_total counter\nbrickcast_voxels_changed_total 12345\nbrickcast_deltas_sent_total 9\n";
-        assert_eq!(parse_voxels_changed(ok), Some(12345));
+    fn server_counters_are_read_from_an_http_answer() {
+        let scrape = |voxels: u64, apply: f64, turns: u64| {
+            format!(
+                "HTTP/1.1 200 OK\r\ncontent-type: text/plain\r\n\r\n\
+                 # HELP brickcast_voxels_changed_total x\n\
+                 # TYPE brickcast_voxels_changed_total counter\n\
+                 brickcast_voxels_changed_total {voxels}\n\
+                 brickcast_owner_turns_total {turns}\n\
+                 brickcast_owner_seconds_total{{phase=\"apply\"}} {apply}\n\
+                 brickcast_owner_seconds_total{{phase=\"commit\"}} 2\n\
+                 brickcast_session_seconds_total{{phase=\"decode\"}} 0.5\n\
+                 brickcast_scene_seq{{scene=\"demo\"}} 7\n"
+            )
+        };
+        let before = parse_metrics(&scrape(100, 1.5, 10)).unwrap();
+        assert_eq!(before["brickcast_voxels_changed_total"], 100.0);
+        assert_eq!(before["brickcast_scene_seq{scene=\"demo\"}"], 7.0);
+        let after = parse_metrics(&scrape(12_345, 4.0, 30)).unwrap();
         assert_eq!(
-            parse_voxels_changed(
-                "HTTP/1.1 404 Not Found\r\n\r\nbrickcast_voxels_changed_total 1\n"
-            ),
-            None
+            ServerTimes::between(&before, &after),
+            ServerTimes {
+                voxels_changed: 12_245.0,
+                turns: 20.0,
+                owner: vec![("apply".into(), 2.5), ("commit".into(), 0.0)],
+                session: vec![("decode".into(), 0.0)],
+            }
         );
         assert_eq!(
-            parse_voxels_changed("HTTP/1.1 200 OK\r\n\r\nnothing\n"),
+            parse_metrics("HTTP/1.1 404 Not Found\r\n\r\nbrickcast_voxels_changed_total 1\n"),
             None
         );
-        assert_eq!(parse_voxels_changed("garbage"), None);
+        assert_eq!(parse_metrics("HTTP/1.1 200 OK\r\n\r\n# nothing\n"), None);
+        assert_eq!(parse_metrics("garbage"), None);
     }
 
     #[test]
