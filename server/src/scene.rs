@@ -48,8 +48,9 @@ const SNAPSHOT_REPLAY_BUDGET: u64 = 4_000_000;
 /// Voxels a sphere or box brush changes per single-voxel op of replay time (~10 ns per brushed
 /// voxel against ~300 ns per op).
 const VOXELS_PER_OP_COST: u64 = 32;
-/// ...or after this many log entries, each of which costs a decode at recovery.
-const SNAPSHOT_EVERY_ENTRIES: u64 = 200_000;
+/// Single-voxel ops of replay time one log entry costs besides its ops (reading and decoding
+/// the row).
+const ENTRY_OP_COST: u64 = 4;
 /// ...or after this long with any entries, so an idle server's log is short too.
 const SNAPSHOT_EVERY: Duration = Duration::from_secs(60);
 /// Keep tombstones for at least this many sequence numbers: a client that reconnects within that
@@ -749,7 +750,6 @@ impl Owner {
 
     fn maybe_snapshot(&mut self, force: bool) -> Result<(), crate::store::StoreError> {
         let due = self.replay_cost() >= SNAPSHOT_REPLAY_BUDGET
-            || self.log_entries >= SNAPSHOT_EVERY_ENTRIES
             || (self.log_entries > 0 && self.last_snapshot.elapsed() >= SNAPSHOT_EVERY);
         if !(force || due) {
             return Ok(());
@@ -771,7 +771,7 @@ impl Owner {
 
     /// What replaying the log since the snapshot would cost, in single-voxel ops.
     fn replay_cost(&self) -> u64 {
-        self.log_ops + self.log_voxels / VOXELS_PER_OP_COST
+        self.log_ops + self.log_voxels / VOXELS_PER_OP_COST + self.log_entries * ENTRY_OP_COST
     }
 
     fn publish_info(&self) {

@@ -11,6 +11,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use brickcast_protocol::wire::{ClientMsg, ErrorCode, Role, ServerMsg};
+use futures_util::FutureExt;
 use tokio::sync::{mpsc, watch};
 
 use super::copy::{DeltaCache, LazyCopy};
@@ -21,10 +22,23 @@ use super::options::{OpKind, VoxelBox};
 use crate::link::{self, Link, LinkError};
 use crate::replica::{Replica, ReplicaError};
 
-/// Unacknowledged edit batches one client may have out. It bounds what a client queues in the
-/// server (so "as fast as acks allow" measures the server, not an ever-growing backlog) and,
-/// with group commit, sets how many ops one commit can carry: clients × this × batch.
-pub const MAX_UNACKED: usize = 32;
+/// Unacknowledged ops one client may have out (rounded up to whole batches, at least
+/// [`MIN_UNACKED_BATCHES`]). It bounds what a client queues in the server (so "as fast as acks
+/// allow" measures the server, not an ever-growing backlog) and, with group commit, how many
+/// ops one commit can carry: clients × this. Counted in ops rather than messages so that the
+/// offered load does not depend on `--batch`.
+pub const MAX_UNACKED_OPS: u32 = 2048;
+/// Fewest unacknowledged batches a client may have out, so large batches still overlap.
+pub const MIN_UNACKED_BATCHES: usize = 2;
+/// Messages handled in a row when they are already there, before the client looks at its
+/// schedule again: replies to a burst of batches come in a burst, and answering each with its
+/// own write would make the load generator pay a system call per ack.
+const READ_BURST: usize = 256;
+
+/// Unacknowledged batches a client of `batch` ops may have out.
+pub fn max_unacked(batch: u32) -> usize {
+    (MAX_UNACKED_OPS.div_ceil(batch.max(1)) as usize).max(MIN_UNACKED_BATCHES)
+}
 
 /// Where the whole run is; the coordinator moves it forward, every client follows.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -98,7 +112,7 @@ pub struct EditorPlan {
     pub area: VoxelBox,
     pub radius: f32,
     pub batch: u32,
-    /// Time between batches; `None`: as fast as [`MAX_UNACKED`] allows.
+    /// Time between batches; `None`: as fast as [`max_unacked`] allows.
     pub interval: Option<Duration>,
     /// The connection whose arrivals time this editor's edits (`None` with nobody else).
     pub observer: Option<usize>,
@@ -330,7 +344,8 @@ impl Client {
                                 None => start,
                             });
                             let mut fed = false;
-                            while self.inflight.len() < MAX_UNACKED && now >= *due {
+                            let window = max_unacked(plan.batch);
+                            while self.inflight.len() < window && now >= *due {
                                 let batch = (0..plan.batch).map(|_| ops.next_op()).collect();
                                 let sent = Instant::now();
                                 link.feed(&ClientMsg::Edit {
@@ -349,7 +364,7 @@ impl Client {
                                 link.flush().await?;
                             }
                             wake = Some(match plan.interval {
-                                Some(_) if self.inflight.len() < MAX_UNACKED => (*due).min(end),
+                                Some(_) if self.inflight.len() < window => (*due).min(end),
                                 _ => end,
                             });
                         } else if self.inflight.is_empty() && !self.drained_sent {
@@ -407,6 +422,15 @@ impl Client {
                     let msg = msg?.ok_or(ClientError::Closed)?;
                     self.handle(&msg, at, copy, report)?;
                     dirty = true;
+                    // Reading a websocket message is cancel-safe: a message not ready yet
+                    // stays in the socket for the next round.
+                    for _ in 1..READ_BURST {
+                        let Some(next) = link.next().now_or_never() else {
+                            break;
+                        };
+                        let msg = next?.ok_or(ClientError::Closed)?;
+                        self.handle(&msg, Instant::now(), copy, report)?;
+                    }
                 }
                 () = sleep => {}
             }
@@ -477,5 +501,19 @@ impl Client {
             _ => {}
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_unacked_window_is_counted_in_ops() {
+        assert_eq!(max_unacked(1), 2048);
+        assert_eq!(max_unacked(64), 32);
+        assert_eq!(max_unacked(100), 21);
+        assert_eq!(max_unacked(4096), MIN_UNACKED_BATCHES);
+        assert_eq!(max_unacked(0), 2048);
     }
 }
