@@ -51,6 +51,12 @@ const VOXELS_PER_OP_COST: u64 = 32;
 /// Single-voxel ops of replay time one log entry costs besides its ops (reading and decoding
 /// the row).
 const ENTRY_OP_COST: u64 = 4;
+/// A snapshot is put off until this many times as long as the last one took has passed, so
+/// snapshots take at most about a tenth of the owner's time: when every brick of a big scene is
+/// being rewritten (sphere brushes everywhere), one snapshot takes seconds, and the replay
+/// budget alone would have the owner snapshotting most of the time. Recovery then replays
+/// more than the budget, in proportion.
+const SNAPSHOT_SPACING: u32 = 10;
 /// ...or after this long with any entries, so an idle server's log is short too.
 const SNAPSHOT_EVERY: Duration = Duration::from_secs(60);
 /// Keep tombstones for at least this many sequence numbers: a client that reconnects within that
@@ -238,6 +244,7 @@ pub fn spawn(
         log_entries: replayed,
         log_ops: 0,
         log_voxels: 0,
+        last_snapshot_took: Duration::ZERO,
         last_snapshot: Instant::now(),
         rx,
         runtime,
@@ -268,6 +275,8 @@ struct Owner {
     /// Ops and voxels changed in the log since the snapshot (replay cost).
     log_ops: u64,
     log_voxels: u64,
+    /// How long the last snapshot took (see [`SNAPSHOT_SPACING`]).
+    last_snapshot_took: Duration,
     last_snapshot: Instant,
     rx: mpsc::Receiver<Command>,
     runtime: tokio::runtime::Handle,
@@ -749,8 +758,10 @@ impl Owner {
     }
 
     fn maybe_snapshot(&mut self, force: bool) -> Result<(), crate::store::StoreError> {
-        let due = self.replay_cost() >= SNAPSHOT_REPLAY_BUDGET
-            || (self.log_entries > 0 && self.last_snapshot.elapsed() >= SNAPSHOT_EVERY);
+        let since = self.last_snapshot.elapsed();
+        let due = (self.replay_cost() >= SNAPSHOT_REPLAY_BUDGET
+            && since >= self.last_snapshot_took * SNAPSHOT_SPACING)
+            || (self.log_entries > 0 && since >= SNAPSHOT_EVERY);
         if !(force || due) {
             return Ok(());
         }
@@ -761,6 +772,7 @@ impl Owner {
         self.log_entries = 0;
         self.log_ops = 0;
         self.log_voxels = 0;
+        self.last_snapshot_took = started.elapsed();
         self.last_snapshot = Instant::now();
         Metrics::add(&self.metrics.snapshots, 1);
         if self.seq > TOMBSTONE_WINDOW {

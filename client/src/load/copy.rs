@@ -17,9 +17,10 @@ use brickcast_protocol::{BrickData, BrickMap, Colour, Mask};
 
 use crate::replica::{Replica, ReplicaError};
 
-/// Decoded deltas kept for clients that have not read them yet: enough for clients a few
-/// hundred deltas apart; a client further behind decodes for itself.
-const CACHED_DELTAS: usize = 256;
+/// Decoded deltas kept for clients that have not read them yet, up to this many raw bytes:
+/// clients within that much of each other share a decode; one further behind decodes for
+/// itself.
+const CACHED_BYTES: usize = 128 << 20;
 
 /// One decoded delta frame, with the compressed bytes it came from.
 struct Decoded {
@@ -34,7 +35,14 @@ struct Decoded {
 /// Deltas decoded by one client for the others.
 #[derive(Default)]
 pub struct DeltaCache {
-    recent: Mutex<VecDeque<Arc<Decoded>>>,
+    recent: Mutex<Recent>,
+}
+
+/// The cached deltas, oldest first, and their raw size.
+#[derive(Default)]
+struct Recent {
+    deltas: VecDeque<Arc<Decoded>>,
+    bytes: usize,
 }
 
 impl DeltaCache {
@@ -53,6 +61,7 @@ impl DeltaCache {
         };
         let candidates: Vec<Arc<Decoded>> = self
             .lock()
+            .deltas
             .iter()
             .rev()
             .filter(same_header)
@@ -75,22 +84,26 @@ impl DeltaCache {
             bricks,
         });
         let mut recent = self.lock();
-        if recent.len() == CACHED_DELTAS {
-            recent.pop_front();
+        recent.bytes += decoded.raw_len as usize;
+        recent.deltas.push_back(decoded.clone());
+        while recent.bytes > CACHED_BYTES {
+            match recent.deltas.pop_front() {
+                Some(old) => recent.bytes -= old.raw_len as usize,
+                None => break,
+            }
         }
-        recent.push_back(decoded.clone());
         Ok(decoded)
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, VecDeque<Arc<Decoded>>> {
-        // The deque is valid after any panic mid-update (push/pop are atomic for it).
+    fn lock(&self) -> std::sync::MutexGuard<'_, Recent> {
+        // A panic mid-update can at worst leave the byte count off, which only moves eviction.
         self.recent.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
 /// Raw bytes of held deltas after which a copy writes them into its map: bounds the decoded
-/// deltas kept alive (shared by every client, so about this much in all, not per client).
-const FLUSH_BYTES: usize = 64 << 20;
+/// deltas each client keeps alive (shared between clients that hold the same ones).
+const FLUSH_BYTES: usize = 16 << 20;
 
 /// One received delta frame, not yet written into the map.
 struct Held {
@@ -387,7 +400,7 @@ mod tests {
         // brush, and a brush reports exactly the voxels it changed).
         assert_eq!(counting.voxels_seen, changed);
         // Three copies, one decode per delta.
-        assert_eq!(cache.lock().len(), 40);
+        assert_eq!(cache.lock().deltas.len(), 40);
     }
 
     #[test]

@@ -23,8 +23,8 @@ pub struct LoadArgs {
     /// Seconds of editing (connecting and syncing before it, and draining after, not counted).
     #[arg(long, default_value_t = 10.0)]
     pub duration: f64,
-    /// Ops per client per second; 0 sends as fast as acks allow (at most 2048 unacked ops per
-    /// client, in at least 2 batches).
+    /// Ops per client per second; 0 sends as fast as acks allow (at most about 2048 voxel ops'
+    /// worth unacknowledged per client, in at least 2 batches).
     #[arg(long, default_value_t = 0.0)]
     pub rate: f64,
     /// Ops per edit message.

@@ -22,12 +22,14 @@ use super::options::{OpKind, VoxelBox};
 use crate::link::{self, Link, LinkError};
 use crate::replica::{Replica, ReplicaError};
 
-/// Unacknowledged ops one client may have out (rounded up to whole batches, at least
-/// [`MIN_UNACKED_BATCHES`]). It bounds what a client queues in the server (so "as fast as acks
-/// allow" measures the server, not an ever-growing backlog) and, with group commit, how many
-/// ops one commit can carry: clients × this. Counted in ops rather than messages so that the
-/// offered load does not depend on `--batch`.
-pub const MAX_UNACKED_OPS: u32 = 2048;
+/// Work one client may have out unacknowledged, in single-voxel ops (a sphere counts for the
+/// voxels it covers, see [`op_cost`]), rounded up to whole batches and at least
+/// [`MIN_UNACKED_BATCHES`]. It bounds what a client queues in the server (so "as fast as acks
+/// allow" measures the server, not an ever-growing backlog) and, with group commit, how much
+/// one commit carries: about clients × this. Counted in work rather than messages so that the
+/// offered load does not depend on `--batch`, and a sphere brush, a thousand times the work of a
+/// voxel, does not pile up a thousand times the backlog.
+pub const MAX_UNACKED_COST: f64 = 2048.0;
 /// Fewest unacknowledged batches a client may have out, so large batches still overlap.
 pub const MIN_UNACKED_BATCHES: usize = 2;
 /// Messages handled in a row when they are already there, before the client looks at its
@@ -35,9 +37,24 @@ pub const MIN_UNACKED_BATCHES: usize = 2;
 /// own write would make the load generator pay a system call per ack.
 const READ_BURST: usize = 256;
 
-/// Unacknowledged batches a client of `batch` ops may have out.
-pub fn max_unacked(batch: u32) -> usize {
-    (MAX_UNACKED_OPS.div_ceil(batch.max(1)) as usize).max(MIN_UNACKED_BATCHES)
+/// Roughly what one op costs the server, in single-voxel ops: a brush costs about a thirty-
+/// second of a voxel op per voxel it covers (the server's own replay-cost estimate), a ray a few
+/// (it is traced first).
+pub fn op_cost(op: OpKind, radius: f32) -> f64 {
+    match op {
+        OpKind::Voxel | OpKind::Paint => 1.0,
+        OpKind::Ray => 4.0,
+        OpKind::Sphere => {
+            let r = f64::from(radius.max(0.0));
+            1.0 + 4.19 * r * r * r / 32.0
+        }
+    }
+}
+
+/// Unacknowledged batches a client of `batch` ops of `cost` each may have out.
+pub fn max_unacked(batch: u32, cost: f64) -> usize {
+    let per_batch = f64::from(batch.max(1)) * cost.max(1.0);
+    ((MAX_UNACKED_COST / per_batch).ceil() as usize).max(MIN_UNACKED_BATCHES)
 }
 
 /// Where the whole run is; the coordinator moves it forward, every client follows.
@@ -344,7 +361,7 @@ impl Client {
                                 None => start,
                             });
                             let mut fed = false;
-                            let window = max_unacked(plan.batch);
+                            let window = max_unacked(plan.batch, op_cost(plan.op, plan.radius));
                             while self.inflight.len() < window && now >= *due {
                                 let batch = (0..plan.batch).map(|_| ops.next_op()).collect();
                                 let sent = Instant::now();
@@ -509,11 +526,21 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_unacked_window_is_counted_in_ops() {
-        assert_eq!(max_unacked(1), 2048);
-        assert_eq!(max_unacked(64), 32);
-        assert_eq!(max_unacked(100), 21);
-        assert_eq!(max_unacked(4096), MIN_UNACKED_BATCHES);
-        assert_eq!(max_unacked(0), 2048);
+    fn the_unacked_window_is_counted_in_work() {
+        let voxel = op_cost(OpKind::Voxel, 4.0);
+        assert_eq!(max_unacked(1, voxel), 2048);
+        assert_eq!(max_unacked(64, voxel), 32);
+        assert_eq!(max_unacked(100, voxel), 21);
+        assert_eq!(max_unacked(4096, voxel), MIN_UNACKED_BATCHES);
+        assert_eq!(max_unacked(0, voxel), 2048);
+        // A radius-8 sphere covers ~2,145 voxels: ~68 voxel ops of work.
+        let sphere = op_cost(OpKind::Sphere, 8.0);
+        assert!((sphere - 68.0).abs() < 1.0, "{sphere}");
+        assert_eq!(max_unacked(1, sphere), 31);
+        assert_eq!(max_unacked(4, sphere), 8);
+        assert_eq!(
+            max_unacked(1, op_cost(OpKind::Sphere, 64.0)),
+            MIN_UNACKED_BATCHES
+        );
     }
 }
