@@ -102,8 +102,9 @@ impl DeltaCache {
 }
 
 /// Raw bytes of held deltas after which a copy writes them into its map: bounds the decoded
-/// deltas each client keeps alive (shared between clients that hold the same ones).
-const FLUSH_BYTES: usize = 16 << 20;
+/// deltas each client keeps alive (shared between clients that hold the same ones). Each copy
+/// flushes somewhere between half and all of this (see [`LazyCopy::new`]).
+pub const FLUSH_BYTES: usize = 16 << 20;
 
 /// One received delta frame, not yet written into the map.
 struct Held {
@@ -117,6 +118,8 @@ pub struct LazyCopy {
     /// Delta frames received since the last flush, in arrival order.
     held: Vec<Held>,
     held_bytes: usize,
+    /// `held_bytes` that trigger a flush.
+    flush_at: usize,
     /// Highest delta sequence in `held`.
     held_to: u64,
     /// One bit per cell of the grid, set for cells already written in the current flush.
@@ -129,11 +132,20 @@ pub struct LazyCopy {
 }
 
 impl LazyCopy {
-    pub fn new(replica: Replica, count_voxels: bool) -> Result<LazyCopy, ReplicaError> {
+    /// A copy that flushes after `flush_at` raw bytes of deltas. Clients receive the same
+    /// stream, so with one threshold they would all flush at the same moment and stall the
+    /// load generator (and its latency samples) for seconds with 200 clients: give each client
+    /// its own, between `FLUSH_BYTES / 2` and `FLUSH_BYTES`.
+    pub fn new(
+        replica: Replica,
+        count_voxels: bool,
+        flush_at: usize,
+    ) -> Result<LazyCopy, ReplicaError> {
         Ok(LazyCopy {
             replica,
             held: Vec::new(),
             held_bytes: 0,
+            flush_at,
             held_to: 0,
             written: Vec::new(),
             decoder: BlobDecoder::new()?,
@@ -191,7 +203,7 @@ impl LazyCopy {
             removed: removed.clone(),
         });
         self.held_to = self.held_to.max(*to_seq);
-        if self.held_bytes > FLUSH_BYTES {
+        if self.held_bytes > self.flush_at {
             self.flush()?;
         }
         Ok(())
@@ -367,9 +379,10 @@ mod tests {
             r
         };
         let cache = DeltaCache::default();
-        let mut lazy = LazyCopy::new(start(), false).unwrap();
-        let mut lazy2 = LazyCopy::new(start(), false).unwrap();
-        let mut counting = LazyCopy::new(start(), true).unwrap();
+        let mut lazy = LazyCopy::new(start(), false, FLUSH_BYTES).unwrap();
+        // A tiny threshold: flushes after every delta, the other extreme.
+        let mut lazy2 = LazyCopy::new(start(), false, 1).unwrap();
+        let mut counting = LazyCopy::new(start(), true, FLUSH_BYTES).unwrap();
         let mut changed = 0;
         // Spheres that grow, erase and repaint the same bricks over and over, so later deltas
         // supersede earlier ones and some bricks vanish and come back.
@@ -408,7 +421,7 @@ mod tests {
         let size = [32, 32, 32];
         let mut server = BrickMap::new(size).unwrap();
         server.set([1, 1, 1], Colour(9));
-        let mut copy = LazyCopy::new(Replica::new("t", size).unwrap(), false).unwrap();
+        let mut copy = LazyCopy::new(Replica::new("t", size).unwrap(), false, FLUSH_BYTES).unwrap();
         let cache = DeltaCache::default();
         copy.apply(&delta(&server, &[[0, 0, 0]], 0, 1), &cache)
             .unwrap();

@@ -14,7 +14,7 @@ use brickcast_protocol::wire::{ClientMsg, ErrorCode, Role, ServerMsg};
 use futures_util::FutureExt;
 use tokio::sync::{mpsc, watch};
 
-use super::copy::{DeltaCache, LazyCopy};
+use super::copy::{DeltaCache, FLUSH_BYTES, LazyCopy};
 use super::histogram::Histogram;
 use super::observe::ObserverLog;
 use super::ops::{NothingToPaint, OpGen};
@@ -320,7 +320,8 @@ impl Client {
             )?),
             None => None,
         };
-        let mut copy = LazyCopy::new(replica, self.plan.count_voxels)?;
+        let flush_at = FLUSH_BYTES / 2 + FLUSH_BYTES / 2 * index / self.shared.observers.len();
+        let mut copy = LazyCopy::new(replica, self.plan.count_voxels, flush_at)?;
         let _ = self.events.send(Event::Ready {
             index,
             result: Ok(()),
