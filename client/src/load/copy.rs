@@ -102,9 +102,10 @@ impl DeltaCache {
 }
 
 /// Raw bytes of held deltas after which a copy writes them into its map: bounds the decoded
-/// deltas each client keeps alive (shared between clients that hold the same ones). Each copy
-/// flushes somewhere between half and all of this (see [`LazyCopy::new`]).
-pub const FLUSH_BYTES: usize = 16 << 20;
+/// deltas each client keeps alive (shared between clients that hold the same ones) and the
+/// length of one flush. Each copy flushes somewhere between half and all of this (see
+/// [`LazyCopy::new`]).
+pub const FLUSH_BYTES: usize = 4 << 20;
 
 /// One received delta frame, not yet written into the map.
 struct Held {
@@ -210,7 +211,24 @@ impl LazyCopy {
     }
 
     /// Writes the held deltas into the map: newest first, each cell once (its latest version).
+    ///
+    /// A flush is milliseconds of work. On a multi-threaded runtime it runs with
+    /// `block_in_place`, so the other clients' tasks queued behind it move to another worker
+    /// instead of waiting, and their latency samples measure the server, not this flush.
     pub fn flush(&mut self) -> Result<(), ReplicaError> {
+        if self.held.is_empty() {
+            return Ok(());
+        }
+        let multi_thread = tokio::runtime::Handle::try_current()
+            .is_ok_and(|h| h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread);
+        if multi_thread {
+            tokio::task::block_in_place(|| self.write_held())
+        } else {
+            self.write_held()
+        }
+    }
+
+    fn write_held(&mut self) -> Result<(), ReplicaError> {
         let map = &mut self.replica.map;
         let dims = map.cell_dims();
         let cells: usize = dims.iter().map(|&d| d as usize).product();
