@@ -583,7 +583,8 @@ impl LoadOutcome {
                 ),
             );
         }
-        if let Some(server) = &d.server {
+        // A server without phase accounting (older builds) exports none: say nothing then.
+        if let Some(server) = d.server.as_ref().filter(|s| !s.owner.is_empty()) {
             let list = |phases: &[(String, f64)]| {
                 phases
                     .iter()
