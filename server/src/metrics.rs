@@ -84,6 +84,7 @@ impl SessionPhase {
     }
 }
 
+/// Every counter the server exports, shared by the scene owners and the sessions in an `Arc`.
 #[derive(Default)]
 pub struct Metrics {
     pub connected_clients: AtomicU64,

@@ -180,6 +180,7 @@ impl SceneHandle {
     }
 }
 
+/// A command sent to a scene whose owner thread has stopped (shutdown or a storage failure).
 #[derive(Debug, thiserror::Error)]
 #[error("the scene owner has stopped")]
 pub struct SceneGone;
@@ -259,6 +260,8 @@ pub fn spawn(
     Ok((handle, thread))
 }
 
+/// One scene's owner thread: the authoritative map, its subscribers, and the bookkeeping the
+/// next commit, delta and snapshot need.
 struct Owner {
     name: String,
     map: BrickMap,

@@ -67,7 +67,7 @@ pub enum OpKind {
     Ray,
 }
 
-/// An inclusive box of voxels.
+/// An inclusive box of voxels: where one client's edits go (`--region`, or its slab of it).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct VoxelBox {
     pub min: [u32; 3],

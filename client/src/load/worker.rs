@@ -267,6 +267,8 @@ pub async fn client(
     report
 }
 
+/// One client task's state between awaits: what it was asked to do, where it shares results,
+/// and the batches it is still waiting to hear about.
 struct Client {
     plan: ClientPlan,
     shared: Arc<Shared>,
