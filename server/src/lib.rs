@@ -276,6 +276,14 @@ impl Server {
         let spool = tokio::spawn(app.clone().watch_spool());
         let router = router(app.clone());
         let stop = shutdown.clone();
+        // Acks and deltas are small writes that a client waits on: without NODELAY, Nagle holds
+        // a segment written while the previous one is unacknowledged until the peer's delayed
+        // ACK, which adds one client send interval to every edit (BENCHMARKS.md, 50k ops/s).
+        let listener = axum::serve::ListenerExt::tap_io(listener, |tcp| {
+            if let Err(e) = tcp.set_nodelay(true) {
+                tracing::warn!(error = %e, "cannot set TCP_NODELAY on an accepted socket");
+            }
+        });
         axum::serve(listener, router)
             .with_graceful_shutdown(async move {
                 signal.await;
