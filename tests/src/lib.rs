@@ -27,8 +27,18 @@ pub struct TestServer {
 impl TestServer {
     /// Serves `data` on `addr` (port 0 picks a free one).
     pub fn start(data: &Path, addr: SocketAddr) -> Result<TestServer> {
+        Self::start_with(data, addr, |_| {})
+    }
+
+    /// [`TestServer::start`] with the configuration adjusted first (auth tokens, limits, …).
+    pub fn start_with(
+        data: &Path,
+        addr: SocketAddr,
+        tweak: impl FnOnce(&mut ServerConfig),
+    ) -> Result<TestServer> {
         let mut config = ServerConfig::new(addr, data.to_path_buf());
         config.demo_size = TEST_SCENE;
+        tweak(&mut config);
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()

@@ -6,10 +6,8 @@ use std::collections::BTreeSet;
 use std::net::SocketAddr;
 use std::time::Duration;
 
-use anyhow::Result;
 use brickcast_server::auth::Auth;
-use brickcast_server::{Server, ServerConfig};
-use brickcast_tests::{TEST_SCENE, TestServer, fetch, http_get, run_brickcast};
+use brickcast_tests::{TestServer, fetch, http_get, run_brickcast};
 use serde_json::Value;
 
 const RUN_LIMIT: Duration = Duration::from_secs(180);
@@ -196,53 +194,12 @@ fn every_op_kind_paced_and_disjoint() {
     server.stop().expect("clean shutdown");
 }
 
-/// A server with `--auth` tokens, on its own runtime and thread like [`TestServer`].
-struct AuthServer {
-    addr: SocketAddr,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    thread: Option<std::thread::JoinHandle<Result<()>>>,
-}
-
-impl AuthServer {
-    fn start(data: &std::path::Path, auth: &str) -> Result<AuthServer> {
-        let mut config = ServerConfig::new(local(), data.to_path_buf());
-        config.demo_size = TEST_SCENE;
-        config.auth = Auth::parse(auth)?;
-        let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()?;
-        let server = runtime.block_on(Server::bind(config))?;
-        let addr = server.local_addr()?;
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let thread = std::thread::spawn(move || {
-            runtime.block_on(server.run(async move {
-                let _ = stopped.await;
-            }))
-        });
-        Ok(AuthServer {
-            addr,
-            stop: Some(stop),
-            thread: Some(thread),
-        })
-    }
-}
-
-impl Drop for AuthServer {
-    fn drop(&mut self) {
-        if let Some(stop) = self.stop.take() {
-            let _ = stop.send(());
-        }
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
-}
-
 #[test]
 fn tokens_bad_addresses_and_bad_options_are_refused_with_reasons() {
     let data = tempfile::tempdir().expect("tempdir");
-    let server = AuthServer::start(data.path(), "ed editor\nlook viewer\n").expect("server");
+    let auth = Auth::parse("ed editor\nlook viewer\n").expect("auth file");
+    let server =
+        TestServer::start_with(data.path(), local(), |config| config.auth = auth).expect("server");
     let url = format!("ws://{}/scenes/demo", server.addr);
     let short = ["--duration", "0.5", "--clients", "1"];
     let cases: Vec<(Vec<&str>, &str)> = vec![
