@@ -5,31 +5,71 @@
 //! resolved here with the CPU tracer against the map being edited (paper 3.3), never against a
 //! client's possibly stale copy.
 
+use crate::colour::Colour;
 use crate::map::{BrickMap, BrushMode};
 use crate::trace::{Ray, trace};
 use crate::wire::{EditOp, Limits, RayAction, Rejection};
 
-/// Validates `op` against the map's size and `limits`, then applies it. Returns the number of
-/// voxels whose solidity or colour changed (0 is a valid outcome: clearing air changes nothing).
-/// A rejected op leaves the map untouched.
-pub fn apply_op(map: &mut BrickMap, op: &EditOp, limits: &Limits) -> Result<u64, Rejection> {
+/// An op that passed validation, with a ray op resolved to the voxel or brush it hits: what is
+/// left is certain to apply. Splitting the two lets the server stamp the map with a batch's
+/// sequence number only once something in the batch applies.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Resolved {
+    Set {
+        pos: [u32; 3],
+        colour: Colour,
+    },
+    Clear {
+        pos: [u32; 3],
+    },
+    Paint {
+        pos: [u32; 3],
+        colour: Colour,
+    },
+    Sphere {
+        centre: [f32; 3],
+        radius: f32,
+        mode: BrushMode,
+        colour: Colour,
+    },
+    Box {
+        min: [u32; 3],
+        max: [u32; 3],
+        mode: BrushMode,
+        colour: Colour,
+    },
+}
+
+/// Validates `op` against the map's size and `limits` and resolves what it will do, without
+/// changing the map. Ray ops are traced here, on the map they will edit.
+pub fn resolve(map: &BrickMap, op: &EditOp, limits: &Limits) -> Result<Resolved, Rejection> {
     op.validate(map.size(), limits)?;
     Ok(match *op {
-        EditOp::Set { pos, colour } => u64::from(map.set(pos, colour)),
-        EditOp::Clear { pos } => u64::from(map.clear(pos)),
-        EditOp::Paint { pos, colour } => u64::from(map.paint(pos, colour)),
+        EditOp::Set { pos, colour } => Resolved::Set { pos, colour },
+        EditOp::Clear { pos } => Resolved::Clear { pos },
+        EditOp::Paint { pos, colour } => Resolved::Paint { pos, colour },
         EditOp::Sphere {
             centre,
             radius,
             mode,
             colour,
-        } => map.sphere(centre, radius, mode, colour),
+        } => Resolved::Sphere {
+            centre,
+            radius,
+            mode,
+            colour,
+        },
         EditOp::Box {
             min,
             max,
             mode,
             colour,
-        } => map.fill_box(min, max, mode, colour),
+        } => Resolved::Box {
+            min,
+            max,
+            mode,
+            colour,
+        },
         EditOp::Ray {
             origin,
             dir,
@@ -37,12 +77,15 @@ pub fn apply_op(map: &mut BrickMap, op: &EditOp, limits: &Limits) -> Result<u64,
         } => {
             let hit = trace(map, &Ray { origin, dir }).ok_or(Rejection::RayMissed)?;
             match action {
-                RayAction::Remove => u64::from(map.clear(hit.voxel)),
-                RayAction::Paint { colour } => u64::from(map.paint(hit.voxel, colour)),
-                RayAction::Place { colour } => {
-                    let cell = hit.previous.ok_or(Rejection::NothingToPlace)?;
-                    u64::from(map.set(cell, colour))
-                }
+                RayAction::Remove => Resolved::Clear { pos: hit.voxel },
+                RayAction::Paint { colour } => Resolved::Paint {
+                    pos: hit.voxel,
+                    colour,
+                },
+                RayAction::Place { colour } => Resolved::Set {
+                    pos: hit.previous.ok_or(Rejection::NothingToPlace)?,
+                    colour,
+                },
                 RayAction::Sphere {
                     mode,
                     radius,
@@ -54,17 +97,51 @@ pub fn apply_op(map: &mut BrickMap, op: &EditOp, limits: &Limits) -> Result<u64,
                         (BrushMode::Fill, Some(front)) => front,
                         _ => hit.voxel,
                     };
-                    map.sphere(at.map(|c| c as f32 + 0.5), radius, mode, colour)
+                    Resolved::Sphere {
+                        centre: at.map(|c| c as f32 + 0.5),
+                        radius,
+                        mode,
+                        colour,
+                    }
                 }
             }
         }
     })
 }
 
+/// Applies a resolved op. Returns the number of voxels whose solidity or colour changed (0 is a
+/// valid outcome: clearing air changes nothing).
+pub fn apply_resolved(map: &mut BrickMap, op: Resolved) -> u64 {
+    match op {
+        Resolved::Set { pos, colour } => u64::from(map.set(pos, colour)),
+        Resolved::Clear { pos } => u64::from(map.clear(pos)),
+        Resolved::Paint { pos, colour } => u64::from(map.paint(pos, colour)),
+        Resolved::Sphere {
+            centre,
+            radius,
+            mode,
+            colour,
+        } => map.sphere(centre, radius, mode, colour),
+        Resolved::Box {
+            min,
+            max,
+            mode,
+            colour,
+        } => map.fill_box(min, max, mode, colour),
+    }
+}
+
+/// Validates `op` against the map's size and `limits`, then applies it: [`resolve`] then
+/// [`apply_resolved`]. Returns the number of voxels changed. A rejected op leaves the map
+/// untouched.
+pub fn apply_op(map: &mut BrickMap, op: &EditOp, limits: &Limits) -> Result<u64, Rejection> {
+    let resolved = resolve(map, op, limits)?;
+    Ok(apply_resolved(map, resolved))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::colour::Colour;
 
     fn ground() -> BrickMap {
         let mut map = BrickMap::new([64, 64, 64]).unwrap();

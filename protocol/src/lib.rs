@@ -7,6 +7,7 @@
 //! * [`wire`]: the websocket messages and their compact, compressed brick payloads.
 //! * [`apply`]: what a wire edit op does to a brick map (shared by the server and log replay).
 //! * [`demo`]: the built-in procedural demo scene.
+//! * [`replica`]: a client's copy of a scene, kept current by applying server messages.
 
 pub mod apply;
 pub mod brick;
@@ -14,6 +15,7 @@ pub mod colour;
 pub mod demo;
 pub mod map;
 pub mod render;
+pub mod replica;
 pub mod trace;
 pub mod wire;
 

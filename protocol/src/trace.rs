@@ -169,7 +169,7 @@ impl Dda {
         // which keeps the start consistent with the event order that block skips rely on.
         let start: [i32; 3] = std::array::from_fn(|i| {
             if dda.step[i] < 0 {
-                ray.origin[i].ceil() as i32 - 1
+                (ray.origin[i].ceil() as i32).saturating_sub(1)
             } else {
                 ray.origin[i].floor() as i32
             }

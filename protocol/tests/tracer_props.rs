@@ -204,3 +204,44 @@ proptest! {
         }
     }
 }
+
+/// A finite coordinate of any magnitude, from inside the scene out to `f32::MAX`, either sign.
+fn wild_coordinate() -> impl Strategy<Value = f32> {
+    prop_oneof![
+        -100.0f32..200.0,
+        (0.0f32..38.0, any::<bool>()).prop_map(|(e, neg)| {
+            let v = 10f32.powf(e).min(f32::MAX);
+            if neg { -v } else { v }
+        }),
+        Just(f32::MAX),
+        Just(f32::MIN),
+        Just(-2.2e9),
+        Just(2.2e9),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(2000))]
+
+    /// Ray origins and directions are what a peer sends (ray edits): no finite value may
+    /// overflow the tracer's integer arithmetic (tests run with overflow checks on), and a ray
+    /// the hierarchy traces agrees with the flat DDA.
+    #[test]
+    fn rays_from_anywhere_never_overflow(
+        origin in prop::array::uniform3(wild_coordinate()),
+        dir in prop::array::uniform3(wild_coordinate()),
+    ) {
+        let map = scene([40, 24, 40], &[Shape::Box([0, 0, 0], [39, 3, 39]), Shape::Sphere([20.0, 8.0, 20.0], 5.0)]);
+        let ray = Ray { origin, dir };
+        let hit = trace(&map, &ray);
+        let flat = trace_flat(map.size(), |p| map.get(p), &ray);
+        prop_assert_eq!(hit.map(|h| h.voxel), flat.map(|h| h.voxel));
+        let mut edited = map.clone();
+        let op = brickcast_protocol::wire::EditOp::Ray {
+            origin,
+            dir,
+            action: brickcast_protocol::wire::RayAction::Remove,
+        };
+        let _ = brickcast_protocol::apply::apply_op(&mut edited, &op, &Default::default());
+    }
+}

@@ -16,6 +16,8 @@ pub mod incoming;
 pub mod metrics;
 pub mod scene;
 pub mod session;
+#[cfg(test)]
+mod sim;
 pub mod store;
 
 use std::collections::BTreeMap;

@@ -35,6 +35,10 @@ enum Cmd {
         /// File of `TOKEN ROLE` lines (role: editor|viewer). Without it everyone may edit.
         #[arg(long)]
         auth: Option<PathBuf>,
+        /// Snapshot a scene whose log has entries at least this often (seconds), besides the
+        /// snapshots taken when replaying the log would take about a second.
+        #[arg(long, default_value_t = 60.0, value_parser = positive_seconds)]
+        snapshot_every: f64,
     },
     /// List the scenes in the store.
     Scenes {
@@ -57,6 +61,11 @@ enum Cmd {
         scene: String,
         #[arg(long, default_value = "./brickcast-data")]
         data: PathBuf,
+        /// Also replay log entries at or below the snapshot's sequence: a store written by
+        /// brickcast-server 0.1 can hold such entries after an edit whose every op was
+        /// rejected, and the server refuses to serve the scene until they are folded in.
+        #[arg(long)]
+        repair: bool,
     },
     /// Import a mesh (OBJ with its MTL and textures) or a MagicaVoxel .vox as a new scene.
     ///
@@ -84,7 +93,12 @@ fn main() -> anyhow::Result<()> {
         )
         .init();
     match Cli::parse().command {
-        Cmd::Serve { listen, data, auth } => serve(listen, data, auth),
+        Cmd::Serve {
+            listen,
+            data,
+            auth,
+            snapshot_every,
+        } => serve(listen, data, auth, snapshot_every),
         Cmd::Scenes { data } => {
             let store = open_store(&data)?;
             for (name, meta) in store.scenes()? {
@@ -117,12 +131,20 @@ fn main() -> anyhow::Result<()> {
             }
             Ok(())
         }
-        Cmd::Snapshot { scene, data } => {
+        Cmd::Snapshot {
+            scene,
+            data,
+            repair,
+        } => {
             let store = open_store(&data)?;
-            let loaded = store.load_scene(&scene)?;
+            let loaded = if repair {
+                store.load_scene_repairing(&scene)?
+            } else {
+                store.load_scene(&scene)?
+            };
             let mut map = loaded.map;
             map.set_sequence(loaded.seq);
-            store.snapshot(&scene, &map, &loaded.replay_touched)?;
+            store.snapshot(&scene, &map, &loaded.replay_touched, loaded.seq)?;
             println!(
                 "{scene}: snapshot at sequence {}, {} log entries folded in",
                 loaded.seq, loaded.replayed
@@ -178,13 +200,27 @@ fn print_memory(m: &brickcast_protocol::map::MemoryStats) {
     println!("  bytes per voxel  {:>14.2}", m.bytes_per_solid_voxel);
 }
 
-fn serve(listen: SocketAddr, data: PathBuf, auth: Option<PathBuf>) -> anyhow::Result<()> {
+/// A clap parser for a positive, finite number of seconds.
+fn positive_seconds(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(s) if s.is_finite() && s > 0.0 && s <= 1e9 => Ok(s),
+        _ => Err(format!("{text:?} is not a positive number of seconds")),
+    }
+}
+
+fn serve(
+    listen: SocketAddr,
+    data: PathBuf,
+    auth: Option<PathBuf>,
+    snapshot_every: f64,
+) -> anyhow::Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .context("starting tokio")?;
     runtime.block_on(async move {
         let mut config = ServerConfig::new(listen, data);
+        config.owner.snapshot_every = std::time::Duration::from_secs_f64(snapshot_every);
         if let Some(path) = auth {
             config.auth = Auth::from_file(&path)?;
         }

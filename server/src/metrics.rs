@@ -12,6 +12,8 @@ use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
+use brickcast_protocol::wire::ServerMsg;
+
 /// Upper bounds of the commit latency buckets, in microseconds.
 const COMMIT_BUCKETS_US: [u64; 12] = [
     100, 250, 500, 1_000, 2_500, 5_000, 10_000, 25_000, 50_000, 100_000, 250_000, 1_000_000,
@@ -84,6 +86,41 @@ impl SessionPhase {
     }
 }
 
+/// Why reading a client's websocket failed, as counted in `brickcast_read_errors_total`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ReadError {
+    /// A frame or message over the size the server accepts.
+    TooLarge,
+    /// The bytes broke the websocket protocol (bad opcode, masking, control frame, ...).
+    Protocol,
+    /// A text frame that is not UTF-8.
+    Utf8,
+    /// The connection failed underneath (reset, timeout).
+    Io,
+    /// Anything else the websocket layer reports.
+    Other,
+}
+
+impl ReadError {
+    pub const ALL: [ReadError; 5] = [
+        ReadError::TooLarge,
+        ReadError::Protocol,
+        ReadError::Utf8,
+        ReadError::Io,
+        ReadError::Other,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ReadError::TooLarge => "too_large",
+            ReadError::Protocol => "protocol",
+            ReadError::Utf8 => "utf8",
+            ReadError::Io => "io",
+            ReadError::Other => "other",
+        }
+    }
+}
+
 /// Every counter the server exports, shared by the scene owners and the sessions in an `Arc`.
 #[derive(Default)]
 pub struct Metrics {
@@ -106,6 +143,10 @@ pub struct Metrics {
     pub owner_turns: AtomicU64,
     owner_ns: [AtomicU64; OwnerPhase::ALL.len()],
     session_ns: [AtomicU64; SessionPhase::ALL.len()],
+    /// Replies that could not be encoded, per message kind ([`ServerMsg::KINDS`]).
+    unencodable: [AtomicU64; ServerMsg::KINDS.len()],
+    /// Websocket read failures, per [`ReadError`].
+    read_errors: [AtomicU64; ReadError::ALL.len()],
 }
 
 impl Metrics {
@@ -121,6 +162,18 @@ impl Metrics {
     /// Adds time to a session phase.
     pub fn session_time(&self, phase: SessionPhase, took: Duration) {
         self.session_ns[phase as usize].fetch_add(nanos(took), Relaxed);
+    }
+
+    /// Counts a reply of kind `kind` (one of [`ServerMsg::KINDS`]) that could not be encoded.
+    pub fn count_unencodable(&self, kind: &str) {
+        if let Some(i) = ServerMsg::KINDS.iter().position(|k| *k == kind) {
+            self.unencodable[i].fetch_add(1, Relaxed);
+        }
+    }
+
+    /// Counts one failed websocket read.
+    pub fn count_read_error(&self, kind: ReadError) {
+        self.read_errors[kind as usize].fetch_add(1, Relaxed);
     }
 
     /// Records one durable commit of the edit log.
@@ -246,6 +299,29 @@ impl Metrics {
             get(&self.commit_sum_us) as f64 / 1e6
         );
         let _ = writeln!(out, "brickcast_log_commit_seconds_count {count}");
+        let _ = writeln!(
+            out,
+            "# HELP brickcast_frames_unencodable_total Replies that could not be encoded (a server bug; the session is closed with an Internal error).\n# TYPE brickcast_frames_unencodable_total counter"
+        );
+        for (kind, n) in ServerMsg::KINDS.iter().zip(&self.unencodable) {
+            let _ = writeln!(
+                out,
+                "brickcast_frames_unencodable_total{{message=\"{kind}\"}} {}",
+                get(n)
+            );
+        }
+        let _ = writeln!(
+            out,
+            "# HELP brickcast_read_errors_total Websocket reads that failed, by cause.\n# TYPE brickcast_read_errors_total counter"
+        );
+        for kind in ReadError::ALL {
+            let _ = writeln!(
+                out,
+                "brickcast_read_errors_total{{kind=\"{}\"}} {}",
+                kind.name(),
+                get(&self.read_errors[kind as usize])
+            );
+        }
         let seconds = |ns: &AtomicU64| get(ns) as f64 / 1e9;
         let _ = writeln!(
             out,

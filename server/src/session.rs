@@ -7,22 +7,20 @@
 //! frame and a close; the scene and the other sessions carry on.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
+use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use brickcast_protocol::wire::{
     ClientMsg, ErrorCode, Limits, OpRejection, PROTOCOL_VERSION, Rejection, Role, ServerMsg,
-    decode_client, encode_server, hello_version,
+    decode_client, hello_version,
 };
-use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
-use tokio::sync::mpsc;
 
 use crate::App;
 use crate::auth::Access;
-use crate::metrics::{Metrics, SessionPhase};
-use crate::scene::{Command, Outbox, SceneHandle, SessionId};
+use crate::metrics::{Metrics, ReadError, SessionPhase};
+use crate::scene::{Command, Outbox, OutboxReceiver, SceneHandle, SessionId};
 
 /// How long a closing connection keeps reading so its peer can receive the close.
 const CLOSE_GRACE: Duration = Duration::from_secs(2);
@@ -62,18 +60,14 @@ impl RateLimit {
     }
 }
 
-fn frame(msg: &ServerMsg) -> Option<Bytes> {
-    encode_server(msg).ok().map(Bytes::from)
-}
-
 /// Serves one connection to `scene` until either side closes or the server shuts down.
 pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
     let id = app.next_session_id();
     app.metrics.connected_clients.fetch_add(1, Relaxed);
     let _guard = app.track_session();
     let (sink, mut stream) = socket.split();
-    let (out, rx, queued) = Outbox::new();
-    let writer = tokio::spawn(write_loop(sink, rx, queued, app.metrics.clone()));
+    let (out, outbox) = Outbox::new();
+    let writer = tokio::spawn(write_loop(sink, outbox, app.metrics.clone()));
 
     match handshake(&mut stream, &scene, &app, &out).await {
         Some((role, resume_from)) => {
@@ -89,11 +83,8 @@ pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
             {
                 read_loop(&mut stream, &scene, &app, &out, id, role).await;
                 let _ = scene.send(Command::Leave { session: id }).await;
-            } else if let Some(f) = frame(&ServerMsg::error(
-                ErrorCode::ShuttingDown,
-                "the scene is shutting down",
-            )) {
-                out.push(f);
+            } else {
+                out.close(ErrorCode::ShuttingDown, "the scene is shutting down");
             }
         }
         None => tracing::debug!(session = id, "handshake failed"),
@@ -123,9 +114,7 @@ async fn handshake(
 ) -> Option<(Role, Option<u64>)> {
     let fail = |code: ErrorCode, text: String| {
         app.metrics.rejected_frames.fetch_add(1, Relaxed);
-        if let Some(f) = frame(&ServerMsg::error(code, text)) {
-            out.push(f);
-        }
+        out.close(code, text);
         None
     };
     let bytes = match tokio::time::timeout(HELLO_TIMEOUT, stream.next()).await {
@@ -137,7 +126,8 @@ async fn handshake(
             );
         }
         Ok(Some(Err(e))) => {
-            return fail(ErrorCode::MalformedFrame, format!("websocket error: {e}"));
+            let (code, text) = read_error(e, &app.metrics)?;
+            return fail(code, text);
         }
         Ok(None) => return None,
         Err(_) => return fail(ErrorCode::MalformedFrame, "no Hello within 10 s".into()),
@@ -180,6 +170,30 @@ fn frame_error_code(e: &brickcast_protocol::wire::WireError) -> ErrorCode {
     }
 }
 
+/// Sorts a failed websocket read by cause, counts it, and says what to tell the peer: `None`
+/// when the connection itself is gone (nobody is left to tell).
+fn read_error(e: axum::Error, metrics: &Metrics) -> Option<(ErrorCode, String)> {
+    use tungstenite::error::{CapacityError, Error as WsError};
+    let inner = e.into_inner();
+    let (kind, code) = match inner.downcast_ref::<WsError>() {
+        Some(WsError::Capacity(CapacityError::MessageTooLong { .. })) => {
+            (ReadError::TooLarge, Some(ErrorCode::FrameTooLarge))
+        }
+        Some(WsError::Capacity(_)) => (ReadError::TooLarge, Some(ErrorCode::MalformedFrame)),
+        Some(WsError::Protocol(_) | WsError::AttackAttempt) => {
+            (ReadError::Protocol, Some(ErrorCode::MalformedFrame))
+        }
+        Some(WsError::Utf8(_)) => (ReadError::Utf8, Some(ErrorCode::MalformedFrame)),
+        Some(WsError::Io(_) | WsError::ConnectionClosed | WsError::AlreadyClosed) => {
+            (ReadError::Io, None)
+        }
+        _ => (ReadError::Other, Some(ErrorCode::MalformedFrame)),
+    };
+    metrics.count_read_error(kind);
+    tracing::debug!(error = %inner, kind = kind.name(), "websocket read failed");
+    code.map(|code| (code, format!("unreadable frame: {inner}")))
+}
+
 async fn read_loop(
     stream: &mut futures_util::stream::SplitStream<WebSocket>,
     scene: &SceneHandle,
@@ -194,14 +208,14 @@ async fn read_loop(
     let reject = |code: ErrorCode, text: String| {
         app.metrics.rejected_frames.fetch_add(1, Relaxed);
         tracing::debug!(session = id, ?code, %text, "closing a session");
-        if let Some(f) = frame(&ServerMsg::error(code, text)) {
-            out.push(f);
-        }
+        out.close(code, text);
     };
     loop {
         let next = tokio::select! {
             next = stream.next() => next,
             _ = shutdown.changed() => return,
+            // The owner (or a reply that could not be encoded) ended the session.
+            _ = out.closed() => return,
         };
         let bytes = match next {
             Some(Ok(Message::Binary(bytes))) => bytes,
@@ -214,7 +228,10 @@ async fn read_loop(
                 );
             }
             Some(Err(e)) => {
-                return reject(ErrorCode::FrameTooLarge, format!("unreadable frame: {e}"));
+                if let Some((code, text)) = read_error(e, &app.metrics) {
+                    reject(code, text);
+                }
+                return;
             }
         };
         app.metrics.bytes_in.fetch_add(bytes.len() as u64, Relaxed);
@@ -254,14 +271,15 @@ async fn read_loop(
                             reason: reason.clone(),
                         })
                         .collect();
-                    if let Some(f) = frame(&ServerMsg::Ack {
-                        client_seq,
-                        seq: None,
-                        applied: 0,
-                        rejected,
-                    }) {
-                        out.push(f);
-                    }
+                    out.send(
+                        &ServerMsg::Ack {
+                            client_seq,
+                            seq: None,
+                            applied: 0,
+                            rejected,
+                        },
+                        &app.metrics,
+                    );
                     continue;
                 }
                 if scene
@@ -290,9 +308,7 @@ async fn read_loop(
                 }
             }
             ClientMsg::Ping { nonce } => {
-                if let Some(f) = frame(&ServerMsg::Pong { nonce }) {
-                    out.push(f);
-                }
+                out.send(&ServerMsg::Pong { nonce }, &app.metrics);
             }
         }
     }
@@ -300,10 +316,10 @@ async fn read_loop(
 
 async fn write_loop(
     mut sink: futures_util::stream::SplitSink<WebSocket, Message>,
-    mut rx: mpsc::UnboundedReceiver<Bytes>,
-    queued: Arc<AtomicUsize>,
+    outbox: OutboxReceiver,
     metrics: Arc<Metrics>,
 ) {
+    let OutboxReceiver { mut rx, queued } = outbox;
     while let Some(frame) = rx.recv().await {
         let started = Instant::now();
         // Everything already queued goes out with one flush: an ack and the delta of the same

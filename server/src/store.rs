@@ -42,6 +42,10 @@ pub enum StoreError {
     SceneExists(String),
     #[error("scene name {0:?} is invalid: use 1-64 letters, digits, '-', '_' or '.'")]
     BadName(String),
+    /// The log and the snapshot of a scene do not fit together: replaying would lose, repeat or
+    /// reorder acknowledged edits, so the scene is not served until someone looks.
+    #[error("scene {scene}: the edit log does not fit the snapshot: {detail}")]
+    Inconsistent { scene: String, detail: String },
 }
 
 impl StoreError {
@@ -164,6 +168,23 @@ impl Store {
             path: path.clone(),
             source,
         })?;
+        Store::init(db, path)
+    }
+
+    /// Opens (creating if needed) a store on any redb storage backend: the simulation test's
+    /// disk, which can lose unsynced writes the way a crash does.
+    pub fn with_backend(backend: impl redb::StorageBackend) -> Result<Store, StoreError> {
+        let path = PathBuf::from("(custom storage backend)");
+        let db = Database::builder()
+            .create_with_backend(backend)
+            .map_err(|source| StoreError::Open {
+                path: path.clone(),
+                source,
+            })?;
+        Store::init(db, path)
+    }
+
+    fn init(db: Database, path: PathBuf) -> Result<Store, StoreError> {
         let txn = db.begin_write()?;
         txn.open_table(SCENES)?;
         txn.commit()?;
@@ -266,7 +287,28 @@ impl Store {
     }
 
     /// Loads a scene: snapshot bricks, then every logged batch replayed in order.
+    ///
+    /// The log must continue the snapshot exactly: its entries are numbered `snapshot_seq + 1`,
+    /// `+ 2`, ... without a gap. Anything else is refused with [`StoreError::Inconsistent`]
+    /// rather than replayed around: a gap means acknowledged edits are missing, and an entry
+    /// at or below the snapshot's sequence was written after that snapshot (snapshots trim
+    /// the log up to their sequence in the same transaction), so skipping it would lose it.
+    /// [`Store::load_scene_repairing`] replays such entries instead.
     pub fn load_scene(&self, name: &str) -> Result<Loaded, StoreError> {
+        self.load(name, false)
+    }
+
+    /// [`Store::load_scene`] for a store whose log holds entries at or below the snapshot's
+    /// sequence (written by brickcast-server 0.1, which could record a snapshot one sequence
+    /// ahead of the edits it held after a batch whose every op was rejected). Every entry still
+    /// in the log was written after the snapshot, so each is replayed, in order; the scene's
+    /// sequence becomes the last entry's. `brickcast-server snapshot --repair` then folds them
+    /// into a new snapshot. Gaps are still refused.
+    pub fn load_scene_repairing(&self, name: &str) -> Result<Loaded, StoreError> {
+        self.load(name, true)
+    }
+
+    fn load(&self, name: &str, repair: bool) -> Result<Loaded, StoreError> {
         let txn = self.db.begin_read()?;
         let meta = {
             let scenes = txn.open_table(SCENES)?;
@@ -291,6 +333,10 @@ impl Store {
                 .ok_or_else(|| corrupt(format!("brick row {cell}")))?;
             map.put_brick(&brick).map_err(|e| corrupt(e.to_string()))?;
         }
+        // The snapshot keeps bricks, not the tombstones of bricks removed before it: a client
+        // resuming from before the snapshot cannot be told what it must delete, so it gets a
+        // full resync (see `BrickMap::changes_since`).
+        map.prune_tombstones(meta.snapshot_seq);
         let log_name = log_table(name);
         let log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
         // Replay with no brush limits: every logged op was validated against the server's limits
@@ -301,16 +347,47 @@ impl Store {
             max_box_extent: u32::MAX,
             ..limits
         };
+        let inconsistent = |detail: String| StoreError::Inconsistent {
+            scene: name.into(),
+            detail,
+        };
         let mut seq = meta.snapshot_seq;
         let mut replayed = 0;
         map.record_touched(true);
-        for row in log.range((meta.snapshot_seq + 1)..)? {
+        for row in log.iter()? {
             let (s, bytes) = row?;
             let s = s.value();
+            if replayed == 0 && s <= meta.snapshot_seq {
+                if !repair {
+                    return Err(inconsistent(format!(
+                        "log entry {s} is at or below the snapshot's sequence {} but was written after it \
+                         (a store written by brickcast-server 0.1 after a fully rejected edit); serving the scene \
+                         would lose that edit. Stop the server and run `brickcast-server snapshot --scene {name} --repair` \
+                         to replay every logged entry into a new snapshot",
+                        meta.snapshot_seq
+                    )));
+                }
+            } else if replayed == 0 {
+                if s != meta.snapshot_seq.saturating_add(1) {
+                    return Err(inconsistent(format!(
+                        "the snapshot is at sequence {} but the log starts at {s}: entries {}..={} are missing",
+                        meta.snapshot_seq,
+                        meta.snapshot_seq.saturating_add(1),
+                        s - 1
+                    )));
+                }
+            } else if s != seq.saturating_add(1) {
+                return Err(inconsistent(format!(
+                    "the log jumps from entry {seq} to {s}: entries {}..={} are missing",
+                    seq.saturating_add(1),
+                    s - 1
+                )));
+            }
             let (ops, _): (Vec<EditOp>, usize) =
                 bincode::serde::decode_from_slice(bytes.value(), bincode_config())
                     .map_err(|e| corrupt(format!("log entry {s}: {e}")))?;
-            map.set_sequence(s);
+            // Only a repair replays entries at or below the snapshot's stamp.
+            map.set_sequence(s.max(map.sequence()));
             for op in &ops {
                 // An op that applied when logged applies again: the map is in the same state.
                 // A failure here means the log does not match the snapshot.
@@ -320,6 +397,7 @@ impl Store {
             seq = s;
             replayed += 1;
         }
+        let seq = seq.max(meta.snapshot_seq);
         map.rebuild_clearance();
         let replay_touched = map.take_touched();
         map.record_touched(false);
@@ -356,12 +434,45 @@ impl Store {
     }
 
     /// Writes the bricks at `cells` in their current state (removing rows of empty cells),
-    /// moves the snapshot to the map's sequence and drops the log up to it, atomically.
-    pub fn snapshot(&self, scene: &str, map: &BrickMap, cells: &[u32]) -> Result<(), StoreError> {
+    /// moves the snapshot to sequence `seq` (the last sequence whose edits `map` holds) and
+    /// drops the log up to it, atomically.
+    ///
+    /// Refused with [`StoreError::Inconsistent`] when the pieces disagree: a map stamped with
+    /// another sequence than `seq`, a `seq` behind the current snapshot, or a log holding
+    /// entries after `seq` (they would be replayed on top of a snapshot that already has them).
+    pub fn snapshot(
+        &self,
+        scene: &str,
+        map: &BrickMap,
+        cells: &[u32],
+        seq: u64,
+    ) -> Result<(), StoreError> {
+        let inconsistent = |detail: String| StoreError::Inconsistent {
+            scene: scene.into(),
+            detail,
+        };
+        if map.sequence() != seq {
+            return Err(inconsistent(format!(
+                "refusing a snapshot at sequence {seq} of a map stamped {}",
+                map.sequence()
+            )));
+        }
         let mut txn = self.db.begin_write()?;
         txn.set_durability(Durability::Immediate)?;
         {
-            let seq = map.sequence();
+            let old = {
+                let scenes = txn.open_table(SCENES)?;
+                let Some(bytes) = scenes.get(scene)? else {
+                    return Err(StoreError::UnknownScene(scene.into()));
+                };
+                self.decode_meta(scene, bytes.value())?
+            };
+            if seq < old.snapshot_seq {
+                return Err(inconsistent(format!(
+                    "refusing to move the snapshot back from sequence {} to {seq}",
+                    old.snapshot_seq
+                )));
+            }
             let bricks_name = bricks_table(scene);
             let mut bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
             let mut row = Vec::with_capacity(64 + 1024);
@@ -378,6 +489,14 @@ impl Store {
             }
             let log_name = log_table(scene);
             let mut log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
+            if let Some((last, _)) = log.last()? {
+                let last = last.value();
+                if last > seq {
+                    return Err(inconsistent(format!(
+                        "refusing a snapshot at sequence {seq}: the log already holds entry {last}"
+                    )));
+                }
+            }
             log.retain_in(..=seq, |_, _| false)?;
             let mut scenes = txn.open_table(SCENES)?;
             let meta = SceneMeta {
@@ -452,7 +571,7 @@ mod tests {
         assert_eq!(loaded.map.content_hash(), map.content_hash());
 
         let touched = map.take_touched();
-        store.snapshot("s", &map, &touched).unwrap();
+        store.snapshot("s", &map, &touched, 2).unwrap();
         assert_eq!(store.log_len("s").unwrap(), 0);
         let loaded = store.load_scene("s").unwrap();
         assert_eq!((loaded.meta.snapshot_seq, loaded.replayed), (2, 0));

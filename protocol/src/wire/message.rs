@@ -193,6 +193,32 @@ impl ClientMsg {
 }
 
 impl ServerMsg {
+    /// The name of every variant, in wire order (for logs and per-kind metrics).
+    pub const KINDS: [&'static str; 8] = [
+        "Welcome",
+        "SyncBatch",
+        "SyncDone",
+        "Delta",
+        "Resync",
+        "Ack",
+        "Error",
+        "Pong",
+    ];
+
+    /// The variant's name, one of [`ServerMsg::KINDS`].
+    pub fn kind(&self) -> &'static str {
+        Self::KINDS[match self {
+            ServerMsg::Welcome { .. } => 0,
+            ServerMsg::SyncBatch { .. } => 1,
+            ServerMsg::SyncDone { .. } => 2,
+            ServerMsg::Delta { .. } => 3,
+            ServerMsg::Resync { .. } => 4,
+            ServerMsg::Ack { .. } => 5,
+            ServerMsg::Error { .. } => 6,
+            ServerMsg::Pong { .. } => 7,
+        }]
+    }
+
     /// An `Error` whose text is cut to [`MAX_MESSAGE_BYTES`], so that an error built from
     /// arbitrary detail can always be sent.
     pub fn error(code: ErrorCode, message: impl Into<String>) -> Self {

@@ -1,0 +1,295 @@
+//! Getting a client's copy up to date: initial sync, resume, and resync after a client fell
+//! behind, all streamed nearest-brick-first a few frames per turn so edits keep flowing while a
+//! large scene goes out. Part of the owner (these are `impl Owner` methods), kept apart from
+//! the edit path in `owner.rs`.
+
+use brickcast_protocol::BrickMap;
+use brickcast_protocol::brick::popcount;
+use brickcast_protocol::wire::{
+    BrickBlob, MAX_REMOVED_PER_FRAME, PROTOCOL_VERSION, Role, ServerMsg, WireError, encode_server,
+};
+use bytes::Bytes;
+
+use super::owner::Owner;
+use super::{Outbox, SessionId, Subscriber};
+use crate::metrics::Metrics;
+
+/// Sync frames queued per subscriber per turn.
+const FRAMES_PER_TURN: usize = 4;
+
+impl Owner {
+    pub(super) fn join(
+        &mut self,
+        session: SessionId,
+        out: Outbox,
+        role: Role,
+        resume_from: Option<u64>,
+    ) {
+        let size = self.map.size();
+        let camera = [size[0] as f32 * 0.5, size[1] as f32, size[2] as f32 * 0.5];
+        let mut sub = Subscriber {
+            out,
+            role,
+            camera,
+            delivered: self.seq,
+            lagging: false,
+            pending: Vec::new(),
+            sync_total: 0,
+            sync_sent: 0,
+            syncing: false,
+        };
+        // A resume is served as a resync from the client's sequence; anything else (or a
+        // sequence from the future, i.e. another store) is a full sync.
+        let (total, resume) = match resume_from {
+            Some(since) if since <= self.seq => match self.map.changes_since(since) {
+                Some(c) => (c.changed.len() as u32, Some(since)),
+                None => (self.map.brick_count() as u32, None),
+            },
+            _ => (self.map.brick_count() as u32, None),
+        };
+        let welcome = ServerMsg::Welcome {
+            protocol: PROTOCOL_VERSION,
+            server: format!("brickcast-server {}", env!("CARGO_PKG_VERSION")),
+            scene: self.name.clone(),
+            size,
+            seq: self.seq,
+            role,
+            limits: self.config.limits.clone(),
+            total_bricks: total,
+        };
+        if !sub.out.send(&welcome, &self.metrics) {
+            return;
+        }
+        match resume {
+            Some(since) => {
+                sub.delivered = since;
+                self.start_resync(&mut sub, false);
+            }
+            None => {
+                // A client that asked to resume holds a copy we cannot patch: tell it to drop it.
+                if resume_from.is_some() {
+                    sub.out.send(&ServerMsg::Resync { since: 0 }, &self.metrics);
+                }
+                sub.pending = self
+                    .map
+                    .brick_cells()
+                    .map(|(c, _)| self.map.cell_index(c))
+                    .collect();
+                sort_far_to_near(&self.map, &mut sub.pending, sub.camera);
+                sub.sync_total = sub.pending.len() as u32;
+                sub.syncing = true;
+            }
+        }
+        self.subs.insert(session, sub);
+    }
+
+    /// A client's camera moved: its pending sync is re-sorted nearest-first from there.
+    pub(super) fn camera(&mut self, session: SessionId, eye: [f32; 3]) {
+        if let Some(sub) = self.subs.get_mut(&session) {
+            sub.camera = eye;
+            sort_far_to_near(&self.map, &mut sub.pending, eye);
+        }
+    }
+
+    /// Queues what a client that has everything up to `sub.delivered` is missing: removals now,
+    /// changed bricks through the sync pump; `announce` tells the client first with
+    /// `Resync { since: delivered }`.
+    ///
+    /// `Resync { since: 0 }` means "drop your copy", so a client told that must be sent every
+    /// brick: when tombstones that old are gone, and when an announced resync starts from 0
+    /// (a client that fell behind during its first sync of a scene still at sequence 0, or that
+    /// asked to resume from 0), where "changed after 0" would miss every brick the scene was
+    /// created with.
+    pub(super) fn start_resync(&self, sub: &mut Subscriber, announce: bool) {
+        let changes = if announce && sub.delivered == 0 {
+            None
+        } else {
+            self.map.changes_since(sub.delivered)
+        };
+        let full = changes.is_none();
+        let (since, changes) = match changes {
+            Some(c) => (sub.delivered, c),
+            None => (
+                0,
+                brickcast_protocol::map::Changes {
+                    changed: self.map.brick_cells().map(|(c, _)| c).collect(),
+                    removed: Vec::new(),
+                },
+            ),
+        };
+        // A client that gets every brick must drop its copy first (bricks removed since it
+        // last heard are not listed): say so. (A resume from 0 that tombstones still cover
+        // keeps the copy the client has at 0 and gets what changed since.)
+        if announce || full {
+            sub.out.send(&ServerMsg::Resync { since }, &self.metrics);
+        }
+        for chunk in changes.removed.chunks(MAX_REMOVED_PER_FRAME) {
+            let msg = ServerMsg::Delta {
+                from_seq: since,
+                to_seq: self.seq,
+                bricks: BrickBlob::empty(),
+                removed: chunk.to_vec(),
+            };
+            sub.out.send(&msg, &self.metrics);
+        }
+        // Keep what an interrupted sync had not sent yet: those bricks are still owed.
+        let mut pending = std::mem::take(&mut sub.pending);
+        pending.extend(changes.changed.iter().map(|&c| self.map.cell_index(c)));
+        pending.sort_unstable();
+        pending.dedup();
+        sort_far_to_near(&self.map, &mut pending, sub.camera);
+        sub.pending = pending;
+        sub.sync_total = sub.pending.len() as u32;
+        sub.sync_sent = 0;
+        sub.syncing = true;
+        sub.lagging = false;
+        sub.delivered = self.seq;
+    }
+
+    /// Encodes the current state of `cells` as frames: bricks that exist go in blobs cut to
+    /// fit the frame limit, empty cells are listed as removed. `make` builds the message around
+    /// each blob.
+    pub(super) fn encode_cells(
+        &mut self,
+        cells: &[u32],
+        make: impl Fn(BrickBlob, Vec<[u32; 3]>) -> ServerMsg,
+    ) -> Result<Vec<Bytes>, WireError> {
+        let max_raw = (self.config.limits.max_frame_bytes as usize).saturating_sub(4096) / 2;
+        let max_bricks = self.config.limits.max_bricks_per_frame;
+        let mut frames = Vec::new();
+        let mut removed = Vec::new();
+        self.encoder.clear();
+        let finish = |encoder: &mut brickcast_protocol::wire::BlobEncoder,
+                      removed: &mut Vec<[u32; 3]>,
+                      frames: &mut Vec<Bytes>| {
+            let blob = encoder.finish()?;
+            let msg = make(blob, std::mem::take(removed));
+            frames.push(Bytes::from(encode_server(&msg)?));
+            Ok::<(), WireError>(())
+        };
+        let map = &self.map;
+        for &cell in cells {
+            let coords = map.cell_coords(cell);
+            match map.slot_of_cell(coords) {
+                Some(slot) => {
+                    // Straight from the map's arrays: a delta re-sends every brick it touched,
+                    // and copying each into a `BrickData` first cost as much as compressing it.
+                    let s = slot as usize;
+                    let mask = &map.masks()[s];
+                    let base = map.colour_bases()[s] as usize;
+                    let colours = &map.colour_pool()[base..base + popcount(mask) as usize];
+                    // Brick rows compress ~3x but may not; budget raw bytes against half the frame.
+                    if self.encoder.len() >= max_bricks
+                        || self.encoder.raw_len() + 70 + 2 * colours.len() > max_raw
+                    {
+                        finish(&mut self.encoder, &mut removed, &mut frames)?;
+                    }
+                    self.encoder.push(coords, mask, colours)?;
+                }
+                None => {
+                    if removed.len() >= MAX_REMOVED_PER_FRAME {
+                        finish(&mut self.encoder, &mut removed, &mut frames)?;
+                    }
+                    removed.push(coords);
+                }
+            }
+        }
+        if !self.encoder.is_empty() || !removed.is_empty() {
+            finish(&mut self.encoder, &mut removed, &mut frames)?;
+        }
+        Ok(frames)
+    }
+
+    /// Whether a sync or resync can make progress now (its client's queue has room).
+    pub fn has_ready_work(&self) -> bool {
+        let half = self.config.max_queue_bytes / 2;
+        self.subs.values().any(|s| {
+            (s.syncing && s.out.queued() < half)
+                || (s.lagging && s.out.queued() < self.config.max_queue_bytes / 4)
+        })
+    }
+
+    /// Whether a sync or resync is waiting for its client's queue to drain.
+    pub fn has_blocked_work(&self) -> bool {
+        self.subs.values().any(|s| s.syncing || s.lagging)
+    }
+
+    /// Advances every sync (initial, resume, resync) by a bounded amount per turn, so edits keep
+    /// flowing while a large scene streams out.
+    pub(super) fn pump_syncs(&mut self) {
+        let ids: Vec<SessionId> = self.subs.keys().copied().collect();
+        for id in ids {
+            let Some(mut sub) = self.subs.remove(&id) else {
+                continue;
+            };
+            if sub.out.is_closed() {
+                continue;
+            }
+            if sub.lagging && sub.out.queued() < self.config.max_queue_bytes / 4 {
+                self.start_resync(&mut sub, true);
+            }
+            let mut frames = 0;
+            while sub.syncing
+                && frames < FRAMES_PER_TURN
+                && sub.out.queued() < self.config.max_queue_bytes / 2
+            {
+                let take =
+                    (self.config.limits.max_bricks_per_frame as usize).min(sub.pending.len());
+                let batch: Vec<u32> = sub.pending.split_off(sub.pending.len() - take);
+                // Cells emptied since the sync began were already announced by a delta.
+                let live: Vec<u32> = batch
+                    .into_iter()
+                    .filter(|&c| self.map.slot_of_cell(self.map.cell_coords(c)).is_some())
+                    .collect();
+                let sent_before = sub.sync_sent;
+                let total = sub.sync_total;
+                let count = live.len() as u32;
+                match self.encode_cells(&live, |bricks, _| ServerMsg::SyncBatch {
+                    bricks,
+                    sent: sent_before + count,
+                    total,
+                }) {
+                    Ok(batch_frames) => {
+                        for f in batch_frames {
+                            Metrics::add(&self.metrics.sync_batches_sent, 1);
+                            sub.out.push(f);
+                            frames += 1;
+                        }
+                    }
+                    Err(e) => {
+                        // The client would finish its sync without these bricks: end the
+                        // session instead of leaving it with a copy that silently differs.
+                        tracing::error!(scene = %self.name, error = %e, "could not encode a sync batch; closing the session");
+                        self.metrics.count_unencodable("SyncBatch");
+                        sub.out.close(
+                            brickcast_protocol::wire::ErrorCode::Internal,
+                            format!("the server could not encode a sync batch: {e}"),
+                        );
+                        break;
+                    }
+                }
+                sub.sync_sent += count;
+                if sub.pending.is_empty() {
+                    sub.syncing = false;
+                    sub.out
+                        .send(&ServerMsg::SyncDone { seq: self.seq }, &self.metrics);
+                }
+            }
+            if !sub.out.is_closed() {
+                self.subs.insert(id, sub);
+            }
+        }
+    }
+}
+
+/// Sorts linear cell indices by distance to `eye`, farthest first, so `pop` yields the nearest.
+pub(super) fn sort_far_to_near(map: &BrickMap, cells: &mut [u32], eye: [f32; 3]) {
+    let key = |&c: &u32| {
+        let p = map.cell_coords(c);
+        let d: f32 = (0..3)
+            .map(|i| (p[i] as f32 * 8.0 + 4.0 - eye[i]).powi(2))
+            .sum();
+        std::cmp::Reverse((d * 16.0) as u64)
+    };
+    cells.sort_unstable_by_key(key);
+}
