@@ -100,6 +100,10 @@ struct Model {
     seq: u64,
     /// Content hash of the scene after each sequence (`hashes[0]`: as created).
     hashes: Vec<u64>,
+    /// The scene at sequence `base.0` (as created, or as last recovered) and the ops each
+    /// later batch applied: enough to rebuild the scene at any sequence for a failure report.
+    base: (u64, BrickMap),
+    batches: Vec<Vec<EditOp>>,
     /// Highest sequence acknowledged to any client.
     acked: u64,
     /// Sessions the owner has subscribed, with their roles, as the commands of a turn go by.
@@ -109,6 +113,19 @@ struct Model {
 }
 
 impl Model {
+    /// The scene at sequence `seq` (from the last recovery on), rebuilt from the batches.
+    fn state_at(&self, seq: u64) -> Option<BrickMap> {
+        let (base_seq, base) = &self.base;
+        let mut map = base.clone();
+        let from = usize::try_from(seq.checked_sub(*base_seq)?).ok()?;
+        for ops in self.batches.get(..from)? {
+            for op in ops {
+                apply_op(&mut map, op, &self.limits).ok()?;
+            }
+        }
+        Some(map)
+    }
+
     /// Applies a turn's commands the way the owner must, recording the acks it must send.
     fn turn(&mut self, commands: &[Command]) {
         for cmd in commands {
@@ -127,6 +144,7 @@ impl Model {
                     let editor = self.subscribed.get(session) == Some(&Role::Editor);
                     let mut applied = 0;
                     let mut rejected = Vec::new();
+                    let mut batch = Vec::new();
                     for (index, op) in ops.iter().enumerate() {
                         let outcome = if editor {
                             apply_op(&mut self.map, op, &self.limits).map(|_| ())
@@ -134,7 +152,10 @@ impl Model {
                             Err(Rejection::NotAllowed)
                         };
                         match outcome {
-                            Ok(()) => applied += 1,
+                            Ok(()) => {
+                                applied += 1;
+                                batch.push(op.clone());
+                            }
                             Err(reason) => rejected.push(OpRejection {
                                 index: index as u32,
                                 reason,
@@ -144,6 +165,7 @@ impl Model {
                     let seq = (applied > 0).then(|| {
                         self.seq += 1;
                         self.hashes.push(self.map.content_hash());
+                        self.batches.push(batch);
                         self.seq
                     });
                     self.expected.insert(
@@ -265,9 +287,11 @@ impl Sim {
             departed: Vec::new(),
             snapshot_replies: Vec::new(),
             model: Model {
+                base: (0, map.clone()),
                 map,
                 seq: 0,
                 hashes: vec![hash],
+                batches: Vec::new(),
                 acked: 0,
                 subscribed: BTreeMap::new(),
                 expected: BTreeMap::new(),
@@ -528,7 +552,10 @@ impl Sim {
                         "client {c}'s copy after {} differs from the scene at sequence {}: {}",
                         msg.kind(),
                         r.seq,
-                        first_difference(&r.map, self.owner.map())
+                        match self.model.state_at(r.seq) {
+                            Some(scene) => first_difference(&r.map, &scene),
+                            None => "(the scene at that sequence is not known)".into(),
+                        }
                     ));
                 }
             }
@@ -648,6 +675,8 @@ impl Sim {
         self.model.seq = r;
         self.model.hashes.truncate(r as usize + 1);
         self.model.map = self.owner.map().clone();
+        self.model.base = (r, self.model.map.clone());
+        self.model.batches.clear();
         self.note(format!("recovered at sequence {r}"));
         Ok(())
     }
