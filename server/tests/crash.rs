@@ -1,5 +1,8 @@
 //! Durability: kill the server process with SIGKILL while clients edit, restart it, and check
-//! that every acknowledged edit is there. Several rounds, each on the recovered store.
+//! that every acknowledged edit is there and that clients resuming across the kill end up with
+//! the server's scene. Many rounds, each on the recovered store, with rejected batches and
+//! snapshots mixed in; and the exact steps of the sequence bug (a fully rejected batch, then
+//! the periodic snapshot, then an edit) as their own test.
 
 mod common;
 
@@ -7,7 +10,7 @@ use std::net::SocketAddr;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use brickcast_protocol::wire::{EditOp, ServerMsg};
+use brickcast_protocol::wire::{EditOp, RayAction, Rejection, ServerMsg};
 use common::{Client, colour, http_get};
 
 fn free_port() -> SocketAddr {
@@ -34,10 +37,11 @@ impl Drop for ServerProcess {
 
 // The child is returned inside `ServerProcess`, whose Drop waits for it.
 #[allow(clippy::zombie_processes)]
-async fn start(addr: SocketAddr, data: &std::path::Path) -> ServerProcess {
+async fn start(addr: SocketAddr, data: &std::path::Path, extra: &[&str]) -> ServerProcess {
     let mut child = Command::new(env!("CARGO_BIN_EXE_brickcast-server"))
         .args(["serve", "--listen", &addr.to_string(), "--data"])
         .arg(data)
+        .args(extra)
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
         .spawn()
@@ -49,6 +53,9 @@ async fn start(addr: SocketAddr, data: &std::path::Path) -> ServerProcess {
         {
             return ServerProcess(child);
         }
+        if let Ok(Some(status)) = child.try_wait() {
+            panic!("server exited at start: {status}");
+        }
         if Instant::now() >= deadline {
             let _ = child.kill();
             let _ = child.wait();
@@ -56,6 +63,92 @@ async fn start(addr: SocketAddr, data: &std::path::Path) -> ServerProcess {
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
+}
+
+/// Snapshots the server has written since it started (from `/metrics`).
+async fn snapshots(addr: SocketAddr) -> u64 {
+    let (_, text) = http_get(addr, "/metrics").await;
+    text.lines()
+        .find_map(|l| l.strip_prefix("brickcast_snapshots_total "))
+        .and_then(|v| v.trim().parse().ok())
+        .expect("snapshot counter in /metrics")
+}
+
+/// A ray from high above the scene pointing up: it hits nothing, so the op is rejected.
+fn sky_click() -> EditOp {
+    EditOp::Ray {
+        origin: [-10.0, 600.0, -10.0],
+        dir: [0.0, 1.0, 0.0],
+        action: RayAction::Remove,
+    }
+}
+
+/// The steps that lost an acknowledged edit: a batch whose every op is rejected, then the
+/// periodic snapshot, then an acknowledged edit, then SIGKILL. The edit must be there after the
+/// restart, and a client that resumes from what it saw must agree with the server.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_edit_after_a_rejected_batch_and_a_snapshot_survives_sigkill() {
+    let dir = tempfile::tempdir().unwrap();
+    let addr = free_port();
+    let flags = ["--snapshot-every", "1"];
+    let mut server = start(addr, dir.path(), &flags).await;
+    let url = format!("ws://{addr}/scenes/demo/ws");
+    let mut c = Client::connect(&url, None).await.unwrap();
+    c.sync().await;
+    let (a, x) = ([3, 500, 3], [4, 500, 4]);
+    let Some(ServerMsg::Ack { seq: Some(1), .. }) = Some(
+        c.edit(vec![EditOp::Set {
+            pos: a,
+            colour: colour(1),
+        }])
+        .await,
+    ) else {
+        panic!("the first edit is sequence 1");
+    };
+    match c.edit(vec![sky_click()]).await {
+        ServerMsg::Ack {
+            seq: None,
+            applied: 0,
+            rejected,
+            ..
+        } => assert_eq!(rejected[0].reason, Rejection::RayMissed),
+        other => panic!("the sky click must be rejected: {other:?}"),
+    }
+    // The periodic snapshot (every second while the log has entries).
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while snapshots(addr).await == 0 {
+        assert!(Instant::now() < deadline, "no periodic snapshot");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let ServerMsg::Ack { seq: Some(seq), .. } = c
+        .edit(vec![EditOp::Set {
+            pos: x,
+            colour: colour(2),
+        }])
+        .await
+    else {
+        panic!("the edit applies");
+    };
+    assert_eq!(seq, 2, "a rejected batch takes no sequence number");
+    c.catch_up(seq).await;
+    let (seen, copy) = (c.seq, c.map.clone());
+    server.kill();
+
+    let _server = start(addr, dir.path(), &flags).await;
+    let mut fresh = Client::connect(&url, None).await.unwrap();
+    fresh.sync().await;
+    assert_eq!(
+        fresh.map.get(x),
+        Some(colour(2)),
+        "the acknowledged edit survived"
+    );
+    assert_eq!(fresh.map.get(a), Some(colour(1)));
+    assert_eq!(fresh.seq, 2);
+    let mut back = Client::resume(&url, None, Some(seen), Some(copy))
+        .await
+        .unwrap();
+    back.catch_up(fresh.seq).await;
+    assert_eq!(back.map.content_hash(), fresh.map.content_hash());
 }
 
 /// Unique voxel and colour of edit `i` of client `c` in round `r`: nothing else writes there.
@@ -66,18 +159,29 @@ fn op(r: u32, c: u32, i: u32) -> ([u32; 3], brickcast_protocol::Colour) {
     )
 }
 
+/// A copy kept by a client that watches the scene until the server dies, to resume from.
+struct Watcher {
+    seq: u64,
+    map: brickcast_protocol::BrickMap,
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn acknowledged_edits_survive_sigkill() {
+    const ROUNDS: u32 = 12;
+    const EDITS: u32 = 500;
     let dir = tempfile::tempdir().unwrap();
     let addr = free_port();
+    let url = format!("ws://{addr}/scenes/demo/ws");
+    // Snapshots every 50 ms while edits come in, so kills land before, during and after them.
+    let flags = ["--snapshot-every", "0.05"];
     let mut acked: Vec<([u32; 3], brickcast_protocol::Colour)> = Vec::new();
-    // Three rounds of edit-then-kill; a fourth start only checks the last kill's survivors.
-    for round in 0..4u32 {
-        let mut server = start(addr, dir.path()).await;
+    let mut watcher: Option<Watcher> = None;
+    let mut snapshots_seen = 0;
+    // Rounds of edit-then-kill; one more start only checks the last kill's survivors.
+    for round in 0..=ROUNDS {
+        let mut server = start(addr, dir.path(), &flags).await;
         // Everything acknowledged in earlier rounds survived the previous kill.
-        let mut check = Client::connect(&format!("ws://{addr}/scenes/demo/ws"), None)
-            .await
-            .unwrap();
+        let mut check = Client::connect(&url, None).await.unwrap();
         check.sync().await;
         for (pos, c) in &acked {
             assert_eq!(
@@ -86,40 +190,97 @@ async fn acknowledged_edits_survive_sigkill() {
                 "round {round}: acknowledged edit at {pos:?} lost"
             );
         }
+        // The copy that watched the last round resumes and converges on the server's scene.
+        if let Some(w) = watcher.take() {
+            assert!(
+                w.seq <= check.seq,
+                "round {round}: a client saw sequence {} but the server came back at {}",
+                w.seq,
+                check.seq
+            );
+            let mut back = Client::resume(&url, None, Some(w.seq), Some(w.map))
+                .await
+                .unwrap();
+            back.catch_up(check.seq).await;
+            assert_eq!(
+                back.map.content_hash(),
+                check.map.content_hash(),
+                "round {round}: the resumed copy differs from the server's scene"
+            );
+            back.close().await;
+        }
         check.close().await;
-        if round == 3 {
+        if round == ROUNDS {
             break;
         }
 
         let progress = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let watch = {
+            let url = url.clone();
+            tokio::spawn(async move {
+                let mut w = Client::connect(&url, None).await.unwrap();
+                w.sync().await;
+                let mut last = None;
+                loop {
+                    if w.synced {
+                        last = Some(Watcher {
+                            seq: w.seq,
+                            map: w.map.clone(),
+                        });
+                    }
+                    if w.next().await.is_none() {
+                        return last;
+                    }
+                }
+            })
+        };
         let mut tasks = Vec::new();
         for client in 0..3u32 {
-            let url = format!("ws://{addr}/scenes/demo/ws");
+            let url = url.clone();
             let progress = progress.clone();
             tasks.push(tokio::spawn(async move {
                 let mut c = Client::connect(&url, None).await.unwrap();
                 let mut done = Vec::new();
                 let mut i = 0;
-                'outer: while i < 500 {
-                    let batch: Vec<u32> = (i..(i + 10).min(500)).collect();
-                    i += batch.len() as u32;
-                    let ops = batch.iter().map(|&k| {
-                        let (pos, colour) = op(round, client, k);
-                        EditOp::Set { pos, colour }
-                    });
-                    let cs = c.send_edit(ops.collect()).await;
+                let mut batch_no = 0u32;
+                'outer: while i < EDITS {
+                    batch_no += 1;
+                    // Every seventh batch is refused whole, every fifth partly.
+                    let (ops, valid): (Vec<EditOp>, Vec<u32>) = if batch_no % 7 == 3 {
+                        let oob = EditOp::Set {
+                            pos: [9999, 0, 0],
+                            colour: colour(0),
+                        };
+                        (vec![sky_click(), oob], Vec::new())
+                    } else {
+                        let batch: Vec<u32> = (i..(i + 10).min(EDITS)).collect();
+                        i += batch.len() as u32;
+                        let mut ops: Vec<EditOp> = batch
+                            .iter()
+                            .map(|&k| {
+                                let (pos, colour) = op(round, client, k);
+                                EditOp::Set { pos, colour }
+                            })
+                            .collect();
+                        if batch_no % 5 == 1 {
+                            ops.insert(ops.len() / 2, sky_click());
+                        }
+                        (ops, batch)
+                    };
+                    let cs = c.send_edit(ops).await;
                     loop {
                         match c.next().await {
                             Some(ServerMsg::Ack {
                                 client_seq,
-                                seq: Some(_),
+                                seq,
                                 applied,
                                 ..
                             }) if client_seq == cs => {
-                                assert_eq!(applied as usize, batch.len());
-                                done.extend(batch.iter().map(|&k| op(round, client, k)));
+                                assert_eq!(applied as usize, valid.len());
+                                assert_eq!(seq.is_some(), !valid.is_empty());
+                                done.extend(valid.iter().map(|&k| op(round, client, k)));
                                 progress
-                                    .fetch_add(batch.len(), std::sync::atomic::Ordering::Relaxed);
+                                    .fetch_add(valid.len(), std::sync::atomic::Ordering::Relaxed);
                                 break;
                             }
                             Some(_) => {}
@@ -130,8 +291,9 @@ async fn acknowledged_edits_survive_sigkill() {
                 done
             }));
         }
-        // Kill mid-stream, at a different point each round: once this many edits are acknowledged.
-        let kill_at = 60 + 150 * round as usize;
+        // Kill mid-stream, at a different point each round: once this many edits are
+        // acknowledged.
+        let kill_at = 40 + 97 * round as usize;
         let deadline = Instant::now() + Duration::from_secs(60);
         while progress.load(std::sync::atomic::Ordering::Relaxed) < kill_at {
             assert!(
@@ -140,6 +302,7 @@ async fn acknowledged_edits_survive_sigkill() {
             );
             tokio::time::sleep(Duration::from_millis(2)).await;
         }
+        snapshots_seen += snapshots(addr).await;
         server.kill();
         let mut this_round = 0;
         for t in tasks {
@@ -147,10 +310,17 @@ async fn acknowledged_edits_survive_sigkill() {
             this_round += done.len();
             acked.extend(done);
         }
-        eprintln!("round {round}: {this_round} of 1500 edits acknowledged before SIGKILL");
+        watcher = watch.await.unwrap();
+        assert!(watcher.is_some(), "round {round}: the watcher synced");
+        eprintln!(
+            "round {round}: {this_round} of {} edits acknowledged before SIGKILL",
+            3 * EDITS
+        );
         assert!(
-            this_round >= kill_at && this_round < 1500,
+            this_round >= kill_at && this_round < 3 * EDITS as usize,
             "round {round}: the kill came mid-stream"
         );
     }
+    eprintln!("{snapshots_seen} snapshots were written during the rounds");
+    assert!(snapshots_seen > 0, "snapshots were mixed in");
 }
