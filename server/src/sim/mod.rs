@@ -154,7 +154,7 @@ impl Model {
                         match outcome {
                             Ok(()) => {
                                 applied += 1;
-                                batch.push(op.clone());
+                                batch.push(*op);
                             }
                             Err(reason) => rejected.push(OpRejection {
                                 index: index as u32,
