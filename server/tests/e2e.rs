@@ -252,6 +252,36 @@ async fn bad_frames_close_only_their_connection() {
         other => panic!("{other:?}"),
     }
 
+    // A frame that breaks the websocket protocol itself (a reserved bit set, no extension
+    // agreed): a MalformedFrame error, not "too large".
+    let mut broken = Client::connect(&url, None).await.unwrap();
+    {
+        use tokio::io::AsyncWriteExt;
+        let tokio_tungstenite::MaybeTlsStream::Plain(tcp) = broken.ws_mut().get_mut() else {
+            panic!("plain TCP");
+        };
+        // FIN + RSV1 + binary, masked, one byte of payload.
+        let mask = [1u8, 2, 3, 4];
+        tcp.write_all(&[
+            0xC2,
+            0x81,
+            mask[0],
+            mask[1],
+            mask[2],
+            mask[3],
+            0x42 ^ mask[0],
+        ])
+        .await
+        .unwrap();
+    }
+    let errors = broken.until_closed().await;
+    assert!(
+        errors
+            .iter()
+            .any(|(c, m)| *c == ErrorCode::MalformedFrame && m.contains("protocol")),
+        "{errors:?}"
+    );
+
     // The well-behaved client carries on.
     match good
         .edit(vec![EditOp::Set {
@@ -269,9 +299,18 @@ async fn bad_frames_close_only_their_connection() {
     }
     let (_, metrics) = http_get(server.addr, "/metrics").await;
     assert!(
-        metrics.contains("brickcast_rejected_frames_total 3"),
+        metrics.contains("brickcast_rejected_frames_total 4"),
         "{metrics}"
     );
+    for line in [
+        "brickcast_read_errors_total{kind=\"too_large\"} 1",
+        "brickcast_read_errors_total{kind=\"protocol\"} 1",
+    ] {
+        assert!(
+            metrics.lines().any(|l| l == line),
+            "{line} missing:\n{metrics}"
+        );
+    }
     server.shutdown().await.unwrap();
 }
 

@@ -163,6 +163,11 @@ impl Client {
         }
     }
 
+    /// The websocket underneath, for tests that write bytes no well-behaved client would.
+    pub fn ws_mut(&mut self) -> &mut WebSocketStream<MaybeTlsStream<TcpStream>> {
+        &mut self.ws
+    }
+
     pub async fn send(&mut self, msg: &ClientMsg) {
         self.send_raw(encode_client(msg).unwrap()).await;
     }
