@@ -11,6 +11,7 @@
 //! commit → ack to the editor → one encoded delta → every session's outbox → websocket.
 
 pub mod auth;
+pub mod conns;
 pub mod import;
 pub mod incoming;
 pub mod metrics;
@@ -30,13 +31,14 @@ use std::time::Duration;
 
 use anyhow::Context;
 use axum::Router;
-use axum::extract::{Path, State, WebSocketUpgrade};
+use axum::extract::{ConnectInfo, Path, State, WebSocketUpgrade};
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use tokio::sync::watch;
 
 use crate::auth::Auth;
+use crate::conns::{ConnectionLimits, Connections};
 use crate::metrics::Metrics;
 use crate::scene::{Command, OwnerConfig, SceneHandle};
 use crate::store::Store;
@@ -56,6 +58,10 @@ pub struct ServerConfig {
     pub owner: OwnerConfig,
     /// Size of the demo scene created when the store holds no scene.
     pub demo_size: [u32; 3],
+    /// Websocket connections taken, in all and per address.
+    pub connections: ConnectionLimits,
+    /// A client that takes no data for this long while the server has data for it is cut off.
+    pub stall_timeout: Duration,
 }
 
 impl ServerConfig {
@@ -66,6 +72,8 @@ impl ServerConfig {
             auth: Auth::open(),
             owner: OwnerConfig::default(),
             demo_size: DEMO_SIZE,
+            connections: ConnectionLimits::default(),
+            stall_timeout: Duration::from_secs(30),
         }
     }
 }
@@ -85,6 +93,11 @@ pub struct App {
     pub shutdown: watch::Receiver<bool>,
     next_id: AtomicU64,
     sessions: watch::Sender<u64>,
+    /// Bytes queued to every session together (see `scene::Outbox`).
+    pub queued_total: Arc<std::sync::atomic::AtomicUsize>,
+    pub stall_timeout: Duration,
+    connections: Arc<Connections>,
+    connection_limits: ConnectionLimits,
 }
 
 /// Decrements the live-session count when a session ends, so shutdown can wait for sockets to
@@ -248,6 +261,10 @@ impl Server {
             shutdown: shutdown_rx,
             next_id: AtomicU64::new(1),
             sessions: watch::channel(0).0,
+            queued_total: Arc::default(),
+            stall_timeout: config.stall_timeout,
+            connections: Arc::default(),
+            connection_limits: config.connections,
         });
         for (name, scene) in loaded {
             app.add_scene(name, scene)?;
@@ -286,13 +303,16 @@ impl Server {
                 tracing::warn!(error = %e, "cannot set TCP_NODELAY on an accepted socket");
             }
         });
-        axum::serve(listener, router)
-            .with_graceful_shutdown(async move {
-                signal.await;
-                let _ = stop.send(true);
-            })
-            .await
-            .context("serving HTTP")?;
+        axum::serve(
+            listener,
+            router.into_make_service_with_connect_info::<SocketAddr>(),
+        )
+        .with_graceful_shutdown(async move {
+            signal.await;
+            let _ = stop.send(true);
+        })
+        .await
+        .context("serving HTTP")?;
         tracing::info!("shutting down: flushing scenes");
         // No scene may be added after the owners were told to stop.
         let _ = spool.await;
@@ -366,6 +386,7 @@ async fn scene_list(State(app): State<Arc<App>>) -> Response {
 async fn websocket(
     Path(name): Path<String>,
     State(app): State<Arc<App>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
     ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
 ) -> Response {
     // Unknown scenes are a 404 whether or not the request is a websocket upgrade.
@@ -379,10 +400,21 @@ async fn websocket(
     if *app.shutdown.borrow() {
         return (StatusCode::SERVICE_UNAVAILABLE, "shutting down\n").into_response();
     }
+    let admitted = match app.connections.admit(peer.ip(), &app.connection_limits) {
+        Ok(admitted) => admitted,
+        Err(refusal) => {
+            Metrics::add(&app.metrics.refused_connections, 1);
+            tracing::debug!(%peer, %refusal, "refused a connection");
+            return (StatusCode::SERVICE_UNAVAILABLE, format!("{refusal}\n")).into_response();
+        }
+    };
     // Accept frames a little over the limit so the session can answer them with a clean
     // FrameTooLarge error instead of a dropped connection.
     let max = scene.limits.max_frame_bytes as usize + (64 << 10);
     ws.max_message_size(max)
         .max_frame_size(max)
-        .on_upgrade(move |socket| session::run(socket, scene, app))
+        .on_upgrade(move |socket| async move {
+            session::run(socket, scene, app).await;
+            drop(admitted);
+        })
 }

@@ -135,6 +135,12 @@ pub struct Metrics {
     pub bytes_in: AtomicU64,
     pub resyncs: AtomicU64,
     pub rejected_frames: AtomicU64,
+    /// Edit messages refused whole for asking more work than one message may.
+    pub edits_over_budget: AtomicU64,
+    /// Sessions cut off because their client stopped reading.
+    pub stalled_disconnects: AtomicU64,
+    /// Connections refused by the connection limits (total or per address).
+    pub refused_connections: AtomicU64,
     pub commits: AtomicU64,
     pub snapshots: AtomicU64,
     commit_buckets: [AtomicU64; COMMIT_BUCKETS_US.len()],
@@ -261,6 +267,24 @@ impl Metrics {
             "counter",
             "Malformed or oversized frames (the connection is closed).",
             get(&self.rejected_frames),
+        );
+        metric(
+            "edits_over_budget_total",
+            "counter",
+            "Edit messages refused whole for asking more work than one message may.",
+            get(&self.edits_over_budget),
+        );
+        metric(
+            "stalled_disconnects_total",
+            "counter",
+            "Sessions cut off because their client stopped reading.",
+            get(&self.stalled_disconnects),
+        );
+        metric(
+            "refused_connections_total",
+            "counter",
+            "Websocket connections refused by the connection limits.",
+            get(&self.refused_connections),
         );
         metric(
             "snapshots_total",

@@ -30,29 +30,33 @@ const MAX_WRITE_BATCH: usize = 1 << 20;
 /// How long a new connection may take to say Hello.
 const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 
-/// Ops per second per session, refilled continuously, with one second of burst.
-struct RateLimit {
+/// A token bucket: `rate` units per second, refilled continuously, holding at most `burst`.
+/// Sessions keep one per thing a client can ask too much of (ops, edit work, resumes).
+struct Bucket {
     rate: f64,
+    burst: f64,
     tokens: f64,
     at: Instant,
 }
 
-impl RateLimit {
-    fn new(per_second: u32) -> RateLimit {
-        RateLimit {
-            rate: f64::from(per_second),
-            tokens: f64::from(per_second),
+impl Bucket {
+    fn new(rate: f64, burst: f64) -> Bucket {
+        Bucket {
+            rate,
+            burst,
+            tokens: burst,
             at: Instant::now(),
         }
     }
 
-    fn take(&mut self, n: usize) -> bool {
+    /// Takes `n` units if the bucket holds them.
+    fn take(&mut self, n: f64) -> bool {
         let now = Instant::now();
         self.tokens =
-            (self.tokens + now.duration_since(self.at).as_secs_f64() * self.rate).min(self.rate);
+            (self.tokens + now.duration_since(self.at).as_secs_f64() * self.rate).min(self.burst);
         self.at = now;
-        if self.tokens >= n as f64 {
-            self.tokens -= n as f64;
+        if self.tokens >= n {
+            self.tokens -= n;
             true
         } else {
             false
@@ -60,27 +64,42 @@ impl RateLimit {
     }
 }
 
+/// Camera updates a session forwards to the owner, at most: the owner re-sorts the client's
+/// pending sync on each, so a flood of them is cut to the latest one per interval.
+const CAMERA_INTERVAL: Duration = Duration::from_millis(50);
+/// Resumes re-stream what changed (up to the whole scene): each costs one token, refilled every
+/// this long, with two of burst.
+const RESUME_INTERVAL: Duration = Duration::from_secs(5);
+
 /// Serves one connection to `scene` until either side closes or the server shuts down.
 pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
     let id = app.next_session_id();
     app.metrics.connected_clients.fetch_add(1, Relaxed);
     let _guard = app.track_session();
     let (sink, mut stream) = socket.split();
-    let (out, outbox) = Outbox::new();
-    let writer = tokio::spawn(write_loop(sink, outbox, app.metrics.clone()));
+    let (out, outbox) = Outbox::new(app.queued_total.clone());
+    let writer = tokio::spawn(write_loop(
+        sink,
+        outbox,
+        app.metrics.clone(),
+        app.stall_timeout,
+    ));
 
     match handshake(&mut stream, &scene, &app, &out).await {
         Some((role, resume_from)) => {
-            if scene
+            let (joined, welcomed) = tokio::sync::oneshot::channel();
+            let sent = scene
                 .send(Command::Join {
                     session: id,
                     out: out.clone(),
                     role,
                     resume_from,
+                    joined,
                 })
-                .await
-                .is_ok()
-            {
+                .await;
+            // Nothing goes out before the Welcome: the reader starts (and can queue pongs,
+            // errors and refusals) only once the owner has queued it.
+            if sent.is_ok() && welcomed.await.is_ok() {
                 read_loop(&mut stream, &scene, &app, &out, id, role).await;
                 let _ = scene.send(Command::Leave { session: id }).await;
             } else {
@@ -203,7 +222,20 @@ async fn read_loop(
     role: Role,
 ) {
     let limits: &Limits = &scene.limits;
-    let mut rate = RateLimit::new(limits.max_edits_per_second);
+    let budget = &scene.budget;
+    let mut ops_rate = Bucket::new(
+        f64::from(limits.max_edits_per_second),
+        f64::from(limits.max_edits_per_second),
+    );
+    // One second of burst, and always room for one message of the largest allowed size.
+    let mut work_rate = Bucket::new(
+        budget.max_work_per_second as f64,
+        budget.max_work_per_second.max(budget.max_work_per_edit) as f64,
+    );
+    let mut resumes = Bucket::new(1.0 / RESUME_INTERVAL.as_secs_f64(), 2.0);
+    // The latest camera not yet forwarded, and when the next may go.
+    let mut camera: Option<[f32; 3]> = None;
+    let mut camera_at = tokio::time::Instant::now();
     let mut shutdown = app.shutdown.clone();
     let reject = |code: ErrorCode, text: String| {
         app.metrics.rejected_frames.fetch_add(1, Relaxed);
@@ -214,8 +246,16 @@ async fn read_loop(
         let next = tokio::select! {
             next = stream.next() => next,
             _ = shutdown.changed() => return,
-            // The owner (or a reply that could not be encoded) ended the session.
+            // The owner, the writer, or a reply that could not be encoded ended the session.
             _ = out.closed() => return,
+            _ = tokio::time::sleep_until(camera_at), if camera.is_some() => {
+                if let Some(eye) = camera.take() {
+                    // Streaming order is a hint: drop it rather than wait when the owner is busy.
+                    let _ = scene.try_send(Command::Camera { session: id, eye });
+                    camera_at = tokio::time::Instant::now() + CAMERA_INTERVAL;
+                }
+                continue;
+            }
         };
         let bytes = match next {
             Some(Ok(Message::Binary(bytes))) => bytes,
@@ -235,7 +275,7 @@ async fn read_loop(
             }
         };
         app.metrics.bytes_in.fetch_add(bytes.len() as u64, Relaxed);
-        // Deltas to a slow reader are bounded by resyncs, but replies (acks, pongs) to a client
+        // Deltas to a slow reader are bounded by resyncs, but replies (acks, errors) to a client
         // that keeps writing without reading are not: cut such a client off.
         if out.queued() > 2 * scene.max_queue_bytes {
             return reject(
@@ -256,9 +296,18 @@ async fn read_loop(
                 return reject(ErrorCode::MalformedFrame, "Hello sent twice".into());
             }
             ClientMsg::Edit { client_seq, ops } => {
+                // Charged by the work the ops ask for (a sphere of radius 64 is two million
+                // voxels), not only by how many there are.
+                let work: u64 = ops
+                    .iter()
+                    .map(|op| op.work(scene.size))
+                    .fold(0, u64::saturating_add);
                 let refusal = if role != Role::Editor {
                     Some(Rejection::NotAllowed)
-                } else if !rate.take(ops.len()) {
+                } else if work > budget.max_work_per_edit {
+                    Metrics::add(&app.metrics.edits_over_budget, 1);
+                    Some(Rejection::TooLarge)
+                } else if !ops_rate.take(ops.len() as f64) || !work_rate.take(work as f64) {
                     Some(Rejection::RateLimited)
                 } else {
                     None
@@ -295,10 +344,19 @@ async fn read_loop(
                 }
             }
             ClientMsg::Camera { eye, .. } => {
-                // Streaming order is a hint: drop it rather than wait when the owner is busy.
-                let _ = scene.try_send(Command::Camera { session: id, eye });
+                // Latest wins: forwarded at most once per interval.
+                camera = Some(eye);
             }
             ClientMsg::Resume { since } => {
+                if !resumes.take(1.0) {
+                    return reject(
+                        ErrorCode::RateLimited,
+                        format!(
+                            "too many Resume requests: each re-sends what changed, at most one per {} s",
+                            RESUME_INTERVAL.as_secs()
+                        ),
+                    );
+                }
                 if scene
                     .send(Command::Resume { session: id, since })
                     .await
@@ -307,46 +365,64 @@ async fn read_loop(
                     return;
                 }
             }
-            ClientMsg::Ping { nonce } => {
-                out.send(&ServerMsg::Pong { nonce }, &app.metrics);
-            }
+            ClientMsg::Ping { nonce } => out.pong(nonce),
         }
     }
 }
 
+/// Sends the queue's frames until every [`Outbox`] is gone, then a close frame. A peer that
+/// takes nothing for `stall` (its socket stays full) is cut off: its queue is dropped and the
+/// reader told to stop, so a client that stops reading holds no memory past the deadline.
 async fn write_loop(
     mut sink: futures_util::stream::SplitSink<WebSocket, Message>,
-    outbox: OutboxReceiver,
+    mut outbox: OutboxReceiver,
     metrics: Arc<Metrics>,
+    stall: Duration,
 ) {
-    let OutboxReceiver { mut rx, queued } = outbox;
-    while let Some(frame) = rx.recv().await {
+    while let Some(frame) = outbox.next().await {
         let started = Instant::now();
         // Everything already queued goes out with one flush: an ack and the delta of the same
         // turn, or a burst of deltas, leave in one write instead of one small segment each.
         // Separate small writes also meet Nagle's algorithm, which holds a segment back until the
         // previous one is acknowledged, and a client's delayed ACK can put that off until it
         // next sends: the ack of one edit arrived only after the client's following edit.
-        let mut len = frame.len();
-        let mut sent = sink.feed(Message::Binary(frame)).await;
-        while sent.is_ok() && len < MAX_WRITE_BATCH {
-            let Ok(frame) = rx.try_recv() else { break };
-            len += frame.len();
-            sent = sink.feed(Message::Binary(frame)).await;
-        }
-        if sent.is_ok() {
-            sent = sink.flush().await;
-        }
-        metrics.session_time(SessionPhase::Send, started.elapsed());
-        queued.fetch_sub(len, Relaxed);
-        if sent.is_err() {
-            // The peer is gone; keep draining so the owner's byte count stays true.
-            while let Some(frame) = rx.recv().await {
-                queued.fetch_sub(frame.len(), Relaxed);
+        let write = async {
+            let mut len = frame.len();
+            sink.feed(Message::Binary(frame)).await?;
+            while len < MAX_WRITE_BATCH {
+                let Some(frame) = outbox.try_take() else {
+                    break;
+                };
+                len += frame.len();
+                sink.feed(Message::Binary(frame)).await?;
             }
-            return;
+            sink.flush().await?;
+            Ok::<usize, axum::Error>(len)
+        };
+        let sent = tokio::time::timeout(stall, write).await;
+        metrics.session_time(SessionPhase::Send, started.elapsed());
+        match sent {
+            Ok(Ok(len)) => {
+                metrics.bytes_out.fetch_add(len as u64, Relaxed);
+            }
+            Ok(Err(_)) => {
+                // The peer is gone.
+                outbox.abort();
+                return;
+            }
+            Err(_) => {
+                tracing::info!(stalled = ?stall, "disconnecting a client that stopped reading");
+                Metrics::add(&metrics.stalled_disconnects, 1);
+                outbox.abort();
+                // Its socket is full, so a close frame may not get through; try briefly.
+                let close = Message::Close(Some(CloseFrame {
+                    code: axum::extract::ws::close_code::POLICY,
+                    reason: "stalled: the client stopped reading".into(),
+                }));
+                let _ = tokio::time::timeout(Duration::from_secs(1), sink.send(close)).await;
+                return;
+            }
         }
-        metrics.bytes_out.fetch_add(len as u64, Relaxed);
     }
     let _ = sink
         .send(Message::Close(Some(CloseFrame {

@@ -132,6 +132,58 @@ fn per_axis<A: Copy, B: Copy>(a: [A; 3], b: [B; 3], f: impl Fn(A, B) -> bool) ->
     a.into_iter().zip(b).all(|(a, b)| f(a, b))
 }
 
+impl EditOp {
+    /// An upper bound on the work applying the op costs the server, in voxels visited, for a
+    /// scene of `scene_size`: 1 for a single voxel, the bounding box (clipped to the scene) for
+    /// a brush, and for a ray the voxels it may cross plus its brush. Brushes rewrite whole
+    /// bricks, so the box is what they cost whether or not a voxel changes.
+    ///
+    /// The server charges edits by this rather than by op count (one sphere of radius 64 costs
+    /// two million single-voxel edits), and sizes snapshots by it. Never fails and never
+    /// overflows, whatever the op holds; an op that will be rejected still has a cost.
+    pub fn work(&self, scene_size: [u32; 3]) -> u64 {
+        let sphere = |centre: [f32; 3], radius: f32| -> u64 {
+            if !radius.is_finite() || radius <= 0.0 {
+                return 1;
+            }
+            (0..3)
+                .map(|i| {
+                    let c = if centre[i].is_finite() {
+                        centre[i]
+                    } else {
+                        0.0
+                    };
+                    let lo = (c - radius).floor().clamp(0.0, scene_size[i] as f32);
+                    let hi = (c + radius).ceil().clamp(0.0, scene_size[i] as f32);
+                    (hi - lo).max(1.0) as u64
+                })
+                .product()
+        };
+        match *self {
+            EditOp::Set { .. } | EditOp::Clear { .. } | EditOp::Paint { .. } => 1,
+            EditOp::Sphere { centre, radius, .. } => sphere(centre, radius),
+            EditOp::Box { min, max, .. } => (0..3)
+                .map(|i| {
+                    let hi = max[i].min(scene_size[i].saturating_sub(1));
+                    u64::from(hi.saturating_sub(min[i])) + 1
+                })
+                .product(),
+            EditOp::Ray { action, .. } => {
+                // A ray crosses at most the sum of the scene's sides in voxels.
+                let walk: u64 = scene_size.iter().map(|&s| u64::from(s)).sum();
+                let brush = match action {
+                    // Centred on a voxel of the scene: the box of the brush at the scene's middle.
+                    RayAction::Sphere { radius, .. } => {
+                        sphere(scene_size.map(|s| s as f32 * 0.5), radius)
+                    }
+                    _ => 1,
+                };
+                walk + brush
+            }
+        }
+    }
+}
+
 fn check_radius(radius: f32, limits: &Limits) -> Result<(), Rejection> {
     if !radius.is_finite() || radius <= 0.0 {
         Err(Rejection::InvalidNumber)

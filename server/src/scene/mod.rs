@@ -49,6 +49,10 @@ pub type Clock = Arc<dyn Fn() -> Instant + Send + Sync>;
 /// Most ops applied in one turn before committing: bounds the latency a huge backlog adds to the
 /// first edit in it.
 const MAX_OPS_PER_TURN: usize = 65_536;
+/// Most edit work (voxels visited, `EditOp::work`) collected into one turn: big brushes from
+/// several clients are spread over turns, each ending in a commit, its acks and its delta, so
+/// no turn holds the others' edits for long (about 90 ms of brushing on the dev VM).
+const MAX_WORK_PER_TURN: u64 = 1 << 25;
 
 /// What sessions ask of the owner.
 pub enum Command {
@@ -57,6 +61,8 @@ pub enum Command {
         out: Outbox,
         role: Role,
         resume_from: Option<u64>,
+        /// Fired once the Welcome is queued: the session sends nothing before it.
+        joined: oneshot::Sender<()>,
     },
     Leave {
         session: SessionId,
@@ -92,12 +98,42 @@ pub struct SceneInfo {
     pub gpu_bytes: AtomicU64,
 }
 
+/// What one connection may ask of the owner in edit work (voxels visited, `EditOp::work`):
+/// the owner is one thread per scene, so a message is charged by what it costs, not by how many
+/// ops it holds.
+#[derive(Clone, Debug)]
+pub struct EditBudget {
+    /// A message asking for more is refused whole (`TooLarge` on every op). 2^25 voxels: two
+    /// boxes of 256³, about 90 ms of brushing on the dev VM.
+    pub max_work_per_edit: u64,
+    /// Work per second one connection may ask for, refilled continuously with one second of
+    /// burst (and always room for one message of `max_work_per_edit`); beyond it, `RateLimited`.
+    pub max_work_per_second: u64,
+}
+
+impl Default for EditBudget {
+    fn default() -> Self {
+        EditBudget {
+            max_work_per_edit: 1 << 25,
+            max_work_per_second: 1 << 26,
+        }
+    }
+}
+
 /// Knobs of a scene owner.
 #[derive(Clone, Debug)]
 pub struct OwnerConfig {
     pub limits: Limits,
+    pub budget: EditBudget,
     /// A session whose queue holds more than this many bytes is resynced instead of sent deltas.
     pub max_queue_bytes: usize,
+    /// When every session's queue together holds more than this, sessions with more than a
+    /// little queued stop getting deltas (and resync later) and syncs pause: a thousand slow
+    /// clients cannot hold a thousand times `max_queue_bytes`.
+    pub max_queued_total: usize,
+    /// Sessions whose sync (or resync) advances in one turn, in turn: a thousand clients joining
+    /// at once cost the owner a bounded amount per turn, and edits keep flowing.
+    pub max_syncs_per_turn: usize,
     /// Snapshot once replaying the log would cost about this many single-voxel ops (about a
     /// second of recovery: 7.2 M logged voxel ops replayed in 2.0 s on the dev VM). A
     /// snapshot rewrites every brick touched since the last one and stalls the owner meanwhile
@@ -114,7 +150,10 @@ impl Default for OwnerConfig {
     fn default() -> Self {
         OwnerConfig {
             limits: Limits::default(),
+            budget: EditBudget::default(),
             max_queue_bytes: 32 << 20,
+            max_queued_total: 1 << 30,
+            max_syncs_per_turn: 8,
             snapshot_replay_budget: 4_000_000,
             snapshot_every: Duration::from_secs(60),
         }
@@ -127,6 +166,7 @@ pub struct SceneHandle {
     pub name: String,
     pub size: [u32; 3],
     pub limits: Limits,
+    pub budget: EditBudget,
     /// Queue bound of each session (see [`OwnerConfig::max_queue_bytes`]).
     pub max_queue_bytes: usize,
     pub info: Arc<SceneInfo>,
@@ -176,6 +216,7 @@ pub fn spawn(
 ) -> std::io::Result<(SceneHandle, std::thread::JoinHandle<()>)> {
     let (tx, rx) = mpsc::channel(1024);
     let limits = config.limits.clone();
+    let budget = config.budget.clone();
     let max_queue_bytes = config.max_queue_bytes;
     let mut owner = Owner::new(
         name.clone(),
@@ -189,6 +230,7 @@ pub fn spawn(
         name: name.clone(),
         size: owner.map().size(),
         limits,
+        budget,
         max_queue_bytes,
         info: owner.info(),
         tx,
@@ -213,6 +255,7 @@ fn run(
     runtime: &tokio::runtime::Handle,
 ) -> Result<(), crate::store::StoreError> {
     let metrics = owner.metrics.clone();
+    let size = owner.map().size();
     loop {
         // Wait briefly when a sync is waiting for a queue to drain, long when idle.
         let wait = if owner.has_blocked_work() {
@@ -231,11 +274,16 @@ fn run(
             }
         };
         let mut commands: Vec<Command> = first.into_iter().collect();
-        let mut ops = commands.iter().map(command_ops).sum::<usize>();
-        while ops < MAX_OPS_PER_TURN {
+        let (mut ops, mut work) = commands
+            .iter()
+            .map(|c| command_cost(c, size))
+            .fold((0, 0), |(o, w), (co, cw)| (o + co, w + cw));
+        while ops < MAX_OPS_PER_TURN && work < MAX_WORK_PER_TURN {
             match rx.try_recv() {
                 Ok(cmd) => {
-                    ops += command_ops(&cmd);
+                    let (co, cw) = command_cost(&cmd, size);
+                    ops += co;
+                    work = work.saturating_add(cw);
                     commands.push(cmd);
                 }
                 Err(_) => break,
@@ -253,9 +301,15 @@ fn drain(rx: &mut mpsc::Receiver<Command>) -> Vec<Command> {
     std::iter::from_fn(|| rx.try_recv().ok()).collect()
 }
 
-fn command_ops(cmd: &Command) -> usize {
+/// Ops and edit work a command brings into a turn.
+fn command_cost(cmd: &Command, size: [u32; 3]) -> (usize, u64) {
     match cmd {
-        Command::Edit { ops, .. } => ops.len().max(1),
-        _ => 1,
+        Command::Edit { ops, .. } => (
+            ops.len().max(1),
+            ops.iter()
+                .map(|op| op.work(size))
+                .fold(0, u64::saturating_add),
+        ),
+        _ => (1, 0),
     }
 }

@@ -3,14 +3,21 @@
 //!
 //! Why a queue of its own rather than a bounded channel: the owner must never wait on a slow
 //! client, so the queue is unbounded and its bytes are counted instead; the owner reads the count
-//! to decide when a client stops getting deltas and is resynced later.
+//! to decide when a client stops getting deltas and is resynced later. The count is what a
+//! queued frame really holds (its bytes plus [`FRAME_OVERHEAD`] for the buffer and the queue
+//! slot), and every queue also adds to one server-wide total, so the owner can stop feeding
+//! queues when the server as a whole holds too much (see `OwnerConfig::max_queued_total`).
+//!
+//! Pongs are coalesced: while one is waiting to be written, a later Ping only updates the nonce
+//! it will carry, so a client that floods Pings and never reads costs one queued pong, not one
+//! per Ping.
 //!
 //! Every message goes in through [`Outbox::send`], which is where a message that cannot be
 //! encoded is noticed: it is logged, counted, and the session is closed with an `Internal`
 //! error, so the client learns that something is wrong instead of waiting for a reply forever.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering::Relaxed};
 
 use brickcast_protocol::wire::{ErrorCode, ServerMsg, encode_server};
 use bytes::Bytes;
@@ -18,55 +25,147 @@ use tokio::sync::{Notify, mpsc};
 
 use crate::metrics::Metrics;
 
+/// What a queued frame costs besides its bytes: the `Bytes` header and allocation, and the
+/// channel's slot (measured: a queued 3-byte pong cost about 90 bytes of heap).
+pub const FRAME_OVERHEAD: usize = 96;
+
+/// One item in a session's queue.
+pub enum Outgoing {
+    /// An encoded frame.
+    Frame(Bytes),
+    /// A pong carrying the latest nonce at the time it is written.
+    Pong,
+}
+
 /// The owner's and the session's handle on one session's outgoing queue.
 #[derive(Clone)]
 pub struct Outbox {
-    tx: mpsc::UnboundedSender<Bytes>,
-    queued: Arc<AtomicUsize>,
-    closing: Arc<Closing>,
+    tx: mpsc::UnboundedSender<Outgoing>,
+    shared: Arc<Shared>,
 }
 
-/// Set once somebody decided the session must end (an unencodable reply, a peer that broke the
-/// protocol); the session's reader waits on it.
-#[derive(Default)]
-struct Closing {
+/// What the queue's two ends share.
+struct Shared {
+    /// Bytes this queue holds (frames plus overhead).
+    queued: AtomicUsize,
+    /// Bytes every queue of the server holds.
+    total: Arc<AtomicUsize>,
+    /// Set once somebody decided the session must end (an unencodable reply, a peer that broke
+    /// the protocol, a writer that stalled); the session's reader waits on it.
     closed: AtomicBool,
     notify: Notify,
+    pong_queued: AtomicBool,
+    pong_nonce: AtomicU64,
 }
 
-/// The writer's end: frames in queue order and the shared byte count it decrements.
+impl Shared {
+    fn add(&self, n: usize) {
+        self.queued.fetch_add(n, Relaxed);
+        self.total.fetch_add(n, Relaxed);
+    }
+
+    fn sub(&self, n: usize) {
+        self.queued.fetch_sub(n, Relaxed);
+        self.total.fetch_sub(n, Relaxed);
+    }
+}
+
+/// The writer's end: items in queue order.
 pub struct OutboxReceiver {
-    pub rx: mpsc::UnboundedReceiver<Bytes>,
-    pub queued: Arc<AtomicUsize>,
+    rx: mpsc::UnboundedReceiver<Outgoing>,
+    shared: Arc<Shared>,
 }
 
 impl OutboxReceiver {
-    /// Takes one queued frame without waiting, keeping the byte count true.
+    /// Waits for the next frame (a pong is encoded here, with the latest nonce); `None` once
+    /// every [`Outbox`] is gone and the queue is empty.
+    pub async fn next(&mut self) -> Option<Bytes> {
+        let item = self.rx.recv().await?;
+        Some(self.take(item))
+    }
+
+    /// The next frame without waiting.
     pub fn try_take(&mut self) -> Option<Bytes> {
-        let frame = self.rx.try_recv().ok()?;
-        self.queued.fetch_sub(frame.len(), Relaxed);
-        Some(frame)
+        let item = self.rx.try_recv().ok()?;
+        Some(self.take(item))
+    }
+
+    fn take(&self, item: Outgoing) -> Bytes {
+        match item {
+            Outgoing::Frame(frame) => {
+                self.shared.sub(frame.len() + FRAME_OVERHEAD);
+                frame
+            }
+            Outgoing::Pong => {
+                self.shared.sub(FRAME_OVERHEAD);
+                // Cleared before reading the nonce: a Ping arriving now queues another pong.
+                self.shared.pong_queued.store(false, Relaxed);
+                let nonce = self.shared.pong_nonce.load(Relaxed);
+                Bytes::from(encode_server(&ServerMsg::Pong { nonce }).unwrap_or_default())
+            }
+        }
+    }
+
+    /// Ends the session from the writer's side (its peer stopped taking data): later pushes
+    /// are refused, what is queued is dropped and uncounted, and the reader is told to stop.
+    pub fn abort(&mut self) {
+        self.rx.close();
+        while self.try_take().is_some() {}
+        self.shared.closed.store(true, Relaxed);
+        self.shared.notify.notify_waiters();
+    }
+}
+
+impl Drop for OutboxReceiver {
+    /// Whatever is still queued is dropped with the queue: it no longer counts.
+    fn drop(&mut self) {
+        self.rx.close();
+        while self.try_take().is_some() {}
     }
 }
 
 impl Outbox {
-    pub fn new() -> (Outbox, OutboxReceiver) {
+    /// A queue whose bytes also count towards `total`, the server-wide figure.
+    pub fn new(total: Arc<AtomicUsize>) -> (Outbox, OutboxReceiver) {
         let (tx, rx) = mpsc::unbounded_channel();
-        let queued = Arc::new(AtomicUsize::new(0));
+        let shared = Arc::new(Shared {
+            queued: AtomicUsize::new(0),
+            total,
+            closed: AtomicBool::new(false),
+            notify: Notify::new(),
+            pong_queued: AtomicBool::new(false),
+            pong_nonce: AtomicU64::new(0),
+        });
         (
             Outbox {
                 tx,
-                queued: queued.clone(),
-                closing: Arc::default(),
+                shared: shared.clone(),
             },
-            OutboxReceiver { rx, queued },
+            OutboxReceiver { rx, shared },
         )
     }
 
-    /// Queues an encoded frame; false when the session is gone.
+    /// Queues an encoded frame; false when the session is gone (then nothing is counted).
     pub fn push(&self, frame: Bytes) -> bool {
-        self.queued.fetch_add(frame.len(), Relaxed);
-        self.tx.send(frame).is_ok()
+        let cost = frame.len() + FRAME_OVERHEAD;
+        self.shared.add(cost);
+        if self.tx.send(Outgoing::Frame(frame)).is_err() {
+            self.shared.sub(cost);
+            return false;
+        }
+        true
+    }
+
+    /// Answers a Ping: queues a pong unless one is already waiting, which then carries this
+    /// nonce instead.
+    pub fn pong(&self, nonce: u64) {
+        self.shared.pong_nonce.store(nonce, Relaxed);
+        if !self.shared.pong_queued.swap(true, Relaxed) {
+            self.shared.add(FRAME_OVERHEAD);
+            if self.tx.send(Outgoing::Pong).is_err() {
+                self.shared.sub(FRAME_OVERHEAD);
+            }
+        }
     }
 
     /// Encodes and queues `msg`. A message that cannot be encoded is a server bug that would
@@ -93,24 +192,24 @@ impl Outbox {
 
     /// Queues an `Error` frame and asks the session to end once it is written.
     pub fn close(&self, code: ErrorCode, text: impl Into<String>) {
-        if !self.closing.closed.swap(true, Relaxed) {
+        if !self.shared.closed.swap(true, Relaxed) {
             // `ServerMsg::error` cuts the text to the bound, so this always encodes.
             if let Ok(frame) = encode_server(&ServerMsg::error(code, text)) {
                 self.push(Bytes::from(frame));
             }
         }
-        self.closing.notify.notify_waiters();
+        self.shared.notify.notify_waiters();
     }
 
-    /// Whether [`Outbox::close`] was called.
+    /// Whether [`Outbox::close`] (or the writer's abort) happened.
     pub fn is_closed(&self) -> bool {
-        self.closing.closed.load(Relaxed)
+        self.shared.closed.load(Relaxed)
     }
 
-    /// Resolves once [`Outbox::close`] has been called (at once if it already was).
+    /// Resolves once the session has been closed (at once if it already was).
     pub async fn closed(&self) {
         loop {
-            let notified = self.closing.notify.notified();
+            let notified = self.shared.notify.notified();
             if self.is_closed() {
                 return;
             }
@@ -118,8 +217,14 @@ impl Outbox {
         }
     }
 
+    /// Bytes this session's queue holds.
     pub fn queued(&self) -> usize {
-        self.queued.load(Relaxed)
+        self.shared.queued.load(Relaxed)
+    }
+
+    /// Bytes every session's queue holds together.
+    pub fn total_queued(&self) -> usize {
+        self.shared.total.load(Relaxed)
     }
 }
 
@@ -128,11 +233,17 @@ mod tests {
     use super::*;
     use brickcast_protocol::wire::{Limits, decode_server};
 
+    fn outbox() -> (Outbox, OutboxReceiver, Arc<AtomicUsize>) {
+        let total = Arc::new(AtomicUsize::new(0));
+        let (out, rx) = Outbox::new(total.clone());
+        (out, rx, total)
+    }
+
     #[test]
     fn an_unencodable_message_is_counted_and_closes_the_session() {
         let metrics = Metrics::default();
-        let (out, mut rx) = Outbox::new();
-        assert!(out.send(&ServerMsg::Pong { nonce: 7 }, &metrics));
+        let (out, mut rx, total) = outbox();
+        assert!(out.send(&ServerMsg::Resync { since: 7 }, &metrics));
         // Built by hand past the bound that `ServerMsg::error` would have enforced.
         let too_long = ServerMsg::Error {
             code: ErrorCode::Internal,
@@ -143,12 +254,12 @@ mod tests {
         let frames: Vec<ServerMsg> = std::iter::from_fn(|| rx.try_take())
             .map(|f| decode_server(&f, &Limits::hard_caps()).unwrap())
             .collect();
-        assert_eq!(frames.len(), 2, "the pong, then one error saying why");
+        assert_eq!(frames.len(), 2, "the resync, then one error saying why");
         assert!(matches!(
             &frames[1],
             ServerMsg::Error { code: ErrorCode::Internal, message } if message.contains("Error message")
         ));
-        assert_eq!(out.queued(), 0);
+        assert_eq!((out.queued(), total.load(Relaxed)), (0, 0));
         assert!(
             metrics
                 .render()
@@ -159,9 +270,46 @@ mod tests {
         assert!(rx.try_take().is_none());
     }
 
+    #[test]
+    fn pongs_are_coalesced_and_counted_with_their_overhead() {
+        let (out, mut rx, total) = outbox();
+        for nonce in 1..=10_000 {
+            out.pong(nonce);
+        }
+        assert_eq!(
+            out.queued(),
+            FRAME_OVERHEAD,
+            "one pong waits, whatever the pings"
+        );
+        assert!(out.push(Bytes::from_static(b"abc")));
+        assert_eq!(total.load(Relaxed), 2 * FRAME_OVERHEAD + 3);
+        let pong = decode_server(&rx.try_take().unwrap(), &Limits::hard_caps()).unwrap();
+        assert_eq!(pong, ServerMsg::Pong { nonce: 10_000 }, "the latest nonce");
+        out.pong(10_001);
+        assert_eq!(rx.try_take().unwrap().as_ref(), b"abc");
+        assert!(matches!(
+            decode_server(&rx.try_take().unwrap(), &Limits::hard_caps()).unwrap(),
+            ServerMsg::Pong { nonce: 10_001 }
+        ));
+        assert_eq!(total.load(Relaxed), 0);
+    }
+
+    #[tokio::test]
+    async fn an_aborted_queue_refuses_and_uncounts_everything() {
+        let (out, mut rx, total) = outbox();
+        out.push(Bytes::from_static(b"queued"));
+        rx.abort();
+        assert!(out.is_closed());
+        assert!(!out.push(Bytes::from_static(b"later")));
+        assert_eq!(total.load(Relaxed), 0);
+        tokio::time::timeout(std::time::Duration::from_secs(5), out.closed())
+            .await
+            .unwrap();
+    }
+
     #[tokio::test]
     async fn closed_resolves_after_close() {
-        let (out, _rx) = Outbox::new();
+        let (out, _rx, _) = outbox();
         let waiter = tokio::spawn({
             let out = out.clone();
             async move { out.closed().await }

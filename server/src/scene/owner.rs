@@ -30,7 +30,7 @@ use super::{Clock, Command, OwnerConfig, SceneInfo, SessionId, Subscriber};
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
 use crate::store::{Loaded, Store, StoreError};
 
-/// Single-voxel ops of replay time per brushed voxel (~10 ns per brushed voxel against ~300 ns
+/// Voxels visited per single-voxel op of replay time (~10 ns per brushed voxel against ~300 ns
 /// per op).
 const VOXELS_PER_OP_COST: u64 = 32;
 /// Single-voxel ops of replay time one log entry costs besides its ops (reading and decoding
@@ -47,6 +47,9 @@ const SNAPSHOT_SPACING: u32 = 10;
 const TOMBSTONE_WINDOW: u64 = 1_000_000;
 /// zstd level for deltas and sync batches: level 1 compresses at ~280 MiB/s raw on one core.
 const ZSTD_LEVEL: i32 = 1;
+/// A queue this short keeps getting deltas even when the server as a whole holds too much:
+/// clients that keep up are not punished for the ones that do not.
+pub(super) const SHORT_QUEUE: usize = 256 << 10;
 
 /// One scene's authoritative map, its subscribers, and the bookkeeping the next commit, delta
 /// and snapshot need.
@@ -64,12 +67,15 @@ pub struct Owner {
     pub(super) encoder: BlobEncoder,
     /// The sequence of the last delta broadcast (its successor's `from_seq`).
     broadcast_seq: u64,
+    /// The last session whose sync got frames: the next turn serves those after it first.
+    pub(super) sync_cursor: SessionId,
     /// Cells touched since the last snapshot.
     unsnapshotted: CellSet,
     log_entries: u64,
-    /// Ops and voxels changed in the log since the snapshot (replay cost).
+    /// Ops in the log since the snapshot, and the work replaying them costs (voxels visited,
+    /// `EditOp::work`): what recovery would spend.
     log_ops: u64,
-    log_voxels: u64,
+    log_work: u64,
     /// How long the last snapshot took (see [`SNAPSHOT_SPACING`]).
     last_snapshot_took: Duration,
     last_snapshot: Instant,
@@ -117,12 +123,13 @@ impl Owner {
             subs: BTreeMap::new(),
             encoder: BlobEncoder::new(ZSTD_LEVEL).map_err(std::io::Error::other)?,
             broadcast_seq: seq,
+            sync_cursor: 0,
             // Bricks the replayed log changed are not in the snapshot yet: the next snapshot
             // must write them before it trims the log that holds them.
             unsnapshotted: CellSet::from_cells(&replay_touched),
             log_entries: replayed,
             log_ops: 0,
-            log_voxels: 0,
+            log_work: 0,
             last_snapshot_took: Duration::ZERO,
             last_snapshot: now,
             clock,
@@ -177,6 +184,7 @@ impl Owner {
         let mut log: Vec<(u64, Vec<EditOp>)> = Vec::new();
         let mut stop = false;
         let mut snapshot_requests = Vec::new();
+        let mut cameras = BTreeMap::new();
         for cmd in commands {
             match cmd {
                 Command::Edit {
@@ -195,14 +203,21 @@ impl Owner {
                     out,
                     role,
                     resume_from,
+                    joined,
                 } => {
                     self.publish(&mut log, &mut acks, clock)?;
-                    self.join(session, out, role, resume_from);
+                    if self.join(session, out, role, resume_from) {
+                        let _ = joined.send(());
+                    }
                 }
                 Command::Leave { session } => {
                     self.subs.remove(&session);
+                    cameras.remove(&session);
                 }
-                Command::Camera { session, eye } => self.camera(session, eye),
+                // Only the latest camera of a session counts: one re-sort per session and turn.
+                Command::Camera { session, eye } => {
+                    cameras.insert(session, eye);
+                }
                 Command::Resume { session, since } => {
                     self.publish(&mut log, &mut acks, clock)?;
                     if let Some(sub) = self.subs.get_mut(&session) {
@@ -215,6 +230,9 @@ impl Owner {
             }
         }
         self.publish(&mut log, &mut acks, clock)?;
+        for (session, eye) in cameras {
+            self.camera(session, eye);
+        }
         for done in snapshot_requests {
             let result = self.maybe_snapshot(true).map_err(|e| e.to_string());
             let _ = done.send(result);
@@ -289,8 +307,10 @@ impl Owner {
             };
         }
         let seq = self.seq + 1;
+        let size = self.map.size();
         let mut applied = Vec::with_capacity(ops.len());
         let mut voxels = 0;
+        let mut work = 0u64;
         for (index, op) in ops.into_iter().enumerate() {
             match resolve(&self.map, &op, &self.config.limits) {
                 Ok(resolved) => {
@@ -298,6 +318,7 @@ impl Owner {
                         self.map.set_sequence(seq);
                     }
                     voxels += apply_resolved(&mut self.map, resolved);
+                    work = work.saturating_add(op.work(size));
                     applied.push(op);
                 }
                 Err(reason) => rejected.push(OpRejection {
@@ -317,7 +338,7 @@ impl Owner {
             // that changed no voxel are still logged so replay matches op for op.
             self.seq = seq;
             self.log_ops += applied.len() as u64;
-            self.log_voxels += voxels;
+            self.log_work = self.log_work.saturating_add(work);
             Metrics::add(&self.metrics.edit_batches, 1);
             log.push((seq, applied));
             Some(seq)
@@ -377,7 +398,12 @@ impl Owner {
             if sub.lagging {
                 continue;
             }
-            if sub.out.queued() + bytes > self.config.max_queue_bytes {
+            // Over its own bound, or the server holds too much and this queue is not short.
+            let queued = sub.out.queued();
+            if queued + bytes > self.config.max_queue_bytes
+                || (queued > SHORT_QUEUE
+                    && sub.out.total_queued() + bytes > self.config.max_queued_total)
+            {
                 sub.lagging = true;
                 Metrics::add(&self.metrics.resyncs, 1);
                 continue;
@@ -414,7 +440,7 @@ impl Owner {
         tracing::debug!(scene = %self.name, seq = self.seq, entries = self.log_entries, bricks = cells.len(), ?took, "snapshot");
         self.log_entries = 0;
         self.log_ops = 0;
-        self.log_voxels = 0;
+        self.log_work = 0;
         self.last_snapshot_took = took;
         self.last_snapshot = (self.clock)();
         Metrics::add(&self.metrics.snapshots, 1);
@@ -424,9 +450,11 @@ impl Owner {
         Ok(())
     }
 
-    /// What replaying the log since the snapshot would cost, in single-voxel ops.
+    /// What replaying the log since the snapshot would cost, in single-voxel ops. Brushes
+    /// count by the voxels they visit, not the ones they change: erasing air with a big sphere
+    /// changes nothing and still costs its box to replay.
     fn replay_cost(&self) -> u64 {
-        self.log_ops + self.log_voxels / VOXELS_PER_OP_COST + self.log_entries * ENTRY_OP_COST
+        self.log_ops + self.log_work / VOXELS_PER_OP_COST + self.log_entries * ENTRY_OP_COST
     }
 
     pub(super) fn publish_info(&self) {

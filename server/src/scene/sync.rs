@@ -18,13 +18,15 @@ use crate::metrics::Metrics;
 const FRAMES_PER_TURN: usize = 4;
 
 impl Owner {
+    /// Subscribes a session: queues its Welcome and starts its sync. False when the session
+    /// could not be welcomed (it is gone, or the Welcome could not be encoded).
     pub(super) fn join(
         &mut self,
         session: SessionId,
         out: Outbox,
         role: Role,
         resume_from: Option<u64>,
-    ) {
+    ) -> bool {
         let size = self.map.size();
         let camera = [size[0] as f32 * 0.5, size[1] as f32, size[2] as f32 * 0.5];
         let mut sub = Subscriber {
@@ -58,7 +60,7 @@ impl Owner {
             total_bricks: total,
         };
         if !sub.out.send(&welcome, &self.metrics) {
-            return;
+            return false;
         }
         match resume {
             Some(since) => {
@@ -81,6 +83,7 @@ impl Owner {
             }
         }
         self.subs.insert(session, sub);
+        true
     }
 
     /// A client's camera moved: its pending sync is re-sorted nearest-first from there.
@@ -200,13 +203,20 @@ impl Owner {
         Ok(frames)
     }
 
-    /// Whether a sync or resync can make progress now (its client's queue has room).
+    /// Whether a sync or resync can make progress now (its client's queue has room, and the
+    /// server's queues together are within their bound).
     pub fn has_ready_work(&self) -> bool {
         let half = self.config.max_queue_bytes / 2;
-        self.subs.values().any(|s| {
-            (s.syncing && s.out.queued() < half)
-                || (s.lagging && s.out.queued() < self.config.max_queue_bytes / 4)
-        })
+        let over_total = self
+            .subs
+            .values()
+            .next()
+            .is_some_and(|s| s.out.total_queued() > self.config.max_queued_total);
+        !over_total
+            && self.subs.values().any(|s| {
+                (s.syncing && s.out.queued() < half)
+                    || (s.lagging && s.out.queued() < self.config.max_queue_bytes / 4)
+            })
     }
 
     /// Whether a sync or resync is waiting for its client's queue to drain.
@@ -214,14 +224,32 @@ impl Owner {
         self.subs.values().any(|s| s.syncing || s.lagging)
     }
 
-    /// Advances every sync (initial, resume, resync) by a bounded amount per turn, so edits keep
-    /// flowing while a large scene streams out.
+    /// Advances syncs (initial, resume, resync) by a bounded amount per turn, so edits keep
+    /// flowing while a large scene streams out: at most `max_syncs_per_turn` sessions get
+    /// frames, in turn (the next turn starts after the last one served), and none while the
+    /// server's queues together hold more than `max_queued_total`.
     pub(super) fn pump_syncs(&mut self) {
-        let ids: Vec<SessionId> = self.subs.keys().copied().collect();
+        let after = self.sync_cursor;
+        let ids: Vec<SessionId> = self
+            .subs
+            .range(after.saturating_add(1)..)
+            .chain(self.subs.range(..=after))
+            .filter(|(_, s)| s.syncing || s.lagging)
+            .map(|(&id, _)| id)
+            .collect();
+        let mut served = 0;
         for id in ids {
+            if served == self.config.max_syncs_per_turn {
+                break;
+            }
             let Some(mut sub) = self.subs.remove(&id) else {
                 continue;
             };
+            if sub.out.total_queued() > self.config.max_queued_total {
+                self.subs.insert(id, sub);
+                break;
+            }
+            let before = sub.out.queued();
             if sub.out.is_closed() {
                 continue;
             }
@@ -274,6 +302,10 @@ impl Owner {
                     sub.out
                         .send(&ServerMsg::SyncDone { seq: self.seq }, &self.metrics);
                 }
+            }
+            if sub.out.queued() != before {
+                served += 1;
+                self.sync_cursor = id;
             }
             if !sub.out.is_closed() {
                 self.subs.insert(id, sub);

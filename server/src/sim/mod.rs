@@ -233,6 +233,8 @@ pub struct Sim {
     snapshot_replies: Vec<oneshot::Receiver<Result<(), String>>>,
     model: Model,
     next_session: SessionId,
+    /// Bytes queued to every simulated session (the server-wide figure).
+    queued_total: Arc<std::sync::atomic::AtomicUsize>,
     trace: VecDeque<String>,
     pub stats: SimStats,
 }
@@ -251,10 +253,12 @@ impl Sim {
         let store = Arc::new(Store::with_backend(disk.clone()).map_err(|e| e.to_string())?);
         store.create_scene(SCENE, &map).map_err(|e| e.to_string())?;
         let config = OwnerConfig {
-            limits: Limits::default(),
             max_queue_bytes: [4 << 10, 64 << 10, 32 << 20][rng.random_range(0..3)],
+            max_queued_total: [16 << 10, 1 << 30][rng.random_range(0..2)],
+            max_syncs_per_turn: rng.random_range(1..4),
             snapshot_replay_budget: [300, 20_000, 4_000_000][rng.random_range(0..3)],
             snapshot_every: Duration::from_secs(60),
+            ..OwnerConfig::default()
         };
         let now = Arc::new(Mutex::new(Instant::now()));
         let metrics = Arc::new(Metrics::default());
@@ -298,6 +302,7 @@ impl Sim {
                 limits,
             },
             next_session: 1,
+            queued_total: Arc::default(),
             trace: VecDeque::new(),
             stats: SimStats::default(),
         })
@@ -322,7 +327,7 @@ impl Sim {
         }
         let session = self.next_session;
         self.next_session += 1;
-        let (out, rx) = Outbox::new();
+        let (out, rx) = Outbox::new(self.queued_total.clone());
         let client = &mut self.clients[c];
         let resume_from = client.replica.resume_point();
         client.conn = Some(Conn {
@@ -332,11 +337,13 @@ impl Sim {
             welcomed: false,
         });
         let role = client.role;
+        let (joined, _) = oneshot::channel();
         self.queue.push(Command::Join {
             session,
             out,
             role,
             resume_from,
+            joined,
         });
         self.stats.joins += 1;
         if resume_from.is_some() {
