@@ -12,6 +12,7 @@
 
 pub mod auth;
 pub mod conns;
+pub mod http;
 pub mod import;
 pub mod incoming;
 pub mod metrics;
@@ -62,6 +63,7 @@ pub struct ServerConfig {
     pub connections: ConnectionLimits,
     /// A client that takes no data for this long while the server has data for it is cut off.
     pub stall_timeout: Duration,
+    pub http: http::HttpConfig,
 }
 
 impl ServerConfig {
@@ -74,6 +76,7 @@ impl ServerConfig {
             demo_size: DEMO_SIZE,
             connections: ConnectionLimits::default(),
             stall_timeout: Duration::from_secs(30),
+            http: http::HttpConfig::default(),
         }
     }
 }
@@ -222,6 +225,7 @@ pub struct Server {
     listener: tokio::net::TcpListener,
     app: Arc<App>,
     shutdown: watch::Sender<bool>,
+    http: http::HttpConfig,
 }
 
 impl Server {
@@ -250,6 +254,7 @@ impl Server {
             .await
             .with_context(|| format!("listening on {}", config.listen))?;
         let (shutdown, shutdown_rx) = watch::channel(false);
+        let http_config = config.http.clone();
         let app = Arc::new(App {
             scenes: RwLock::new(BTreeMap::new()),
             owners: Mutex::new(Vec::new()),
@@ -273,6 +278,7 @@ impl Server {
             listener,
             app,
             shutdown,
+            http: http_config,
         })
     }
 
@@ -291,28 +297,18 @@ impl Server {
             listener,
             app,
             shutdown,
+            http: http_config,
         } = self;
         let spool = tokio::spawn(app.clone().watch_spool());
         let router = router(app.clone());
         let stop = shutdown.clone();
-        // Acks and deltas are small writes that a client waits on: without NODELAY, Nagle holds
-        // a segment written while the previous one is unacknowledged until the peer's delayed
-        // ACK, which adds one client send interval to every edit (BENCHMARKS.md, 50k ops/s).
-        let listener = axum::serve::ListenerExt::tap_io(listener, |tcp| {
-            if let Err(e) = tcp.set_nodelay(true) {
-                tracing::warn!(error = %e, "cannot set TCP_NODELAY on an accepted socket");
-            }
-        });
-        axum::serve(
-            listener,
-            router.into_make_service_with_connect_info::<SocketAddr>(),
-        )
-        .with_graceful_shutdown(async move {
+        // TCP_NODELAY, the header timeout and ConnectInfo: see `http`. Waits out requests in
+        // flight; upgraded websockets end through `app.shutdown`.
+        http::serve(listener, router, http_config, async move {
             signal.await;
             let _ = stop.send(true);
         })
-        .await
-        .context("serving HTTP")?;
+        .await;
         tracing::info!("shutting down: flushing scenes");
         // No scene may be added after the owners were told to stop.
         let _ = spool.await;

@@ -2,6 +2,7 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use anyhow::Context;
 use brickcast_server::auth::Auth;
@@ -25,21 +26,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Cmd {
     /// Serve every scene in the store over websockets (creates the demo scene in an empty store).
-    Serve {
-        /// Address to listen on.
-        #[arg(long, default_value = "127.0.0.1:7878")]
-        listen: SocketAddr,
-        /// Folder holding the store (created if missing).
-        #[arg(long, default_value = "./brickcast-data")]
-        data: PathBuf,
-        /// File of `TOKEN ROLE` lines (role: editor|viewer). Without it everyone may edit.
-        #[arg(long)]
-        auth: Option<PathBuf>,
-        /// Snapshot a scene whose log has entries at least this often (seconds), besides the
-        /// snapshots taken when replaying the log would take about a second.
-        #[arg(long, default_value_t = 60.0, value_parser = positive_seconds)]
-        snapshot_every: f64,
-    },
+    Serve(ServeArgs),
     /// List the scenes in the store.
     Scenes {
         #[arg(long, default_value = "./brickcast-data")]
@@ -93,12 +80,7 @@ fn main() -> anyhow::Result<()> {
         )
         .init();
     match Cli::parse().command {
-        Cmd::Serve {
-            listen,
-            data,
-            auth,
-            snapshot_every,
-        } => serve(listen, data, auth, snapshot_every),
+        Cmd::Serve(args) => serve(args),
         Cmd::Scenes { data } => {
             let store = open_store(&data)?;
             for (name, meta) in store.scenes()? {
@@ -200,6 +182,46 @@ fn print_memory(m: &brickcast_protocol::map::MemoryStats) {
     println!("  bytes per voxel  {:>14.2}", m.bytes_per_solid_voxel);
 }
 
+/// `serve`'s options: where, who may edit, and the limits that keep one client from costing the
+/// server more than its share (README, "Running in public").
+#[derive(clap::Args)]
+struct ServeArgs {
+    /// Address to listen on.
+    #[arg(long, default_value = "127.0.0.1:7878")]
+    listen: SocketAddr,
+    /// Folder holding the store (created if missing).
+    #[arg(long, default_value = "./brickcast-data")]
+    data: PathBuf,
+    /// File of `TOKEN ROLE` lines (role: editor|viewer). Without it everyone may edit.
+    #[arg(long)]
+    auth: Option<PathBuf>,
+    /// Snapshot a scene whose log has entries at least this often (seconds), besides the
+    /// snapshots taken when replaying the log would take about a second.
+    #[arg(long, default_value_t = 60.0, value_parser = positive_seconds)]
+    snapshot_every: f64,
+    /// Websocket connections open at once, in all.
+    #[arg(long, default_value_t = 4096)]
+    max_connections: usize,
+    /// Websocket connections open at once from one IP address.
+    #[arg(long, default_value_t = 64)]
+    max_connections_per_ip: usize,
+    /// Cut off a client that takes no data for this many seconds while the server has data for
+    /// it.
+    #[arg(long, default_value_t = 30.0, value_parser = positive_seconds)]
+    stall_timeout: f64,
+    /// Most edit work one edit message may ask for, in voxels visited (a sphere costs its
+    /// bounding box); a larger message is refused whole.
+    #[arg(long, default_value_t = 1 << 25)]
+    max_work_per_edit: u64,
+    /// Edit work per second one connection may ask for, in voxels visited.
+    #[arg(long, default_value_t = 1 << 26)]
+    max_work_per_second: u64,
+    /// Bytes queued to all clients together before slow clients stop getting deltas (they
+    /// resync once they catch up) and syncs pause.
+    #[arg(long, default_value_t = 1 << 30)]
+    max_queued_bytes: usize,
+}
+
 /// A clap parser for a positive, finite number of seconds.
 fn positive_seconds(text: &str) -> Result<f64, String> {
     match text.parse::<f64>() {
@@ -208,20 +230,21 @@ fn positive_seconds(text: &str) -> Result<f64, String> {
     }
 }
 
-fn serve(
-    listen: SocketAddr,
-    data: PathBuf,
-    auth: Option<PathBuf>,
-    snapshot_every: f64,
-) -> anyhow::Result<()> {
+fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .context("starting tokio")?;
     runtime.block_on(async move {
-        let mut config = ServerConfig::new(listen, data);
-        config.owner.snapshot_every = std::time::Duration::from_secs_f64(snapshot_every);
-        if let Some(path) = auth {
+        let mut config = ServerConfig::new(args.listen, args.data);
+        config.owner.snapshot_every = Duration::from_secs_f64(args.snapshot_every);
+        config.owner.budget.max_work_per_edit = args.max_work_per_edit;
+        config.owner.budget.max_work_per_second = args.max_work_per_second;
+        config.owner.max_queued_total = args.max_queued_bytes;
+        config.connections.max_total = args.max_connections;
+        config.connections.max_per_ip = args.max_connections_per_ip;
+        config.stall_timeout = Duration::from_secs_f64(args.stall_timeout);
+        if let Some(path) = args.auth {
             config.auth = Auth::from_file(&path)?;
         }
         let server = Server::bind(config).await?;
