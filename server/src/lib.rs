@@ -345,6 +345,28 @@ pub fn router(app: Arc<App>) -> Router {
 
 async fn metrics_text(State(app): State<Arc<App>>) -> Response {
     let mut text = app.metrics.render();
+    let mut gauge = |name: &str, help: &str, value: u64| {
+        text.push_str(&format!(
+            "# HELP brickcast_{name} {help}\n# TYPE brickcast_{name} gauge\nbrickcast_{name} {value}\n"
+        ));
+    };
+    gauge(
+        "queued_bytes",
+        "Bytes queued to all clients together (frames plus per-frame overhead).",
+        app.queued_total.load(Relaxed) as u64,
+    );
+    gauge(
+        "open_connections",
+        "Websocket connections admitted and not yet closed.",
+        app.connections.open() as u64,
+    );
+    if let Some(rss) = metrics::resident_bytes() {
+        gauge(
+            "process_resident_bytes",
+            "Resident memory of the server process.",
+            rss,
+        );
+    }
     for (name, scene) in app.scene_list() {
         let info = &scene.info;
         for (metric, value) in [

@@ -141,6 +141,8 @@ pub struct Metrics {
     pub stalled_disconnects: AtomicU64,
     /// Connections refused by the connection limits (total or per address).
     pub refused_connections: AtomicU64,
+    /// Camera updates forwarded to scene owners (after the per-session throttle).
+    pub camera_updates: AtomicU64,
     pub commits: AtomicU64,
     pub snapshots: AtomicU64,
     commit_buckets: [AtomicU64; COMMIT_BUCKETS_US.len()],
@@ -287,6 +289,12 @@ impl Metrics {
             get(&self.refused_connections),
         );
         metric(
+            "camera_updates_total",
+            "counter",
+            "Camera updates forwarded to scene owners (at most one per session per 50 ms).",
+            get(&self.camera_updates),
+        );
+        metric(
             "snapshots_total",
             "counter",
             "Scene snapshots written.",
@@ -373,6 +381,14 @@ impl Metrics {
         }
         out
     }
+}
+
+/// The process's resident memory, from `/proc/self/statm` (Linux; `None` elsewhere).
+pub fn resident_bytes() -> Option<u64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    // Every Linux platform brickcast runs on has 4 KiB pages.
+    Some(pages * 4096)
 }
 
 fn nanos(d: Duration) -> u64 {

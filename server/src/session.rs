@@ -251,7 +251,9 @@ async fn read_loop(
             _ = tokio::time::sleep_until(camera_at), if camera.is_some() => {
                 if let Some(eye) = camera.take() {
                     // Streaming order is a hint: drop it rather than wait when the owner is busy.
-                    let _ = scene.try_send(Command::Camera { session: id, eye });
+                    if scene.try_send(Command::Camera { session: id, eye }).is_ok() {
+                        Metrics::add(&app.metrics.camera_updates, 1);
+                    }
                     camera_at = tokio::time::Instant::now() + CAMERA_INTERVAL;
                 }
                 continue;
