@@ -232,7 +232,7 @@ async fn a_client_that_stops_reading_is_cut_off() {
                     ((i * 53 + k * 29) % 256) as f32,
                 ],
                 radius: 24.0,
-                mode: if i % 2 == 0 {
+                mode: if i.is_multiple_of(2) {
                     BrushMode::Fill
                 } else {
                     BrushMode::Erase
