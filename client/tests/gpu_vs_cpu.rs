@@ -244,6 +244,7 @@ fn voxelized_mesh_matches_the_cpu_tracer() {
     let options = ImportOptions {
         resolution: 128,
         threads: 2,
+        ..ImportOptions::default()
     };
     let (mut map, _) = voxelize(&mesh, &options, &NoProgress).expect("voxelize");
     let ctx = gpu();
@@ -267,6 +268,7 @@ fn sibenik_matches_the_cpu_tracer() {
     let options = ImportOptions {
         resolution: 1024,
         threads: 0,
+        ..ImportOptions::default()
     };
     let obj = std::path::Path::new(&scenes).join("sibenik/sibenik.obj");
     let mut map = import_file(&obj, &options, &NoProgress)

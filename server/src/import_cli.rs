@@ -33,6 +33,10 @@ pub struct Args {
     /// Voxelizing threads (default: one per core).
     #[arg(long, default_value_t = 0)]
     threads: usize,
+    /// Let the model's MTL libraries and textures be read from outside its own folder (by
+    /// default a model cannot reach other files on this machine).
+    #[arg(long)]
+    allow_outside_files: bool,
     /// Print the summary as one JSON object.
     #[arg(long)]
     json: bool,
@@ -123,6 +127,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .resolution
             .unwrap_or(ImportOptions::default().resolution),
         threads: args.threads,
+        allow_outside_files: args.allow_outside_files,
     };
     options.check()?;
     // Check the destination before the expensive part, so a name clash fails in milliseconds.

@@ -92,13 +92,45 @@ pub fn write(data: &Path, name: &str, map: &BrickMap) -> Result<PathBuf, SpoolEr
     Ok(file)
 }
 
+/// Largest spool file read (a 2048³ scene like Sibenik spools to about 35 MB).
+const MAX_SPOOL_BYTES: u64 = 8 << 30;
+
+/// Opens a spool entry the way nothing planted in the folder can misuse: never following a
+/// link, never blocking (a FIFO), and only a regular file.
+fn open_regular(file: &Path) -> Result<std::fs::File, SpoolError> {
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK);
+    }
+    let opened = options.open(file).map_err(io(file))?;
+    let meta = opened.metadata().map_err(io(file))?;
+    if !meta.is_file() {
+        return Err(SpoolError::Damaged {
+            path: file.into(),
+            detail: "not a regular file".into(),
+        });
+    }
+    Ok(opened)
+}
+
 /// Reads a spool file back into a scene name and map.
 pub fn read(file: &Path) -> Result<(String, BrickMap), SpoolError> {
+    use std::io::Read;
     let damaged = |detail: String| SpoolError::Damaged {
         path: file.into(),
         detail,
     };
-    let bytes = std::fs::read(file).map_err(io(file))?;
+    let mut bytes = Vec::new();
+    open_regular(file)?
+        .take(MAX_SPOOL_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(io(file))?;
+    if bytes.len() as u64 > MAX_SPOOL_BYTES {
+        return Err(damaged(format!("over {MAX_SPOOL_BYTES} bytes")));
+    }
     if bytes.len() < MAGIC.len() + 4 || &bytes[..MAGIC.len()] != MAGIC {
         return Err(damaged("not a brickcast scene file".into()));
     }
@@ -129,8 +161,27 @@ pub fn read(file: &Path) -> Result<(String, BrickMap), SpoolError> {
     Ok((spooled.name, map))
 }
 
+/// Writes the server's reason for refusing `file` beside it. Through a new temporary file and
+/// a rename, so a planted `NAME.error` link is replaced, never written through.
+pub fn write_error(file: &Path, text: &str) -> Result<(), SpoolError> {
+    let target = error_path(file);
+    let name = target
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let temporary = target.with_file_name(format!(".{name}.{}.partial", std::process::id()));
+    let _ = std::fs::remove_file(&temporary);
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create_new(true);
+    let mut out = options.open(&temporary).map_err(io(&temporary))?;
+    std::io::Write::write_all(&mut out, text.as_bytes()).map_err(io(&temporary))?;
+    drop(out);
+    std::fs::rename(&temporary, &target).map_err(io(&target))
+}
+
 /// Complete spool files waiting in `data`'s spool, oldest name first, skipping those the server
-/// already refused (they have an `.error` beside them).
+/// already refused (they have an `.error` beside them). Entries that are not regular files (a
+/// link, a FIFO, a folder named `*.scene`) are listed too: reading refuses them, with a reason.
 pub fn pending(data: &Path) -> Vec<PathBuf> {
     let Ok(entries) = std::fs::read_dir(spool_dir(data)) else {
         return Vec::new();
@@ -138,7 +189,8 @@ pub fn pending(data: &Path) -> Vec<PathBuf> {
     let mut files: Vec<PathBuf> = entries
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.extension().is_some_and(|e| e == EXTENSION))
-        .filter(|p| !error_path(p).exists())
+        // Only a regular file marks a refusal: a planted link in its place is replaced.
+        .filter(|p| !std::fs::symlink_metadata(error_path(p)).is_ok_and(|m| m.is_file()))
         .collect();
     files.sort();
     files

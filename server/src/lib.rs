@@ -191,7 +191,7 @@ impl App {
             }
             Err(e) => {
                 tracing::warn!(file = %file.display(), error = %format!("{e:#}"), "refused a spooled scene");
-                if let Err(e) = std::fs::write(incoming::error_path(&file), format!("{e:#}\n")) {
+                if let Err(e) = incoming::write_error(&file, &format!("{e:#}\n")) {
                     tracing::error!(file = %file.display(), error = %e, "cannot write the spool error file");
                 }
             }

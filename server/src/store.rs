@@ -40,7 +40,9 @@ pub enum StoreError {
     UnknownScene(String),
     #[error("scene {0} already exists")]
     SceneExists(String),
-    #[error("scene name {0:?} is invalid: use 1-64 letters, digits, '-', '_' or '.'")]
+    #[error(
+        "scene name {0:?} is invalid: use 1-64 letters, digits, '-', '_' or '.', starting with a letter or digit"
+    )]
     BadName(String),
     /// The log and the snapshot of a scene do not fit together: replaying would lose, repeat or
     /// reorder acknowledged edits, so the scene is not served until someone looks.
@@ -87,10 +89,14 @@ pub struct SceneMeta {
     pub snapshot_seq: u64,
 }
 
-/// Scene names become redb table names and URL path segments: keep them plain.
+/// Scene names become redb table names, URL path segments and spool file names: keep them
+/// plain. A name starts with a letter or digit, so `.`, `..` and hidden names are not names.
 pub fn valid_scene_name(name: &str) -> bool {
-    !name.is_empty()
-        && name.len() <= 64
+    name.len() <= 64
+        && name
+            .bytes()
+            .next()
+            .is_some_and(|b| b.is_ascii_alphanumeric())
         && name
             .bytes()
             .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.'))

@@ -454,3 +454,81 @@ async fn the_welcome_comes_first() {
     }
     server.shutdown().await.unwrap();
 }
+
+/// Before: a FIFO in the spool blocked hot import for good (and SIGTERM with it), a planted
+/// `NAME.error` link was written through, and `..` was a scene name. Now the FIFO and the link
+/// are refused with a reason, a good scene after them is adopted, and shutdown is prompt.
+#[cfg(unix)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn planted_spool_entries_are_refused() {
+    let _serial = SERIAL.lock().await;
+    use brickcast_server::incoming;
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |_| {}).await;
+    let spool = incoming::spool_dir(dir.path());
+    std::fs::create_dir_all(&spool).unwrap();
+    let fifo = spool.join("aaa.scene");
+    let c = std::ffi::CString::new(fifo.as_os_str().as_encoded_bytes()).unwrap();
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
+    // A file elsewhere that a planted error link points at: it must stay as it is.
+    let victim = dir.path().join("victim.txt");
+    std::fs::write(&victim, "untouched").unwrap();
+    let link = spool.join("bbb.scene");
+    std::os::unix::fs::symlink(dir.path().join("nowhere.scene"), &link).unwrap();
+    std::os::unix::fs::symlink(
+        &victim,
+        incoming::error_path(&link).with_file_name("ccc.error"),
+    )
+    .unwrap();
+    std::fs::write(spool.join("ccc.scene"), b"not a scene").unwrap();
+    // `..` is not a scene name, whoever asks.
+    let mut map = brickcast_protocol::BrickMap::new([16, 16, 16]).unwrap();
+    map.set([1, 1, 1], colour(1));
+    incoming::write(dir.path(), "..", &map).unwrap();
+    incoming::write(dir.path(), "good", &map).unwrap();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let (_, scenes) = http_get(server.addr, "/scenes").await;
+        if scenes.contains("\"good\"") {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the good scene was not adopted: {scenes}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let error = |name: &str| std::fs::read_to_string(spool.join(name)).unwrap_or_default();
+    assert!(
+        error("aaa.error").contains("not a regular file"),
+        "{}",
+        error("aaa.error")
+    );
+    assert!(
+        !error("bbb.error").is_empty(),
+        "the dangling link is refused"
+    );
+    assert!(
+        error("ccc.error").contains("damaged"),
+        "{}",
+        error("ccc.error")
+    );
+    assert!(
+        !std::fs::symlink_metadata(spool.join("ccc.error"))
+            .unwrap()
+            .file_type()
+            .is_symlink(),
+        "the planted link was replaced"
+    );
+    assert_eq!(std::fs::read_to_string(&victim).unwrap(), "untouched");
+    assert!(
+        error("...error").contains("invalid"),
+        "{}",
+        error("...error")
+    );
+    let (status, _) = http_get(server.addr, "/scenes/%2e%2e/ws").await;
+    assert_eq!(status, 404);
+    let started = Instant::now();
+    server.shutdown().await.unwrap();
+    assert!(started.elapsed() < Duration::from_secs(10));
+}

@@ -14,6 +14,7 @@ fn options(resolution: u32) -> ImportOptions {
     ImportOptions {
         resolution,
         threads: 2,
+        ..ImportOptions::default()
     }
 }
 
@@ -605,4 +606,136 @@ fn sibenik_imports_at_2048() {
     }
     assert!(distinct.len() > 100, "{} colours", distinct.len());
     map.check_invariants().unwrap();
+}
+
+/// A model names files by path: outside its folder they are refused (with a warning, the surface
+/// keeps its plain colour) unless the operator allows it, and a device is never read.
+#[test]
+fn a_model_cannot_reach_files_outside_its_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("model");
+    std::fs::create_dir(&model).unwrap();
+    // The texture sits beside the model's folder, named with `../`.
+    write_quadrant_texture(&dir.path().join("quadrants.png"));
+    let mtl = CUBE_MTL.replace("quadrants.png", "../quadrants.png");
+    let obj = write_cube(&model, Some(&mtl), false);
+    let imported = import_file(&obj, &options(8), &NoProgress).unwrap();
+    let warnings = imported.report.warnings.join("\n");
+    assert!(
+        warnings.contains("outside the model's folder"),
+        "{warnings}"
+    );
+    assert_eq!(imported.map.get([2, 5, 0]), Some(Colour::WHITE), "Kd only");
+    let allowed = ImportOptions {
+        allow_outside_files: true,
+        ..options(8)
+    };
+    let imported = import_file(&obj, &allowed, &NoProgress).unwrap();
+    assert!(
+        imported.report.warnings.is_empty(),
+        "{:?}",
+        imported.report.warnings
+    );
+    assert_eq!(
+        imported.map.get([2, 5, 0]),
+        Some(colour(RED)),
+        "the texture was read"
+    );
+
+    // `mtllib /dev/zero`: not a regular file, refused at once (it used to allocate 8 GB).
+    let obj = model.join("zero.obj");
+    std::fs::write(
+        &obj,
+        CUBE_OBJ.replace("mtllib cube.mtl", "mtllib /dev/zero"),
+    )
+    .unwrap();
+    for options in [options(8), allowed] {
+        let imported = import_file(&obj, &options, &NoProgress).unwrap();
+        let warnings = imported.report.warnings.join("\n");
+        assert!(
+            warnings.contains("/dev/zero")
+                && (warnings.contains("not a regular file") || warnings.contains("outside")),
+            "{warnings}"
+        );
+    }
+}
+
+/// A face with more corners than any model has is refused before parsing (a million-corner
+/// face took 108 s).
+#[test]
+fn a_face_with_too_many_corners_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut obj = String::new();
+    for i in 0..5000 {
+        let a = i as f32 * 0.001;
+        obj.push_str(&format!("v {} {} 0\n", a.cos(), a.sin()));
+    }
+    obj.push('f');
+    for i in 1..=5000 {
+        obj.push_str(&format!(" {i}"));
+    }
+    obj.push('\n');
+    let path = dir.path().join("fan.obj");
+    std::fs::write(&path, obj).unwrap();
+    let err = import_file(&path, &options(8), &NoProgress).err().unwrap();
+    assert!(
+        err.to_string().contains("line 5001 has 5000 corners"),
+        "{err}"
+    );
+}
+
+/// A small file whose scene graph fans out (groups of groups) places a model too many times:
+/// refused quickly, not expanded for minutes. A truncated file is reported as damaged.
+#[test]
+fn vox_fan_out_and_truncation_are_refused() {
+    use dot_vox::{DotVoxData, Model, SceneNode, ShapeModel, Size, Voxel};
+    let group = |children: Vec<u32>| SceneNode::Group {
+        attributes: Default::default(),
+        children,
+    };
+    // Node 0: 700 × node 1; node 1: 700 × node 2; node 2: the shape.
+    let data = DotVoxData {
+        version: 150,
+        index_map: dot_vox::DEFAULT_INDEX_MAP.to_vec(),
+        models: vec![Model {
+            size: Size { x: 1, y: 1, z: 1 },
+            voxels: vec![Voxel {
+                x: 0,
+                y: 0,
+                z: 0,
+                i: 1,
+            }],
+        }],
+        palette: dot_vox::DEFAULT_PALETTE.to_vec(),
+        materials: vec![],
+        scenes: vec![
+            group(vec![1; 700]),
+            group(vec![2; 700]),
+            SceneNode::Shape {
+                attributes: Default::default(),
+                models: vec![ShapeModel {
+                    model_id: 0,
+                    attributes: Default::default(),
+                }],
+            },
+        ],
+        layers: vec![],
+    };
+    let mut bytes = Vec::new();
+    data.write_vox(&mut bytes).unwrap();
+    assert!(bytes.len() < 30_000);
+    let started = std::time::Instant::now();
+    let err = vox::import_vox(&bytes, Path::new("fan.vox")).err().unwrap();
+    assert!(err.to_string().contains("model instances"), "{err}");
+    assert!(started.elapsed() < std::time::Duration::from_secs(5));
+
+    let one = DotVoxData {
+        scenes: vec![],
+        ..data
+    };
+    let mut bytes = Vec::new();
+    one.write_vox(&mut bytes).unwrap();
+    bytes.truncate(bytes.len() - 10);
+    let err = vox::import_vox(&bytes, Path::new("cut.vox")).err().unwrap();
+    assert!(err.to_string().contains("truncated"), "{err}");
 }

@@ -8,11 +8,16 @@
 
 use std::cell::RefCell;
 use std::collections::HashMap;
-use std::io::BufReader;
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use super::ImportError;
+use super::files::{MAX_MTL_BYTES, MAX_TEXTURE_BYTES, Reach, decode_image};
+
+/// Most corners one OBJ face may have: real models use 3 or 4, and a face with a million
+/// corners (a million triangles of one fan) is an attack, not a model.
+pub const MAX_FACE_VERTICES: usize = 1024;
 
 /// Diffuse colour of surfaces whose material is unknown (no MTL, or a name it does not define).
 pub const DEFAULT_DIFFUSE: [f32; 3] = [0.8, 0.8, 0.8];
@@ -136,15 +141,10 @@ impl Default for Mesh {
     }
 }
 
-/// Decodes an image file into a texture.
-pub fn load_texture(path: &Path) -> Result<Texture, String> {
-    let image = image::ImageReader::open(path)
-        .map_err(|e| e.to_string())?
-        .with_guessed_format()
-        .map_err(|e| e.to_string())?
-        .decode()
-        .map_err(|e| e.to_string())?
-        .into_rgba8();
+/// Decodes an image file into a texture, if `reach` allows reading it (see [`Reach`]).
+pub fn load_texture(reach: &Reach, path: &Path) -> Result<Texture, String> {
+    let bytes = reach.read(path, MAX_TEXTURE_BYTES)?;
+    let image = decode_image(&bytes)?;
     let (width, height) = image.dimensions();
     if width == 0 || height == 0 {
         return Err("the image is empty".into());
@@ -171,13 +171,56 @@ fn texture_path(base: &Path, name: &str) -> PathBuf {
     }
 }
 
-/// Reads an OBJ file, its MTL files and their diffuse textures.
-pub fn load_obj(path: &Path) -> Result<Mesh, ImportError> {
+/// Refuses an OBJ with a face of more than [`MAX_FACE_VERTICES`] corners, before it is parsed.
+fn check_faces(path: &Path) -> Result<(), ImportError> {
+    let file = std::fs::File::open(path).map_err(|source| ImportError::Read {
+        path: path.into(),
+        source,
+    })?;
+    let mut reader = BufReader::new(file);
+    let mut line = Vec::new();
+    let mut number = 0u64;
+    loop {
+        line.clear();
+        let read = reader
+            .read_until(b'\n', &mut line)
+            .map_err(|source| ImportError::Read {
+                path: path.into(),
+                source,
+            })?;
+        if read == 0 {
+            return Ok(());
+        }
+        number += 1;
+        if let Some(rest) = line.strip_prefix(b"f")
+            && rest.first().is_some_and(u8::is_ascii_whitespace)
+        {
+            let corners = rest
+                .split(u8::is_ascii_whitespace)
+                .filter(|t| !t.is_empty())
+                .count();
+            if corners > MAX_FACE_VERTICES {
+                return Err(ImportError::BadObj {
+                    path: path.into(),
+                    detail: format!(
+                        "the face on line {number} has {corners} corners; at most {MAX_FACE_VERTICES} are read"
+                    ),
+                });
+            }
+        }
+    }
+}
+
+/// Reads an OBJ file, its MTL files and their diffuse textures. The files it names are read
+/// only from the OBJ's folder unless `allow_outside` (see [`Reach`]).
+pub fn load_obj(path: &Path, allow_outside: bool) -> Result<Mesh, ImportError> {
+    check_faces(path)?;
     let file = std::fs::File::open(path).map_err(|source| ImportError::Read {
         path: path.into(),
         source,
     })?;
     let base = path.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let reach = Reach::new(&base, allow_outside);
     let missing_mtl = RefCell::new(Vec::new());
     let options = tobj::LoadOptions {
         triangulate: true,
@@ -188,8 +231,8 @@ pub fn load_obj(path: &Path) -> Result<Mesh, ImportError> {
     let (models, materials) =
         tobj::load_obj_buf(&mut BufReader::new(file), &options, |mtl: &Path| {
             let mtl_path = base.join(mtl);
-            match std::fs::File::open(&mtl_path) {
-                Ok(f) => tobj::load_mtl_buf(&mut BufReader::new(f)),
+            match reach.read(&mtl_path, MAX_MTL_BYTES) {
+                Ok(bytes) => tobj::load_mtl_buf(&mut std::io::Cursor::new(bytes)),
                 Err(e) => {
                     missing_mtl
                         .borrow_mut()
@@ -250,7 +293,7 @@ pub fn load_obj(path: &Path) -> Result<Mesh, ImportError> {
             let tex_path = texture_path(&base, name);
             textures
                 .entry(tex_path.clone())
-                .or_insert_with(|| match load_texture(&tex_path) {
+                .or_insert_with(|| match load_texture(&reach, &tex_path) {
                     Ok(t) => Some(Arc::new(t)),
                     Err(e) => {
                         mesh.warnings.push(format!(

@@ -11,6 +11,7 @@
 //! Everything here produces or reads a [`BrickMap`]; storing it is the caller's business (the
 //! CLI writes it to the store, or hands it to a running server through [`crate::incoming`]).
 
+pub mod files;
 pub mod mesh;
 pub mod palette;
 pub mod vox;
@@ -63,6 +64,9 @@ pub struct ImportOptions {
     pub resolution: u32,
     /// Worker threads for voxelizing; 0 means one per core.
     pub threads: usize,
+    /// Whether the files a model names (MTL libraries, textures) may be read from outside
+    /// the model's own folder.
+    pub allow_outside_files: bool,
 }
 
 impl Default for ImportOptions {
@@ -70,6 +74,7 @@ impl Default for ImportOptions {
         ImportOptions {
             resolution: 2048,
             threads: 0,
+            allow_outside_files: false,
         }
     }
 }
@@ -186,7 +191,7 @@ pub fn import_file(
     match format {
         Format::Obj => {
             options.check()?;
-            let mesh = mesh::load_obj(path)?;
+            let mesh = mesh::load_obj(path, options.allow_outside_files)?;
             progress.finish();
             let parse_seconds = started.elapsed().as_secs_f64();
             let started = Instant::now();

@@ -58,6 +58,11 @@ fn rotation_matrix(r: Rotation) -> [[i32; 3]; 3] {
 /// Scene-graph nodes visited at most: a file whose graph refers back to itself would otherwise
 /// expand without end.
 const MAX_GRAPH_VISITS: usize = 1 << 20;
+/// Model instances the scene graph may place: a 22 KB file whose groups fan out (700 × 700)
+/// placed a model half a million times. Real scenes place hundreds.
+pub const MAX_INSTANCES: usize = 1 << 16;
+/// Voxels written into the scene, over every placed instance (about half a minute of work).
+pub const MAX_VOXELS: u64 = 1 << 27;
 
 /// Every model instance the scene graph places (or each model at the origin without a graph).
 fn instances(data: &DotVoxData) -> Result<Vec<Instance>, String> {
@@ -103,6 +108,11 @@ fn instances(data: &DotVoxData) -> Result<Vec<Instance>, String> {
             Some(SceneNode::Shape { models, .. }) => {
                 for m in models {
                     if (m.model_id as usize) < data.models.len() {
+                        if out.len() == MAX_INSTANCES {
+                            return Err(format!(
+                                "its scene graph places over {MAX_INSTANCES} model instances"
+                            ));
+                        }
                         out.push(Instance {
                             model: m.model_id as usize,
                             rotation,
@@ -117,8 +127,57 @@ fn instances(data: &DotVoxData) -> Result<Vec<Instance>, String> {
     Ok(out)
 }
 
+/// Checks the file's chunk structure: the parser reads what it can of a truncated file and
+/// would report "no voxels" for a damaged one.
+fn check_chunks(bytes: &[u8]) -> Result<(), String> {
+    let word = |at: usize| -> Option<u32> {
+        Some(u32::from_le_bytes(bytes.get(at..at + 4)?.try_into().ok()?))
+    };
+    if bytes.get(..4) != Some(b"VOX ") {
+        return Err("it does not start with \"VOX \"".into());
+    }
+    if bytes.get(8..12) != Some(b"MAIN") {
+        return Err("the MAIN chunk is missing: the file is damaged or truncated".into());
+    }
+    let (content, children) = match (word(12), word(16)) {
+        (Some(c), Some(ch)) => (c as usize, ch as usize),
+        _ => return Err("the file is truncated in its MAIN chunk".into()),
+    };
+    let end = 20usize.saturating_add(content).saturating_add(children);
+    if end > bytes.len() {
+        return Err(format!(
+            "the file is truncated: its chunks need {end} bytes, it holds {}",
+            bytes.len()
+        ));
+    }
+    let mut at = 20 + content;
+    while at < end {
+        let id = bytes.get(at..at + 4).map(String::from_utf8_lossy);
+        let (Some(id), Some(c), Some(ch)) = (id, word(at + 4), word(at + 8)) else {
+            return Err(format!(
+                "the chunk header at byte {at} is cut off: the file is damaged"
+            ));
+        };
+        let next = (at + 12)
+            .saturating_add(c as usize)
+            .saturating_add(ch as usize);
+        if next > end {
+            return Err(format!(
+                "chunk {id} at byte {at} runs past the end of the file: the file is damaged"
+            ));
+        }
+        at = next;
+    }
+    Ok(())
+}
+
 /// Reads a `.vox` file's bytes into a scene.
 pub fn import_vox(bytes: &[u8], path: &Path) -> Result<BrickMap, ImportError> {
+    let bad = |detail: String| ImportError::BadVox {
+        path: path.into(),
+        detail,
+    };
+    check_chunks(bytes).map_err(bad)?;
     let data = dot_vox::load_bytes(bytes).map_err(|e| ImportError::BadVox {
         path: path.into(),
         detail: e.to_string(),
@@ -149,12 +208,17 @@ pub fn import_vox(bytes: &[u8], path: &Path) -> Result<BrickMap, ImportError> {
             }
         }
     }
-    let voxel_count: usize = instances
+    let voxel_count: u64 = instances
         .iter()
-        .map(|i| data.models[i.model].voxels.len())
+        .map(|i| data.models[i.model].voxels.len() as u64)
         .sum();
     if voxel_count == 0 || lo[0] > hi[0] {
         return Err(ImportError::EmptyModel(path.into()));
+    }
+    if voxel_count > MAX_VOXELS {
+        return Err(bad(format!(
+            "its models place {voxel_count} voxels; at most {MAX_VOXELS} are imported"
+        )));
     }
     let extent: [i64; 3] = std::array::from_fn(|i| hi[i] as i64 - lo[i] as i64 + 1);
     if extent.iter().any(|&e| e > MAX_SCENE_EDGE as i64) {

@@ -682,6 +682,7 @@ mod tests {
             let options = ImportOptions {
                 resolution,
                 threads: 2,
+                ..ImportOptions::default()
             };
             let (map, _) = voxelize(&mesh, &options, &super::super::NoProgress).unwrap();
             let placement = Placement::new(&mesh, resolution).unwrap();
