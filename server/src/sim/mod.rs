@@ -1064,6 +1064,40 @@ mod tests {
         assert!(sim.settle().unwrap(), "the client resumes and agrees");
     }
 
+    /// Recovery replays what brushes visit, not what they change: erasing air with big spheres
+    /// changes nothing yet costs its boxes to replay, so it counts toward the snapshot budget
+    /// (1,024 such spheres used to make a 6 s recovery without a snapshot in sight).
+    #[test]
+    fn brushes_over_air_count_toward_the_snapshot_budget() {
+        let mut sim = Sim::new(11).unwrap();
+        // Ops and changed voxels alone would cost at most about 13k here.
+        sim.config.snapshot_replay_budget = 200_000;
+        sim.crash(false).unwrap();
+        let before = snapshot_count(&sim.metrics);
+        sim.clients.truncate(1);
+        sim.clients[0].role = Role::Editor;
+        sim.join(0);
+        assert!(sim.settle().unwrap());
+        let size = sim.owner.map().size();
+        // Spheres of radius 20 centred on the top of the scene: up to 41 × 20 × 41 voxels
+        // visited each, few changed (mostly air).
+        let air = EditOp::Sphere {
+            centre: [size[0] as f32 / 2.0, size[1] as f32, size[2] as f32 / 2.0],
+            radius: 20.0,
+            mode: BrushMode::Erase,
+            colour: Colour::BLACK,
+        };
+        for _ in 0..10 {
+            sim.edit(0, vec![air; 400]);
+            sim.turn().unwrap();
+        }
+        assert!(
+            snapshot_count(&sim.metrics) > before,
+            "a snapshot was taken for the replay cost of {} visited voxels",
+            10 * 400 * air.work(size)
+        );
+    }
+
     /// A store written by the old owner (snapshot one sequence ahead of its edits, then an
     /// entry at that sequence) is refused with a clear error, and `load_scene_repairing`
     /// replays the entry.
