@@ -298,7 +298,8 @@ async fn connections_are_limited_per_address() {
 }
 
 /// Before: half-sent HTTP requests were held open forever (300 still open after 40 s). Now a
-/// connection that does not finish its request head within the header timeout is closed.
+/// connection that does not finish its request head within the header timeout is closed, and
+/// so is one that sends nothing.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn half_sent_requests_are_closed() {
     let _serial = SERIAL.lock().await;
@@ -308,11 +309,14 @@ async fn half_sent_requests_are_closed() {
     })
     .await;
     let mut sockets = Vec::new();
-    for _ in 0..100 {
+    for i in 0..100 {
         let mut s = tokio::net::TcpStream::connect(server.addr).await.unwrap();
-        s.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
-            .await
-            .unwrap();
+        // Most send half a request head; some send nothing at all.
+        if i % 5 != 0 {
+            s.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+                .await
+                .unwrap();
+        }
         sockets.push(s);
     }
     let started = Instant::now();
