@@ -331,54 +331,44 @@ impl Metrics {
             get(&self.commit_sum_us) as f64 / 1e6
         );
         let _ = writeln!(out, "brickcast_log_commit_seconds_count {count}");
-        let _ = writeln!(
-            out,
-            "# HELP brickcast_frames_unencodable_total Replies that could not be encoded (a server bug; the session is closed with an Internal error).\n# TYPE brickcast_frames_unencodable_total counter"
+        family(
+            &mut out,
+            "frames_unencodable_total",
+            "Replies that could not be encoded (a server bug; the session is closed with an Internal error).",
+            "message",
+            ServerMsg::KINDS
+                .iter()
+                .zip(&self.unencodable)
+                .map(|(kind, n)| (*kind, get(n).to_string())),
         );
-        for (kind, n) in ServerMsg::KINDS.iter().zip(&self.unencodable) {
-            let _ = writeln!(
-                out,
-                "brickcast_frames_unencodable_total{{message=\"{kind}\"}} {}",
-                get(n)
-            );
-        }
-        let _ = writeln!(
-            out,
-            "# HELP brickcast_read_errors_total Websocket reads that failed, by cause.\n# TYPE brickcast_read_errors_total counter"
+        family(
+            &mut out,
+            "read_errors_total",
+            "Websocket reads that failed, by cause.",
+            "kind",
+            ReadError::ALL
+                .iter()
+                .map(|k| (k.name(), get(&self.read_errors[*k as usize]).to_string())),
         );
-        for kind in ReadError::ALL {
-            let _ = writeln!(
-                out,
-                "brickcast_read_errors_total{{kind=\"{}\"}} {}",
-                kind.name(),
-                get(&self.read_errors[kind as usize])
-            );
-        }
-        let seconds = |ns: &AtomicU64| get(ns) as f64 / 1e9;
-        let _ = writeln!(
-            out,
-            "# HELP brickcast_owner_seconds_total Wall time scene owners spent per phase.\n# TYPE brickcast_owner_seconds_total counter"
+        let seconds = |ns: &AtomicU64| (get(ns) as f64 / 1e9).to_string();
+        family(
+            &mut out,
+            "owner_seconds_total",
+            "Wall time scene owners spent per phase.",
+            "phase",
+            OwnerPhase::ALL
+                .iter()
+                .map(|p| (p.name(), seconds(&self.owner_ns[*p as usize]))),
         );
-        for phase in OwnerPhase::ALL {
-            let _ = writeln!(
-                out,
-                "brickcast_owner_seconds_total{{phase=\"{}\"}} {}",
-                phase.name(),
-                seconds(&self.owner_ns[phase as usize])
-            );
-        }
-        let _ = writeln!(
-            out,
-            "# HELP brickcast_session_seconds_total Time sessions spent decoding frames and writing them.\n# TYPE brickcast_session_seconds_total counter"
+        family(
+            &mut out,
+            "session_seconds_total",
+            "Time sessions spent decoding frames and writing them.",
+            "phase",
+            SessionPhase::ALL
+                .iter()
+                .map(|p| (p.name(), seconds(&self.session_ns[*p as usize]))),
         );
-        for phase in SessionPhase::ALL {
-            let _ = writeln!(
-                out,
-                "brickcast_session_seconds_total{{phase=\"{}\"}} {}",
-                phase.name(),
-                seconds(&self.session_ns[phase as usize])
-            );
-        }
         out
     }
 }
@@ -389,6 +379,23 @@ pub fn resident_bytes() -> Option<u64> {
     let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
     // Every Linux platform brickcast runs on has 4 KiB pages.
     Some(pages * 4096)
+}
+
+/// Writes one counter family with a label: its help and type lines, then a line per value.
+fn family<'a>(
+    out: &mut String,
+    name: &str,
+    help: &str,
+    label: &str,
+    rows: impl Iterator<Item = (&'a str, String)>,
+) {
+    let _ = writeln!(
+        out,
+        "# HELP brickcast_{name} {help}\n# TYPE brickcast_{name} counter"
+    );
+    for (key, value) in rows {
+        let _ = writeln!(out, "brickcast_{name}{{{label}=\"{key}\"}} {value}");
+    }
 }
 
 fn nanos(d: Duration) -> u64 {
