@@ -1,12 +1,14 @@
 #!/usr/bin/env python3
-"""Opens N websocket connections to a brickcast scene that say Hello and then never read (or,
-with --read, read and discard everything: idle viewers).
+"""Hostile brickcast clients, for scripts/hostile-bench: what they cost a server (memory, other
+clients' latency, how long until it cuts them off). Plain sockets, no dependencies: the websocket
+handshake, the frames and the bincode of the few messages used are written by hand.
 
-Used by scripts/hostile-bench to measure what such clients cost a server (memory, other
-clients' latency, how long until stalled ones are cut off). Plain sockets, no dependencies: the
-websocket handshake and one masked binary frame are written by hand.
-
-    stalled-readers.py HOST PORT SCENE N SECONDS [--read]
+    hostile-client.py crowd HOST PORT SCENE N SECONDS [--read]
+        N connections that say Hello and then never read (stalled readers), or with --read read
+        and discard everything (idle viewers).
+    hostile-client.py ping|camera|huge HOST PORT SCENE SECONDS
+        One connection that never reads and keeps sending Pings, Camera updates, or Edit
+        messages of 4,096 spheres of radius 64.
 
 Holds the connections for SECONDS, then prints one JSON line: how many connected and how many
 were refused (idle viewers also: how many connections the server closed).
@@ -16,6 +18,7 @@ import json
 import os
 import selectors
 import socket
+import struct
 import sys
 import time
 
@@ -45,8 +48,10 @@ def frame(payload):
     n = len(payload)
     if n < 126:
         head += bytes([0x80 | n])
-    else:
+    elif n < 1 << 16:
         head += bytes([0x80 | 126]) + n.to_bytes(2, "big")
+    else:
+        head += bytes([0x80 | 127]) + n.to_bytes(8, "big")
     return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
 
 
@@ -73,7 +78,63 @@ def connect(host, port, scene):
     return s
 
 
+def f32s(values):
+    return b"".join(struct.pack("<f", v) for v in values)
+
+
+def ping(nonce):
+    # ClientMsg::Ping { nonce }, variant 4.
+    return varint(4) + varint(nonce)
+
+
+def camera(eye):
+    # ClientMsg::Camera { eye, forward }, variant 2: six f32.
+    return varint(2) + f32s(eye) + f32s([0.0, 0.0, 1.0])
+
+
+def huge_edit(client_seq, n):
+    # ClientMsg::Edit { client_seq, ops }, variant 1, with n ops EditOp::Sphere (variant 3):
+    # centre [f32; 3], radius f32, mode BrushMode::Fill (0), colour u16.
+    sphere = varint(3) + f32s([256.0, 128.0, 256.0]) + f32s([64.0]) + varint(0) + varint(0x07E0)
+    return varint(1) + varint(client_seq) + varint(n) + sphere * n
+
+
+def attack(host, port, scene, kind, seconds):
+    """One connection that keeps sending `kind` messages for `seconds` and never reads."""
+    s = connect(host, port, scene)
+    s.setblocking(False)
+    sent, end, i = 0, time.time() + seconds, 0
+    pending = b""
+    while time.time() < end:
+        if not pending:
+            i += 1
+            if kind == "ping":
+                pending = b"".join(frame(ping(i + k)) for k in range(100))
+            elif kind == "camera":
+                pending = b"".join(frame(camera([float((i + k) % 500), 300.0, 5.0])) for k in range(100))
+            elif kind == "huge":
+                pending = frame(huge_edit(i, 4096))
+            sent += 1 if kind == "huge" else 100
+        try:
+            n = s.send(pending)
+            pending = pending[n:]
+        except BlockingIOError:
+            time.sleep(0.001)
+        except OSError:
+            break
+    print(json.dumps({"attack": kind, "messages_sent": sent}))
+
+
 def main():
+    if sys.argv[1] in ("ping", "camera", "huge"):
+        kind, host, port, scene, seconds = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], float(sys.argv[5])
+        attack(host, port, scene, kind, seconds)
+        return
+    sys.argv = sys.argv[:1] + sys.argv[2:] if sys.argv[1] == "crowd" else sys.argv
+    crowd()
+
+
+def crowd():
     host, port, scene, n, seconds = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), float(sys.argv[5])
     read = "--read" in sys.argv[6:]
     sockets, refused = [], 0
