@@ -206,6 +206,10 @@ impl VirtualDisplay {
                     "1024x768x24",
                     "-nolisten",
                     "tcp",
+                    // Key presses sent through XTEST on a loaded machine can be held long
+                    // enough for X's auto-repeat (660 ms by default) to press them again.
+                    "-ardelay",
+                    "600000",
                 ])
                 .stdin(Stdio::null())
                 .stdout(Stdio::null())

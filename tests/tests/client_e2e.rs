@@ -339,14 +339,22 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
 
     // Keys: colour 5, brush radius 2; the title shows both.
     x(&["windowfocus", &window]).expect("focus");
-    x(&["key", "5", "bracketright", "bracketright"]).expect("keys");
+    for (key, shows) in [
+        ("5", "#3b8ed9"),
+        ("bracketright", "brush 1"),
+        ("bracketright", "brush 2"),
+    ] {
+        x(&["key", key]).expect("key");
+        assert!(
+            wait_until(Duration::from_secs(10), || title().contains(shows)),
+            "key {key} did not show {shows}; title: {}",
+            title()
+        );
+    }
+    let t = title();
     assert!(
-        wait_until(Duration::from_secs(10), || {
-            let t = title();
-            t.contains("#3b8ed9") && t.contains("brush 2")
-        }),
-        "keys did not change colour and brush; title: {}",
-        title()
+        t.contains("#3b8ed9") && t.contains("brush 2"),
+        "keys did not change colour and brush; title: {t}"
     );
 
     // After a resize, a right click with the brush fills a sphere where the new window's
