@@ -35,7 +35,7 @@ pub struct RenderReport {
 pub async fn fetch(url: &str, token: Option<&str>) -> Result<(Replica, f64)> {
     let url = link::websocket_url(url)?;
     let started = Instant::now();
-    let mut link = Link::connect(&url, "brickcast render", token, None)
+    let mut link = Link::connect(&url, "brickcast render", 0, token, None)
         .await
         .with_context(|| format!("connecting to {url}"))?;
     let mut replica = Replica::new(&link.welcome.scene, link.welcome.size)?;

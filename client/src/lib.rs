@@ -4,6 +4,7 @@
 
 pub mod gpu;
 pub mod headless;
+pub mod identity;
 pub mod link;
 pub mod live;
 pub mod load;

@@ -6,8 +6,8 @@
 use std::time::Duration;
 
 use brickcast_protocol::wire::{
-    ClientMsg, ErrorCode, Limits, PROTOCOL_VERSION, Role, ServerMsg, WireError, decode_server,
-    encode_client,
+    ClientMsg, ErrorCode, Limits, PROTOCOL_VERSION, Peer, Role, ServerMsg, UserId, WireError,
+    decode_server, encode_client,
 };
 use futures_util::{SinkExt, StreamExt};
 use tokio::net::TcpStream;
@@ -82,6 +82,10 @@ pub struct Welcome {
     pub role: Role,
     pub limits: Limits,
     pub total_bricks: u32,
+    /// This connection as others see it.
+    pub you: Peer,
+    /// Everyone else present when we joined.
+    pub peers: Vec<Peer>,
 }
 
 type Socket = WebSocketStream<MaybeTlsStream<TcpStream>>;
@@ -97,11 +101,12 @@ pub struct Link {
 }
 
 impl Link {
-    /// Connects and says hello, asking to resume from `resume_from` when the caller holds a
-    /// complete copy up to that sequence.
+    /// Connects and says hello as `name` (user id `user`, 0 for none), asking to resume from
+    /// `resume_from` when the caller holds a complete copy up to that sequence.
     pub async fn connect(
         url: &str,
         name: &str,
+        user: UserId,
         token: Option<&str>,
         resume_from: Option<u64>,
     ) -> Result<Link, LinkError> {
@@ -119,6 +124,7 @@ impl Link {
             name: name.to_string(),
             token: token.map(String::from),
             resume_from,
+            user,
         };
         let hello = encode_client(&hello)?;
         let bytes_out = hello.len() as u64;
@@ -138,6 +144,8 @@ impl Link {
                 role,
                 limits,
                 total_bricks,
+                you,
+                peers,
                 ..
             }) => Ok(Link {
                 ws,
@@ -149,6 +157,8 @@ impl Link {
                     role,
                     limits,
                     total_bricks,
+                    you,
+                    peers,
                 },
                 bytes_in,
                 bytes_out,

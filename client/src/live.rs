@@ -8,7 +8,8 @@
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
-use brickcast_protocol::wire::{ClientMsg, EditOp, Role, ServerMsg};
+use brickcast_protocol::roster::Roster;
+use brickcast_protocol::wire::{ClientMsg, Cursor, EditOp, Role, ServerMsg, UserId, View};
 use tokio::sync::mpsc;
 
 use crate::link::{Link, LinkError};
@@ -34,10 +35,16 @@ pub struct LiveState {
     pub role: Option<Role>,
     /// Largest brush radius the server accepts.
     pub max_radius: f32,
+    /// Presence messages the server accepts per second.
+    pub presence_hz: u32,
     /// Edit ops the server rejected, with the reason of the latest one.
     pub rejected: u64,
     pub last_rejection: Option<String>,
     pub connects: u32,
+    /// Who else is here, and who we are.
+    pub roster: Roster,
+    /// What the last undo or redo did, for the overlay.
+    pub last_undo: Option<String>,
 }
 
 /// Handle to the background connection.
@@ -52,15 +59,23 @@ const BACKOFF_MAX: Duration = Duration::from_secs(5);
 
 impl Live {
     /// Starts connecting to the websocket address `url` in a background thread.
-    pub fn start(url: String, name: String, token: Option<String>) -> std::io::Result<Live> {
+    pub fn start(
+        url: String,
+        name: String,
+        user: UserId,
+        token: Option<String>,
+    ) -> std::io::Result<Live> {
         let state = Arc::new(Mutex::new(LiveState {
             replica: None,
             status: Status::Connecting,
             role: None,
             max_radius: 0.0,
+            presence_hz: 1,
             rejected: 0,
             last_rejection: None,
             connects: 0,
+            roster: Roster::default(),
+            last_undo: None,
         }));
         let (outbox, inbox) = mpsc::unbounded_channel();
         let shared = state.clone();
@@ -69,7 +84,7 @@ impl Live {
             .build()?;
         std::thread::Builder::new()
             .name("brickcast-net".into())
-            .spawn(move || runtime.block_on(run(url, name, token, shared, inbox)))?;
+            .spawn(move || runtime.block_on(run(url, name, user, token, shared, inbox)))?;
         Ok(Live {
             state,
             outbox,
@@ -89,11 +104,29 @@ impl Live {
         self.next_client_seq += 1;
         let _ = self.outbox.send(ClientMsg::Edit { client_seq, ops });
     }
+
+    /// Asks the server to undo (or redo) this user's latest step.
+    pub fn undo(&mut self, redo: bool) {
+        let client_seq = self.next_client_seq;
+        self.next_client_seq += 1;
+        let msg = if redo {
+            ClientMsg::Redo { client_seq }
+        } else {
+            ClientMsg::Undo { client_seq }
+        };
+        let _ = self.outbox.send(msg);
+    }
+
+    /// Shares where we look and point (the caller keeps to the server's rate).
+    pub fn presence(&self, view: Option<View>, cursor: Option<Cursor>) {
+        let _ = self.outbox.send(ClientMsg::Presence { view, cursor });
+    }
 }
 
 async fn run(
     url: String,
     name: String,
+    user: UserId,
     token: Option<String>,
     state: Arc<Mutex<LiveState>>,
     mut inbox: mpsc::UnboundedReceiver<ClientMsg>,
@@ -102,7 +135,7 @@ async fn run(
     let mut backoff = BACKOFF_START;
     loop {
         let resume = lock().replica.as_ref().and_then(Replica::resume_point);
-        let reason = match Link::connect(&url, &name, token.as_deref(), resume).await {
+        let reason = match Link::connect(&url, &name, user, token.as_deref(), resume).await {
             Ok(mut link) => {
                 backoff = BACKOFF_START;
                 {
@@ -124,7 +157,9 @@ async fn run(
                     s.status = Status::Syncing;
                     s.role = Some(w.role);
                     s.max_radius = w.limits.max_brush_radius;
+                    s.presence_hz = w.limits.presence_hz;
                     s.connects += 1;
+                    s.roster.welcome(w.you.clone(), &w.peers);
                 }
                 match pump(&mut link, &state, &mut inbox).await {
                     Ok(true) => {
@@ -172,6 +207,22 @@ async fn pump(
                     ServerMsg::Ack { rejected, .. } if !rejected.is_empty() => {
                         s.rejected += rejected.len() as u64;
                         s.last_rejection = rejected.last().map(|r| format!("{:?}", r.reason));
+                    }
+                    ServerMsg::Undone { redo, restored, kept, refused, .. } => {
+                        let what = if *redo { "redo" } else { "undo" };
+                        s.last_undo = Some(match refused {
+                            Some(reason) => format!("{what}: {reason}"),
+                            None if *kept > 0 => format!(
+                                "{what}: {restored} voxels back, {kept} kept (changed by others since)"
+                            ),
+                            None => format!("{what}: {restored} voxels back"),
+                        });
+                    }
+                    ServerMsg::Presence { .. } => {
+                        s.roster.apply(&msg);
+                    }
+                    ServerMsg::Refused { reason } => {
+                        tracing::warn!("the server refused a request: {reason}");
                     }
                     _ => {}
                 }

@@ -9,7 +9,9 @@
 //! Controls: WASD to fly, Space/E up, Q/C down, mouse look while the middle button is held (or
 //! after Tab, which captures the cursor and aims with a crosshair at the centre); the wheel sets
 //! the speed. Left click removes, right click places, Ctrl+left paints; 1–8 pick a colour, `[` and
-//! `]` set the brush radius (0 edits single voxels, more carves or fills spheres).
+//! `]` set the brush radius (0 edits single voxels, more carves or fills spheres). Ctrl+Z undoes
+//! your own latest edit, Ctrl+Shift+Z or Ctrl+Y redoes it. Where you look and point is shared
+//! with everyone in the scene (at most 20 times a second).
 
 use std::collections::HashSet;
 use std::path::PathBuf;
@@ -17,7 +19,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow};
-use brickcast_protocol::wire::{BrushMode, EditOp, RayAction, Role};
+use brickcast_protocol::wire::{BrushMode, Cursor, EditOp, RayAction, Role, View};
 use brickcast_protocol::{Camera, Colour, Lighting, Projection};
 use winit::application::ApplicationHandler;
 use winit::event::{
@@ -50,6 +52,9 @@ pub struct ViewArgs {
     /// With --exit-after: save the last frame, as shown in the window, to this PNG.
     #[arg(long)]
     pub screenshot: Option<PathBuf>,
+    /// The name others see (default: the OS user name).
+    #[arg(long)]
+    pub name: Option<String>,
 }
 
 /// The palette behind keys 1–8.
@@ -157,6 +162,9 @@ struct App {
     synced_frames: u32,
     /// Projection of the last traced frame, for turning clicks into rays.
     projection: Option<Projection>,
+    /// The presence last sent, and when the next may go.
+    presence_sent: Option<(Option<View>, Option<Cursor>)>,
+    presence_at: Instant,
 }
 
 /// Opens the window and runs until it is closed.
@@ -174,8 +182,13 @@ pub fn run(url: &str, token: Option<String>, args: ViewArgs) -> Result<()> {
         BackendChoice::Primary
     };
     let instance = new_instance(backends, Some(Box::new(event_loop.owned_display_handle())));
-    let live =
-        Live::start(url, "brickcast view".into(), token).context("starting the network thread")?;
+    let name = args
+        .name
+        .clone()
+        .unwrap_or_else(crate::identity::default_name);
+    brickcast_protocol::wire::check_display_name(&name).map_err(|e| anyhow!("--name: {e}"))?;
+    let live = Live::start(url, name, crate::identity::user_id(), token)
+        .context("starting the network thread")?;
     let mut app = App {
         args: ViewArgs {
             size: format!("{w}x{h}"),
@@ -200,6 +213,8 @@ pub fn run(url: &str, token: Option<String>, args: ViewArgs) -> Result<()> {
         fps: 0.0,
         synced_frames: 0,
         projection: None,
+        presence_sent: None,
+        presence_at: Instant::now(),
     };
     event_loop
         .run_app(&mut app)
@@ -319,11 +334,13 @@ impl App {
             return Ok(());
         };
         // Bring the GPU copy up to date with what the network thread applied.
-        let (status, role, synced, progress, rejected) = {
+        let (status, role, synced, progress, rejected, others, undo) = {
             let mut live = self.live.lock();
             let status = live.status.clone();
             let role = live.role;
             let rejected = live.last_rejection.clone();
+            let others = live.roster.others.len();
+            let undo = live.last_undo.clone();
             match &mut live.replica {
                 Some(replica) => {
                     let size = replica.map.size();
@@ -337,9 +354,17 @@ impl App {
                         scene.update(&gpu.ctx, &mut replica.map)?;
                     }
                     let progress = (replica.sync_sent, replica.sync_total);
-                    (status, role, replica.synced, progress, rejected)
+                    (
+                        status,
+                        role,
+                        replica.synced,
+                        progress,
+                        rejected,
+                        others,
+                        undo,
+                    )
                 }
-                None => (status, role, false, (0, 0), rejected),
+                None => (status, role, false, (0, 0), rejected, others, undo),
             }
         };
         if let Status::Failed(reason) = &status {
@@ -348,6 +373,10 @@ impl App {
         if let Some(camera) = &mut self.camera {
             camera.fly(movement, dt);
         }
+        self.share_presence();
+        let Some(gpu) = &mut self.gpu else {
+            return Ok(());
+        };
         let frame = match gpu.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(t)
             | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
@@ -483,8 +512,14 @@ impl App {
                 "brickcast — {state} — {:.1} fps — {role} — colour #{r:02x}{g:02x}{b:02x} (1-8), brush {} ([ ])",
                 self.fps, self.radius
             );
+            if others > 0 {
+                title.push_str(&format!(" — {others} others here"));
+            }
             if let Some(why) = rejected {
                 title.push_str(&format!(" — last edit rejected: {why}"));
+            }
+            if let Some(undo) = undo {
+                title.push_str(&format!(" — {undo}"));
             }
             gpu.window.set_title(&title);
         }
@@ -500,16 +535,7 @@ impl App {
             tracing::info!("this connection may only watch; edits are ignored");
             return;
         }
-        let scale = f64::from(self.args.scale);
-        let (x, y) = if self.captured {
-            (projection.width / 2, projection.height / 2)
-        } else {
-            (
-                ((self.cursor.0 / scale) as u32).min(projection.width - 1),
-                ((self.cursor.1 / scale) as u32).min(projection.height - 1),
-            )
-        };
-        let ray = projection.ray(x, y);
+        let ray = self.pointer_ray(&projection);
         let (r, g, b) = PALETTE[self.colour];
         let colour = Colour::from_rgb8(r, g, b);
         let paint = self.modifiers.control_key();
@@ -538,6 +564,56 @@ impl App {
             dir: ray.dir,
             action,
         }]);
+    }
+
+    /// The ray under the pointer (the crosshair at the centre while the cursor is captured).
+    fn pointer_ray(&self, projection: &Projection) -> brickcast_protocol::Ray {
+        let scale = f64::from(self.args.scale);
+        let (x, y) = if self.captured {
+            (projection.width / 2, projection.height / 2)
+        } else {
+            (
+                ((self.cursor.0 / scale) as u32).min(projection.width - 1),
+                ((self.cursor.1 / scale) as u32).min(projection.height - 1),
+            )
+        };
+        projection.ray(x, y)
+    }
+
+    /// Shares where we look and what the pointer is on, when it changed and the server's rate
+    /// allows. The cursor voxel is traced on the local copy, which is what the user sees.
+    fn share_presence(&mut self) {
+        let now = Instant::now();
+        if now < self.presence_at {
+            return;
+        }
+        let Some(camera) = self.camera else { return };
+        let view = Some(View {
+            eye: camera.eye,
+            forward: camera.forward(),
+        });
+        let (hz, cursor) = {
+            let live = self.live.lock();
+            let hz = live.presence_hz.max(1);
+            let cursor = match (&live.replica, &self.projection) {
+                (Some(replica), Some(projection)) => {
+                    brickcast_protocol::trace(&replica.map, &self.pointer_ray(projection)).map(
+                        |hit| Cursor {
+                            voxel: hit.voxel,
+                            radius: self.radius,
+                        },
+                    )
+                }
+                _ => None,
+            };
+            (hz, cursor)
+        };
+        let now_sharing = (view, cursor);
+        if self.presence_sent != Some(now_sharing) {
+            self.live.presence(view, cursor);
+            self.presence_sent = Some(now_sharing);
+            self.presence_at = now + Duration::from_secs_f64(1.0 / f64::from(hz));
+        }
     }
 
     fn set_captured(&mut self, on: bool) {
@@ -593,7 +669,11 @@ impl ApplicationHandler for App {
                 if event.repeat {
                     return;
                 }
+                let ctrl = self.modifiers.control_key();
+                let shift = self.modifiers.shift_key();
                 match code {
+                    KeyCode::KeyZ if ctrl => self.live.undo(shift),
+                    KeyCode::KeyY if ctrl => self.live.undo(true),
                     KeyCode::Escape if self.captured => self.set_captured(false),
                     KeyCode::Escape => event_loop.exit(),
                     KeyCode::Tab => self.set_captured(!self.captured),

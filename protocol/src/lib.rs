@@ -8,6 +8,7 @@
 //! * [`apply`]: what a wire edit op does to a brick map (shared by the server and log replay).
 //! * [`demo`]: the built-in procedural demo scene.
 //! * [`replica`]: a client's copy of a scene, kept current by applying server messages.
+//! * [`roster`]: a client's list of who else is present and what they look at.
 
 pub mod apply;
 pub mod brick;
@@ -16,6 +17,7 @@ pub mod demo;
 pub mod map;
 pub mod render;
 pub mod replica;
+pub mod roster;
 pub mod trace;
 pub mod wire;
 

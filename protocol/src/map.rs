@@ -177,6 +177,8 @@ pub struct BrickMap {
     touched: Vec<u32>,
     track_touched: bool,
     gpu: Option<GpuChanges>,
+    /// While journaling: linear cell index → the brick it held before the first change.
+    journal: Option<HashMap<u32, Option<BrickData>>>,
 }
 
 /// Colour capacity given to a brick with `n` solid voxels: rounded up to a multiple of 2 (one
@@ -225,6 +227,7 @@ impl BrickMap {
             touched: Vec::new(),
             track_touched: false,
             gpu: None,
+            journal: None,
         })
     }
 
@@ -254,6 +257,38 @@ impl BrickMap {
     pub fn set_sequence(&mut self, sequence: u64) {
         debug_assert!(sequence >= self.sequence, "sequence went backwards");
         self.sequence = sequence;
+    }
+
+    /// Starts recording the brick every following edit changes, as it was before its first
+    /// change: the before-image of a step, for undo. [`BrickMap::end_journal`] hands it over.
+    pub fn begin_journal(&mut self) {
+        self.journal = Some(HashMap::new());
+    }
+
+    /// Stops journaling and returns each cell changed since [`BrickMap::begin_journal`] (linear
+    /// index, ascending) with the brick it held before (`None`: empty). A cell may appear whose
+    /// brick ended as it began.
+    pub fn end_journal(&mut self) -> Vec<(u32, Option<BrickData>)> {
+        let mut entries: Vec<_> = self
+            .journal
+            .take()
+            .unwrap_or_default()
+            .into_iter()
+            .collect();
+        entries.sort_unstable_by_key(|(cell, _)| *cell);
+        entries
+    }
+
+    /// Journals the cell's brick before a change, once per journal.
+    fn note_before(&mut self, cell: [u32; 3]) {
+        let index = self.cell_index(cell);
+        if self.journal.as_ref().is_none_or(|j| j.contains_key(&index)) {
+            return;
+        }
+        let before = self.brick(cell);
+        if let Some(journal) = &mut self.journal {
+            journal.insert(index, before);
+        }
     }
 
     /// Starts (or stops) recording which cells edits touch, for delta streaming.
@@ -392,6 +427,9 @@ impl BrickMap {
         }
         let cell = pos.map(|p| p / BRICK_EDGE);
         let bit = voxel_bit(pos[0], pos[1], pos[2]);
+        if self.journal.is_some() {
+            self.note_before(cell);
+        }
         let Some(slot) = self.slot_of_cell(cell) else {
             if mode != BrushMode::Fill {
                 return false;
@@ -621,6 +659,7 @@ impl BrickMap {
         if changed == 0 {
             return 0;
         }
+        self.note_before(cell);
         match slot {
             None => self.insert_brick(cell, new_mask, &scratch[..n]),
             Some(s) if n == 0 => self.remove_slot(s),
@@ -635,6 +674,7 @@ impl BrickMap {
     /// whatever the cell held. Validates it against the scene first; on error nothing changes.
     pub fn put_brick(&mut self, brick: &BrickData) -> Result<(), MapError> {
         self.check_brick(brick)?;
+        self.note_before(brick.cell);
         match self.slot_of_cell(brick.cell) {
             Some(slot) => self.replace_brick(slot, brick.mask, &brick.colours),
             None => self.insert_brick(brick.cell, brick.mask, &brick.colours),
@@ -670,6 +710,7 @@ impl BrickMap {
     pub fn remove_brick(&mut self, cell: [u32; 3]) -> bool {
         match self.slot_of_cell(cell) {
             Some(slot) => {
+                self.note_before(cell);
                 self.remove_slot(slot);
                 true
             }

@@ -164,7 +164,12 @@ impl Replica {
                     self.clear(&scene, size)?;
                 }
             }
-            ServerMsg::Ack { .. } | ServerMsg::Error { .. } | ServerMsg::Pong { .. } => {}
+            ServerMsg::Ack { .. }
+            | ServerMsg::Error { .. }
+            | ServerMsg::Pong { .. }
+            | ServerMsg::Presence { .. }
+            | ServerMsg::Undone { .. }
+            | ServerMsg::Refused { .. } => {}
         }
         Ok(())
     }

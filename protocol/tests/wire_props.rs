@@ -132,13 +132,65 @@ fn client_msg() -> impl Strategy<Value = ClientMsg> {
                 protocol,
                 name,
                 token,
-                resume_from
+                resume_from,
+                user: resume_from.unwrap_or(7),
             }),
         (any::<u64>(), vec(edit_op(), 0..48))
             .prop_map(|(client_seq, ops)| ClientMsg::Edit { client_seq, ops }),
         (vec3(), vec3()).prop_map(|(eye, forward)| ClientMsg::Camera { eye, forward }),
         any::<u64>().prop_map(|since| ClientMsg::Resume { since }),
         any::<u64>().prop_map(|nonce| ClientMsg::Ping { nonce }),
+        any::<u64>().prop_map(|client_seq| ClientMsg::Undo { client_seq }),
+        any::<u64>().prop_map(|client_seq| ClientMsg::Redo { client_seq }),
+        (proptest::option::of(view()), proptest::option::of(cursor()))
+            .prop_map(|(view, cursor)| ClientMsg::Presence { view, cursor }),
+        "\\PC{0,80}".prop_map(|name| ClientMsg::Rename { name }),
+    ]
+}
+
+fn view() -> impl Strategy<Value = View> {
+    (vec3(), vec3()).prop_map(|(eye, forward)| View { eye, forward })
+}
+
+fn cursor() -> impl Strategy<Value = Cursor> {
+    (pos(), finite()).prop_map(|(voxel, radius)| Cursor { voxel, radius })
+}
+
+fn peer() -> impl Strategy<Value = Peer> {
+    (
+        any::<u64>(),
+        any::<u64>(),
+        "\\PC{0,16}",
+        colour(),
+        prop_oneof![Just(Role::Editor), Just(Role::Viewer)],
+    )
+        .prop_map(|(id, user, name, colour, role)| Peer {
+            id,
+            user,
+            name,
+            colour,
+            role,
+        })
+}
+
+fn peer_state() -> impl Strategy<Value = PeerState> {
+    (
+        any::<u64>(),
+        proptest::option::of(view()),
+        proptest::option::of(cursor()),
+    )
+        .prop_map(|(id, view, cursor)| PeerState { id, view, cursor })
+}
+
+fn refusal() -> impl Strategy<Value = Refusal> {
+    prop_oneof![
+        Just(Refusal::NothingToUndo),
+        Just(Refusal::NothingToRedo),
+        Just(Refusal::NotAllowed),
+        Just(Refusal::RateLimited),
+        Just(Refusal::NotFinite),
+        any::<u32>().prop_map(|max| Refusal::BadName { max }),
+        Just(Refusal::OutOfRange),
     ]
 }
 
@@ -173,14 +225,18 @@ fn limits() -> impl Strategy<Value = Limits> {
         finite().prop_filter("positive", |r| *r > 0.0),
         1..=u32::MAX,
         1..=u32::MAX,
+        (any::<u32>(), any::<u64>(), 1..=MAX_PRESENCE_HZ),
     )
-        .prop_map(|(f, o, b, r, e, s)| Limits {
+        .prop_map(|(f, o, b, r, e, s, (steps, bytes, hz))| Limits {
             max_frame_bytes: f,
             max_ops_per_batch: o,
             max_bricks_per_frame: b,
             max_brush_radius: r,
             max_box_extent: e,
             max_edits_per_second: s,
+            max_undo_steps: steps,
+            max_undo_bytes: bytes,
+            presence_hz: hz,
         })
 }
 
@@ -223,10 +279,11 @@ fn server_msg() -> impl Strategy<Value = ServerMsg> {
             any::<u64>(),
             role,
             limits(),
-            any::<u32>()
+            any::<u32>(),
+            (peer(), vec(peer(), 0..4)),
         )
             .prop_map(
-                |(protocol, server, scene, size, seq, role, limits, total_bricks)| {
+                |(protocol, server, scene, size, seq, role, limits, total_bricks, (you, peers))| {
                     ServerMsg::Welcome {
                         protocol,
                         server,
@@ -236,6 +293,8 @@ fn server_msg() -> impl Strategy<Value = ServerMsg> {
                         role,
                         limits,
                         total_bricks,
+                        you,
+                        peers,
                     }
                 }
             ),
@@ -274,6 +333,36 @@ fn server_msg() -> impl Strategy<Value = ServerMsg> {
         (error_code(), "\\PC{0,256}")
             .prop_map(|(code, message)| ServerMsg::Error { code, message }),
         any::<u64>().prop_map(|nonce| ServerMsg::Pong { nonce }),
+        (
+            any::<bool>(),
+            vec(peer(), 0..4),
+            vec(any::<u64>(), 0..4),
+            vec(peer_state(), 0..8)
+        )
+            .prop_map(|(full, joined, left, states)| ServerMsg::Presence {
+                full,
+                joined,
+                left,
+                states
+            }),
+        (
+            any::<u64>(),
+            any::<bool>(),
+            any::<Option<u64>>(),
+            any::<(u64, u64)>(),
+            proptest::option::of(refusal())
+        )
+            .prop_map(|(client_seq, redo, seq, (restored, kept), refused)| {
+                ServerMsg::Undone {
+                    client_seq,
+                    redo,
+                    seq,
+                    restored,
+                    kept,
+                    refused,
+                }
+            }),
+        refusal().prop_map(|reason| ServerMsg::Refused { reason }),
     ]
 }
 
@@ -431,6 +520,7 @@ fn hello() -> ClientMsg {
         name: "viewer".into(),
         token: Some("secret".into()),
         resume_from: Some(42),
+        user: 1234,
     }
 }
 
@@ -451,7 +541,7 @@ fn raw_frame<T: serde::Serialize>(value: &T) -> Vec<u8> {
 
 #[test]
 fn hello_carries_the_protocol_version() {
-    assert_eq!(PROTOCOL_VERSION, 1);
+    assert_eq!(PROTOCOL_VERSION, 2);
     let bytes = encode_client(&hello()).expect("encode");
     match decode_client(&bytes, &Limits::default()).expect("decode") {
         ClientMsg::Hello { protocol, .. } => assert_eq!(protocol, PROTOCOL_VERSION),
@@ -468,10 +558,14 @@ fn hello_layout_is_stable() {
 
 #[test]
 fn a_future_hello_still_shows_its_version() {
-    // Version 2 of `Hello` with a field this version does not know about.
-    let future = raw_frame(&(0u32, 2u32, "name", None::<String>, None::<u64>, 99u8));
+    // Version 3 of `Hello` with a field this version does not know about.
+    let future = raw_frame(&(0u32, 3u32, "name", None::<String>, None::<u64>, 5u64, 99u8));
     assert!(decode_client(&future, &Limits::default()).is_err());
-    assert_eq!(hello_version(&future), Some(2));
+    assert_eq!(hello_version(&future), Some(3));
+    // Version 1, whose `Hello` had no user id: its version still reads.
+    let past = raw_frame(&(0u32, 1u32, "name", None::<String>, None::<u64>));
+    assert!(decode_client(&past, &Limits::default()).is_err());
+    assert_eq!(hello_version(&past), Some(1));
     assert_eq!(
         hello_version(&encode_client(&hello()).expect("encode")),
         Some(PROTOCOL_VERSION)
@@ -567,6 +661,7 @@ fn long_texts_are_refused_both_ways() {
         name: "x".repeat(MAX_NAME_BYTES + 1),
         token: None,
         resume_from: None,
+        user: 0,
     };
     assert!(matches!(
         encode_client(&long),
@@ -585,6 +680,7 @@ fn long_texts_are_refused_both_ways() {
         name: "n".into(),
         token: Some("t".repeat(MAX_TOKEN_BYTES + 1)),
         resume_from: None,
+        user: 0,
     };
     assert!(decode_client(&raw_frame(&token), &Limits::hard_caps()).is_err());
     let error = ServerMsg::Error {
@@ -618,6 +714,14 @@ fn welcome_with_unusable_limits_is_refused() {
         role: Role::Editor,
         limits,
         total_bricks: 0,
+        you: Peer {
+            id: 1,
+            user: 2,
+            name: "me".into(),
+            colour: Colour::WHITE,
+            role: Role::Editor,
+        },
+        peers: Vec::new(),
     };
     let ok = encode_server(&welcome(Limits::default())).expect("encode");
     assert!(decode_server(&ok, &Limits::hard_caps()).is_ok());

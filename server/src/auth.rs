@@ -1,7 +1,8 @@
 //! Tokens → roles, from the `--auth FILE`.
 //!
-//! File format: one `TOKEN ROLE` pair per line (`ROLE` is `editor` or `viewer`), `#` comments and
-//! blank lines ignored. Without a file every connection is an editor (a local, single-user
+//! File format: one `TOKEN ROLE [NAME]` line per token (`ROLE` is `editor` or `viewer`; `NAME`,
+//! optional, is the user's display name, which then also pins their user id: see
+//! `crate::identity`), `#` comments and blank lines ignored. Without a file every connection is an editor (a local, single-user
 //! server). With one, a connection without a token is a viewer (hosting for remote viewers), and
 //! an unknown token is refused outright so that a typo is loud rather than silently read-only.
 
@@ -13,20 +14,38 @@ use brickcast_protocol::wire::Role;
 
 #[derive(Debug, Clone, Default)]
 pub struct Auth {
-    tokens: Option<HashMap<String, Role>>,
+    tokens: Option<HashMap<String, Grant>>,
+}
+
+/// What a token grants: a role, and the user it belongs to when the line names one.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Grant {
+    pub role: Role,
+    pub name: Option<String>,
 }
 
 /// The outcome of presenting a token.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Access {
-    Granted(Role),
+    Granted(Grant),
     Refused,
+}
+
+impl Access {
+    fn role(role: Role) -> Access {
+        Access::Granted(Grant { role, name: None })
+    }
 }
 
 impl Auth {
     /// Everyone is an editor.
     pub fn open() -> Auth {
         Auth { tokens: None }
+    }
+
+    /// Whether every connection is let in as an editor (no `--auth` file).
+    pub fn is_open(&self) -> bool {
+        self.tokens.is_none()
     }
 
     pub fn from_file(path: &Path) -> anyhow::Result<Auth> {
@@ -43,9 +62,16 @@ impl Auth {
                 continue;
             }
             let mut parts = line.split_whitespace();
-            let (Some(token), Some(role), None) = (parts.next(), parts.next(), parts.next()) else {
-                bail!("line {}: expected `TOKEN ROLE`", n + 1);
+            let (Some(token), Some(role)) = (parts.next(), parts.next()) else {
+                bail!("line {}: expected `TOKEN ROLE [NAME]`", n + 1);
             };
+            let rest: Vec<&str> = parts.collect();
+            let name = (!rest.is_empty()).then(|| rest.join(" "));
+            if let Some(name) = &name
+                && let Err(e) = brickcast_protocol::wire::check_display_name(name)
+            {
+                bail!("line {}: {e}", n + 1);
+            }
             let role = match role {
                 "editor" => Role::Editor,
                 "viewer" => Role::Viewer,
@@ -54,7 +80,10 @@ impl Auth {
                     n + 1
                 ),
             };
-            if tokens.insert(token.to_string(), role).is_some() {
+            if tokens
+                .insert(token.to_string(), Grant { role, name })
+                .is_some()
+            {
                 bail!("line {}: token listed twice", n + 1);
             }
         }
@@ -65,9 +94,11 @@ impl Auth {
 
     pub fn check(&self, token: Option<&str>) -> Access {
         match (&self.tokens, token) {
-            (None, _) => Access::Granted(Role::Editor),
-            (Some(_), None) => Access::Granted(Role::Viewer),
-            (Some(map), Some(t)) => map.get(t).map_or(Access::Refused, |&r| Access::Granted(r)),
+            (None, _) => Access::role(Role::Editor),
+            (Some(_), None) => Access::role(Role::Viewer),
+            (Some(map), Some(t)) => map
+                .get(t)
+                .map_or(Access::Refused, |g| Access::Granted(g.clone())),
         }
     }
 }
@@ -78,15 +109,20 @@ mod tests {
 
     #[test]
     fn roles_from_file() {
-        let auth = Auth::parse("# team\nalice-secret editor\nbob viewer  # read only\n\n").unwrap();
+        let auth =
+            Auth::parse("# team\nalice-secret editor Alice Liddell\nbob viewer  # read only\n\n")
+                .unwrap();
         assert_eq!(
             auth.check(Some("alice-secret")),
-            Access::Granted(Role::Editor)
+            Access::Granted(Grant {
+                role: Role::Editor,
+                name: Some("Alice Liddell".into())
+            })
         );
-        assert_eq!(auth.check(Some("bob")), Access::Granted(Role::Viewer));
-        assert_eq!(auth.check(None), Access::Granted(Role::Viewer));
+        assert_eq!(auth.check(Some("bob")), Access::role(Role::Viewer));
+        assert_eq!(auth.check(None), Access::role(Role::Viewer));
         assert_eq!(auth.check(Some("mallory")), Access::Refused);
-        assert_eq!(Auth::open().check(None), Access::Granted(Role::Editor));
+        assert_eq!(Auth::open().check(None), Access::role(Role::Editor));
         assert!(Auth::parse("x admin").is_err());
         assert!(Auth::parse("x").is_err());
         assert!(Auth::parse("x editor\nx viewer").is_err());

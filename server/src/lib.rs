@@ -11,11 +11,15 @@
 //! commit → ack to the editor → one encoded delta → every session's outbox → websocket.
 
 pub mod auth;
+mod bucket;
 pub mod conns;
 pub mod http;
+pub mod identity;
 pub mod import;
 pub mod incoming;
 pub mod metrics;
+pub mod presence;
+pub mod record;
 pub mod scene;
 pub mod session;
 #[cfg(test)]

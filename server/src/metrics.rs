@@ -143,6 +143,20 @@ pub struct Metrics {
     pub refused_connections: AtomicU64,
     /// Camera updates forwarded to scene owners (after the per-session throttle).
     pub camera_updates: AtomicU64,
+    /// Presence frames queued, their bytes, and frames skipped for a long queue.
+    pub presence_frames: AtomicU64,
+    pub presence_bytes: AtomicU64,
+    pub presence_skipped: AtomicU64,
+    /// Presence messages from clients, and those refused (bad numbers, too fast).
+    pub presence_updates: AtomicU64,
+    pub presence_refused: AtomicU64,
+    /// Undo and redo requests applied (a step was taken from a stack), refused, and the voxels
+    /// they restored or kept.
+    pub undos: AtomicU64,
+    pub redos: AtomicU64,
+    pub history_refused: AtomicU64,
+    pub undo_voxels_restored: AtomicU64,
+    pub undo_voxels_kept: AtomicU64,
     pub commits: AtomicU64,
     pub snapshots: AtomicU64,
     commit_buckets: [AtomicU64; COMMIT_BUCKETS_US.len()],
@@ -294,6 +308,52 @@ impl Metrics {
             "Camera updates forwarded to scene owners (at most one per session per 50 ms).",
             get(&self.camera_updates),
         );
+        for (name, help, value) in [
+            (
+                "presence_frames_total",
+                "Presence frames queued to clients.",
+                &self.presence_frames,
+            ),
+            (
+                "presence_bytes_total",
+                "Bytes of presence frames queued to clients.",
+                &self.presence_bytes,
+            ),
+            (
+                "presence_skipped_total",
+                "Presence frames not queued to a client whose queue was long (it gets a full frame later).",
+                &self.presence_skipped,
+            ),
+            (
+                "presence_updates_total",
+                "Presence messages accepted from clients.",
+                &self.presence_updates,
+            ),
+            (
+                "presence_refused_total",
+                "Presence and rename messages refused (bad numbers or names, too fast).",
+                &self.presence_refused,
+            ),
+            ("undos_total", "Undo steps applied.", &self.undos),
+            ("redos_total", "Redo steps applied.", &self.redos),
+            (
+                "history_refused_total",
+                "Undo and redo requests refused (nothing to undo or redo, viewers, too fast).",
+                &self.history_refused,
+            ),
+            (
+                "undo_voxels_restored_total",
+                "Voxels undo and redo put back.",
+                &self.undo_voxels_restored,
+            ),
+            (
+                "undo_voxels_kept_total",
+                "Voxels undo and redo left alone because someone changed them since.",
+                &self.undo_voxels_kept,
+            ),
+        ] {
+            metric(name, "counter", help, get(value));
+        }
         metric(
             "snapshots_total",
             "counter",

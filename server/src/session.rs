@@ -12,13 +12,15 @@ use std::time::{Duration, Instant};
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use brickcast_protocol::wire::{
-    ClientMsg, ErrorCode, Limits, OpRejection, PROTOCOL_VERSION, Rejection, Role, ServerMsg,
-    decode_client, hello_version,
+    ClientMsg, Cursor, ErrorCode, Limits, OpRejection, PROTOCOL_VERSION, Peer, Refusal, Rejection,
+    Role, ServerMsg, View, check_display_name, decode_client, hello_version,
 };
 use futures_util::{SinkExt, StreamExt};
 
 use crate::App;
 use crate::auth::Access;
+use crate::bucket::Bucket;
+use crate::identity::{Identity, identify};
 use crate::metrics::{Metrics, ReadError, SessionPhase};
 use crate::scene::{Command, Outbox, OutboxReceiver, SceneHandle, SessionId};
 
@@ -29,40 +31,6 @@ const CLOSE_GRACE: Duration = Duration::from_secs(2);
 const MAX_WRITE_BATCH: usize = 1 << 20;
 /// How long a new connection may take to say Hello.
 const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
-
-/// A token bucket: `rate` units per second, refilled continuously, holding at most `burst`.
-/// Sessions keep one per thing a client can ask too much of (ops, edit work, resumes).
-struct Bucket {
-    rate: f64,
-    burst: f64,
-    tokens: f64,
-    at: Instant,
-}
-
-impl Bucket {
-    fn new(rate: f64, burst: f64) -> Bucket {
-        Bucket {
-            rate,
-            burst,
-            tokens: burst,
-            at: Instant::now(),
-        }
-    }
-
-    /// Takes `n` units if the bucket holds them.
-    fn take(&mut self, n: f64) -> bool {
-        let now = Instant::now();
-        self.tokens =
-            (self.tokens + now.duration_since(self.at).as_secs_f64() * self.rate).min(self.burst);
-        self.at = now;
-        if self.tokens >= n {
-            self.tokens -= n;
-            true
-        } else {
-            false
-        }
-    }
-}
 
 /// Camera updates a session forwards to the owner, at most: the owner re-sorts the client's
 /// pending sync on each, so a flood of them is cut to the latest one per interval.
@@ -85,8 +53,18 @@ pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
         app.stall_timeout,
     ));
 
-    match handshake(&mut stream, &scene, &app, &out).await {
-        Some((role, resume_from)) => {
+    match handshake(&mut stream, &scene, &app, &out, id).await {
+        Some((role, resume_from, who)) => {
+            let peer = Peer {
+                id,
+                user: who.user,
+                name: who.name.clone(),
+                colour: who.colour,
+                role,
+            };
+            // Registered before the Welcome is built, so the roster it lists and the presence
+            // frames after it leave nobody out.
+            let roster = scene.presence.join(peer.clone(), out.clone());
             let (joined, welcomed) = tokio::sync::oneshot::channel();
             let sent = scene
                 .send(Command::Join {
@@ -94,17 +72,32 @@ pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
                     out: out.clone(),
                     role,
                     resume_from,
+                    who: crate::scene::Joiner {
+                        peer,
+                        stable: who.stable,
+                        roster,
+                    },
                     joined,
                 })
                 .await;
             // Nothing goes out before the Welcome: the reader starts (and can queue pongs,
             // errors and refusals) only once the owner has queued it.
             if sent.is_ok() && welcomed.await.is_ok() {
-                read_loop(&mut stream, &scene, &app, &out, id, role).await;
+                scene.presence.welcomed(id);
+                let session = Session {
+                    scene: &scene,
+                    app: &app,
+                    out: &out,
+                    id,
+                    role,
+                    who: &who,
+                };
+                read_loop(&mut stream, session).await;
                 let _ = scene.send(Command::Leave { session: id }).await;
             } else {
                 out.close(ErrorCode::ShuttingDown, "the scene is shutting down");
             }
+            scene.presence.leave(id);
         }
         None => tracing::debug!(session = id, "handshake failed"),
     }
@@ -130,7 +123,8 @@ async fn handshake(
     scene: &SceneHandle,
     app: &App,
     out: &Outbox,
-) -> Option<(Role, Option<u64>)> {
+    id: SessionId,
+) -> Option<(Role, Option<u64>, Identity)> {
     let fail = |code: ErrorCode, text: String| {
         app.metrics.rejected_frames.fetch_add(1, Relaxed);
         out.close(code, text);
@@ -166,11 +160,14 @@ async fn handshake(
             token,
             resume_from,
             name,
+            user,
             ..
         }) => match app.auth.check(token.as_deref()) {
-            Access::Granted(role) => {
-                tracing::info!(scene = %scene.name, client = %name, ?role, ?resume_from, "client joined");
-                Some((role, resume_from))
+            Access::Granted(grant) => {
+                let who = identify(app.auth.is_open(), grant.name.as_deref(), user, &name, id);
+                let role = grant.role;
+                tracing::info!(scene = %scene.name, client = %who.name, user = who.user, ?role, ?resume_from, "client joined");
+                Some((role, resume_from, who))
             }
             Access::Refused => fail(ErrorCode::Unauthorized, "unknown token".into()),
         },
@@ -213,14 +210,62 @@ fn read_error(e: axum::Error, metrics: &Metrics) -> Option<(ErrorCode, String)> 
     code.map(|code| (code, format!("unreadable frame: {inner}")))
 }
 
-async fn read_loop(
-    stream: &mut futures_util::stream::SplitStream<WebSocket>,
-    scene: &SceneHandle,
-    app: &App,
-    out: &Outbox,
+/// A welcomed session, as its reader sees it.
+struct Session<'a> {
+    scene: &'a SceneHandle,
+    app: &'a App,
+    out: &'a Outbox,
     id: SessionId,
     role: Role,
+    who: &'a Identity,
+}
+
+/// Undo and redo requests one session may make per second (each may rewrite a large brush's
+/// bricks), with this many of burst.
+const UNDOS_PER_SECOND: f64 = 20.0;
+const UNDO_BURST: f64 = 40.0;
+/// Renames per second, with this many of burst.
+const RENAMES_PER_SECOND: f64 = 1.0;
+const RENAME_BURST: f64 = 5.0;
+
+impl Session<'_> {
+    /// Checks a presence message: finite numbers, a direction with length, a cursor inside the
+    /// scene with a radius the server allows.
+    fn check_presence(&self, view: &Option<View>, cursor: &Option<Cursor>) -> Result<(), Refusal> {
+        if view.as_ref().is_some_and(|v| !v.is_valid()) {
+            return Err(Refusal::NotFinite);
+        }
+        if let Some(c) = cursor {
+            if !c.radius.is_finite() {
+                return Err(Refusal::NotFinite);
+            }
+            let inside = (0..3).all(|i| c.voxel[i] < self.scene.size[i]);
+            if !inside || c.radius < 0.0 || c.radius > self.scene.limits.max_brush_radius {
+                return Err(Refusal::OutOfRange);
+            }
+        }
+        Ok(())
+    }
+
+    fn refuse(&self, reason: Refusal) {
+        Metrics::add(&self.app.metrics.presence_refused, 1);
+        self.out
+            .send(&ServerMsg::Refused { reason }, &self.app.metrics);
+    }
+}
+
+async fn read_loop(
+    stream: &mut futures_util::stream::SplitStream<WebSocket>,
+    session: Session<'_>,
 ) {
+    let Session {
+        scene,
+        app,
+        out,
+        id,
+        role,
+        ..
+    } = session;
     let limits: &Limits = &scene.limits;
     let budget = &scene.budget;
     let mut ops_rate = Bucket::new(
@@ -233,6 +278,10 @@ async fn read_loop(
         budget.max_work_per_second.max(budget.max_work_per_edit) as f64,
     );
     let mut resumes = Bucket::new(1.0 / RESUME_INTERVAL.as_secs_f64(), 2.0);
+    let mut undos = Bucket::new(UNDOS_PER_SECOND, UNDO_BURST);
+    let hz = f64::from(limits.presence_hz);
+    let mut presences = Bucket::new(hz, hz);
+    let mut renames = Bucket::new(RENAMES_PER_SECOND, RENAME_BURST);
     // The latest camera not yet forwarded, and when the next may go.
     let mut camera: Option<[f32; 3]> = None;
     let mut camera_at = tokio::time::Instant::now();
@@ -368,6 +417,64 @@ async fn read_loop(
                 }
             }
             ClientMsg::Ping { nonce } => out.pong(nonce),
+            ClientMsg::Undo { client_seq } | ClientMsg::Redo { client_seq } => {
+                let redo = matches!(msg, ClientMsg::Redo { .. });
+                let refused = if role != Role::Editor {
+                    Some(Refusal::NotAllowed)
+                } else if !undos.take(1.0) {
+                    Some(Refusal::RateLimited)
+                } else {
+                    None
+                };
+                if let Some(reason) = refused {
+                    Metrics::add(&app.metrics.history_refused, 1);
+                    out.send(
+                        &ServerMsg::Undone {
+                            client_seq,
+                            redo,
+                            seq: None,
+                            restored: 0,
+                            kept: 0,
+                            refused: Some(reason),
+                        },
+                        &app.metrics,
+                    );
+                    continue;
+                }
+                let cmd = Command::Undo {
+                    session: id,
+                    client_seq,
+                    redo,
+                };
+                if scene.send(cmd).await.is_err() {
+                    return reject(ErrorCode::ShuttingDown, "the scene is shutting down".into());
+                }
+            }
+            ClientMsg::Presence { view, cursor } => {
+                if !presences.take(1.0) {
+                    session.refuse(Refusal::RateLimited);
+                } else if let Err(reason) = session.check_presence(&view, &cursor) {
+                    session.refuse(reason);
+                } else {
+                    Metrics::add(&app.metrics.presence_updates, 1);
+                    scene.presence.update(id, view, cursor);
+                    if let Some(view) = view {
+                        camera = Some(view.eye);
+                    }
+                }
+            }
+            ClientMsg::Rename { name } => {
+                if !renames.take(1.0) {
+                    session.refuse(Refusal::RateLimited);
+                } else if let Err(reason) = check_display_name(&name) {
+                    session.refuse(reason);
+                } else if session.who.pinned {
+                    // A name from the auth file is the user's name.
+                    session.refuse(Refusal::NotAllowed);
+                } else {
+                    scene.presence.rename(id, name);
+                }
+            }
         }
     }
 }

@@ -7,18 +7,25 @@
 //! snapshot are rewritten, in the same transaction that trims the log, so a crash at any point
 //! leaves either the old snapshot + full log or the new snapshot + trimmed log.
 //!
+//! Each scene also has its undo history (`history/` step bodies, `undo/` each user's stacks; see
+//! `scene::history`), written in the same transaction as the log entries of the turn that
+//! changed it and never trimmed by snapshots.
+//!
 //! Every commit uses `Durability::Immediate` (fsync before `commit` returns); the scene owner
 //! batches many edits per commit (group commit) because commits, not records, are what cost.
 
 use std::path::{Path, PathBuf};
 
 use brickcast_protocol::brick::{BrickData, Mask};
-use brickcast_protocol::wire::EditOp;
+use brickcast_protocol::wire::UserId;
 use brickcast_protocol::{BrickMap, Colour};
 use redb::{
     Database, Durability, ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition,
 };
 use serde::{Deserialize, Serialize};
+
+use crate::record::LogRecord;
+use crate::scene::history::{HistoryWrites, Stacks};
 
 /// Scene name → bincode [`SceneMeta`].
 const SCENES: TableDefinition<&str, &[u8]> = TableDefinition::new("scenes");
@@ -108,6 +115,25 @@ fn bricks_table(name: &str) -> String {
 fn log_table(name: &str) -> String {
     format!("log/{name}")
 }
+fn history_table(name: &str) -> String {
+    format!("history/{name}")
+}
+fn undo_table(name: &str) -> String {
+    format!("undo/{name}")
+}
+
+/// A table that may not exist yet (scenes created before history was stored): reads see an
+/// empty table.
+fn open_optional<K: redb::Key + 'static, V: redb::Value + 'static>(
+    txn: &redb::ReadTransaction,
+    name: &str,
+) -> Result<Option<redb::ReadOnlyTable<K, V>>, StoreError> {
+    match txn.open_table(TableDefinition::<K, V>::new(name)) {
+        Ok(table) => Ok(Some(table)),
+        Err(redb::TableError::TableDoesNotExist(_)) => Ok(None),
+        Err(e) => Err(e.into()),
+    }
+}
 
 fn bincode_config() -> bincode::config::Configuration {
     bincode::config::standard()
@@ -158,6 +184,10 @@ pub struct Loaded {
     pub replayed: u64,
     /// Linear cells the replayed log changed (not yet in the snapshot).
     pub replay_touched: Vec<u32>,
+    /// Every user's undo and redo stacks.
+    pub history: Vec<(UserId, Stacks)>,
+    /// The highest history step id in use (0: none).
+    pub last_step_id: u64,
 }
 
 impl Store {
@@ -287,6 +317,8 @@ impl Store {
         if existed {
             txn.delete_table(TableDefinition::<u32, &[u8]>::new(&bricks_table(name)))?;
             txn.delete_table(TableDefinition::<u64, &[u8]>::new(&log_table(name)))?;
+            txn.delete_table(TableDefinition::<u64, &[u8]>::new(&history_table(name)))?;
+            txn.delete_table(TableDefinition::<u64, &[u8]>::new(&undo_table(name)))?;
         }
         txn.commit()?;
         Ok(existed)
@@ -389,17 +421,15 @@ impl Store {
                     s - 1
                 )));
             }
-            let (ops, _): (Vec<EditOp>, usize) =
-                bincode::serde::decode_from_slice(bytes.value(), bincode_config())
-                    .map_err(|e| corrupt(format!("log entry {s}: {e}")))?;
+            let record = LogRecord::decode(bytes.value())
+                .map_err(|e| corrupt(format!("log entry {s}: {e}")))?;
             // Only a repair replays entries at or below the snapshot's stamp.
             map.set_sequence(s.max(map.sequence()));
-            for op in &ops {
-                // An op that applied when logged applies again: the map is in the same state.
-                // A failure here means the log does not match the snapshot.
-                brickcast_protocol::apply::apply_op(&mut map, op, &unlimited)
-                    .map_err(|e| corrupt(format!("log entry {s} no longer applies: {e}")))?;
-            }
+            // An op that applied when logged applies again: the map is in the same state.
+            // A failure here means the log does not match the snapshot.
+            record
+                .replay(&mut map, &unlimited)
+                .map_err(|e| corrupt(format!("log entry {s} no longer applies: {e}")))?;
             seq = s;
             replayed += 1;
         }
@@ -407,36 +437,112 @@ impl Store {
         map.rebuild_clearance();
         let replay_touched = map.take_touched();
         map.record_touched(false);
+        let mut history = Vec::new();
+        if let Some(users) = open_optional::<u64, &[u8]>(&txn, &undo_table(name))? {
+            for row in users.iter()? {
+                let (user, bytes) = row?;
+                let (stacks, _): (Stacks, usize) =
+                    bincode::serde::decode_from_slice(bytes.value(), bincode_config()).map_err(
+                        |e| corrupt(format!("undo stacks of user {}: {e}", user.value())),
+                    )?;
+                history.push((user.value(), stacks));
+            }
+        }
+        let last_step_id = match open_optional::<u64, &[u8]>(&txn, &history_table(name))? {
+            Some(steps) => steps.last()?.map_or(0, |(id, _)| id.value()),
+            None => 0,
+        };
         Ok(Loaded {
             map,
             meta,
             seq,
             replayed,
             replay_touched,
+            history,
+            last_step_id,
         })
     }
 
-    /// Appends acknowledged batches (sequence → applied ops) in one durable commit.
-    pub fn append(&self, scene: &str, batches: &[(u64, &[EditOp])]) -> Result<(), StoreError> {
+    /// A stored history step's bytes.
+    pub fn history_step(&self, scene: &str, id: u64) -> Result<Option<Vec<u8>>, StoreError> {
+        let txn = self.db.begin_read()?;
+        let Some(steps) = open_optional::<u64, &[u8]>(&txn, &history_table(scene))? else {
+            return Ok(None);
+        };
+        Ok(steps.get(id)?.map(|v| v.value().to_vec()))
+    }
+
+    /// Appends acknowledged records (sequence → what it did) and the turn's history changes in
+    /// one durable commit.
+    pub fn append(
+        &self,
+        scene: &str,
+        records: &[(u64, LogRecord)],
+        history: &HistoryWrites,
+    ) -> Result<(), StoreError> {
         let mut txn = self.db.begin_write()?;
         txn.set_durability(Durability::Immediate)?;
+        let corrupt = |detail: String| StoreError::Corrupt {
+            scene: scene.into(),
+            detail,
+        };
         {
             let log_name = log_table(scene);
             let mut log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
             let mut buf = Vec::new();
-            for (seq, ops) in batches {
-                buf.clear();
-                bincode::serde::encode_into_std_write(ops, &mut buf, bincode_config()).map_err(
-                    |e| StoreError::Corrupt {
-                        scene: scene.into(),
-                        detail: e.to_string(),
-                    },
-                )?;
+            for (seq, record) in records {
+                record.encode(&mut buf).map_err(corrupt)?;
                 log.insert(*seq, buf.as_slice())?;
+            }
+            if !history.is_empty() {
+                let steps_name = history_table(scene);
+                let mut steps = txn.open_table(TableDefinition::<u64, &[u8]>::new(&steps_name))?;
+                for id in &history.removed {
+                    steps.remove(*id)?;
+                }
+                for (id, bytes) in &history.steps {
+                    steps.insert(*id, bytes.as_slice())?;
+                }
+                let users_name = undo_table(scene);
+                let mut users = txn.open_table(TableDefinition::<u64, &[u8]>::new(&users_name))?;
+                for (user, stacks) in &history.users {
+                    match stacks {
+                        Some(stacks) => {
+                            buf.clear();
+                            bincode::serde::encode_into_std_write(
+                                stacks,
+                                &mut buf,
+                                bincode_config(),
+                            )
+                            .map_err(|e| corrupt(e.to_string()))?;
+                            users.insert(*user, buf.as_slice())?;
+                        }
+                        None => {
+                            users.remove(*user)?;
+                        }
+                    }
+                }
             }
         }
         txn.commit()?;
         Ok(())
+    }
+
+    /// [`Store::append`] of plain edit batches with no history (tests).
+    #[cfg(test)]
+    pub fn append_ops(
+        &self,
+        scene: &str,
+        batches: &[(u64, &[brickcast_protocol::wire::EditOp])],
+    ) -> Result<(), StoreError> {
+        let records: Vec<(u64, LogRecord)> = batches
+            .iter()
+            .map(|(seq, ops)| {
+                let ops = ops.to_vec();
+                (*seq, LogRecord::Ops { user: 0, ops })
+            })
+            .collect();
+        self.append(scene, &records, &HistoryWrites::default())
     }
 
     /// Writes the bricks at `cells` in their current state (removing rows of empty cells),
@@ -534,6 +640,7 @@ impl Store {
 mod tests {
     use super::*;
     use brickcast_protocol::BrushMode;
+    use brickcast_protocol::wire::EditOp;
 
     #[test]
     fn create_append_snapshot_and_recover() {
@@ -569,8 +676,16 @@ mod tests {
                 brickcast_protocol::apply::apply_op(&mut map, op, &Default::default()).unwrap();
             }
         }
+        let record = |ops: &[EditOp]| LogRecord::Ops {
+            user: 1,
+            ops: ops.to_vec(),
+        };
         store
-            .append("s", &[(1, &ops1[..]), (2, &ops2[..])])
+            .append(
+                "s",
+                &[(1, record(&ops1)), (2, record(&ops2))],
+                &HistoryWrites::default(),
+            )
             .unwrap();
         let loaded = store.load_scene("s").unwrap();
         assert_eq!((loaded.seq, loaded.replayed), (2, 2));

@@ -242,6 +242,7 @@ async fn bad_frames_close_only_their_connection() {
         name: "old".into(),
         token: None,
         resume_from: None,
+        user: 0,
     };
     ws.send(tokio_tungstenite::tungstenite::Message::Binary(
         encode_client(&hello).unwrap().into(),
@@ -254,6 +255,30 @@ async fn bad_frames_close_only_their_connection() {
             code: ErrorCode::VersionMismatch,
             message,
         } => assert!(message.contains("99"), "{message}"),
+        other => panic!("{other:?}"),
+    }
+
+    // A client of protocol 1 (its Hello had no user id) learns the version, not "malformed".
+    let (mut ws, _) = tokio_tungstenite::connect_async(&url).await.unwrap();
+    let v1_hello = bincode::serde::encode_to_vec(
+        (0u32, 1u32, "brickcast 0.1", None::<String>, None::<u64>),
+        bincode::config::standard(),
+    )
+    .unwrap();
+    ws.send(tokio_tungstenite::tungstenite::Message::Binary(
+        v1_hello.into(),
+    ))
+    .await
+    .unwrap();
+    let reply = ws.next().await.unwrap().unwrap().into_data();
+    match brickcast_protocol::wire::decode_server(&reply, &Default::default()).unwrap() {
+        ServerMsg::Error {
+            code: ErrorCode::VersionMismatch,
+            message,
+        } => assert!(
+            message.contains("protocol 2") && message.contains("client 1"),
+            "{message}"
+        ),
         other => panic!("{other:?}"),
     }
 

@@ -57,6 +57,7 @@ async fn hello(
         name: "stranger".into(),
         token: None,
         resume_from: None,
+        user: 0,
     };
     ws.send(Message::Binary(encode_client(&hello).unwrap().into()))
         .await

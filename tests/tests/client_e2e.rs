@@ -226,7 +226,7 @@ fn live_copy_follows_edits_and_resumes_after_a_server_restart() {
     let addr = server.addr;
     let url = server.url("demo");
     let ws = brickcast_client::link::websocket_url(&url).expect("url");
-    let mut live = Live::start(ws.clone(), "e2e viewer".into(), None).expect("live");
+    let mut live = Live::start(ws.clone(), "e2e viewer".into(), 11, None).expect("live");
     wait_for_match(&live, &url, "initial sync");
     let first_sync = live
         .lock()
@@ -263,7 +263,7 @@ fn live_copy_follows_edits_and_resumes_after_a_server_restart() {
         "the viewer did not notice the server going away"
     );
     let server = TestServer::start(data.path(), addr).expect("restart on the same port");
-    let mut other = Live::start(ws, "other user".into(), None).expect("second client");
+    let mut other = Live::start(ws, "other user".into(), 12, None).expect("second client");
     wait_for_match(&other, &url, "second client");
     other.edit(vec![EditOp::Sphere {
         centre: [20.0, 30.0, 20.0],

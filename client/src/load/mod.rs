@@ -105,6 +105,11 @@ pub struct LoadReport {
     pub bytes_out: u64,
     pub resyncs: u64,
     pub rejected: u64,
+    /// Undo and redo messages acknowledged (with `--undo-ratio`), those refused (nothing to
+    /// undo), and the voxels they put back.
+    pub undos: u64,
+    pub undos_refused: u64,
+    pub undo_voxels: u64,
     /// Clients that failed (connection, protocol, unacknowledged batches) plus copies that did
     /// not match the server's: any error makes the run fail.
     pub errors: u64,
@@ -158,7 +163,7 @@ pub fn run_blocking(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError
 pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     args.check()?;
     let url = link::websocket_url(url)?;
-    let probe = Link::connect(&url, "brickcast load probe", args.token.as_deref(), None).await?;
+    let probe = Link::connect(&url, "brickcast load probe", 0, args.token.as_deref(), None).await?;
     let welcome = probe.welcome.clone();
     probe.close().await;
     if welcome.role != Role::Editor {
@@ -186,6 +191,7 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
             area,
             radius: args.radius,
             batch: args.batch,
+            undo_ratio: args.undo_ratio,
             interval: pace.interval,
             observer: (connections > 1).then_some((index + 1) % connections),
         });
@@ -322,6 +328,7 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     }
     let mut failures = Vec::new();
     let (mut ops_acked, mut rejected, mut resyncs, mut voxels_seen) = (0, 0, 0, 0);
+    let (mut undos, mut undos_refused, mut undo_voxels) = (0, 0, 0);
     let (mut editor_bytes, mut viewer_bytes) = ((0, 0), (0, 0));
     let mut verified = 0;
     for r in &reports {
@@ -329,6 +336,9 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
         ops_acked += r.ops_acked;
         rejected += r.rejected;
         resyncs += r.resyncs;
+        undos += r.undos;
+        undos_refused += r.undos_refused;
+        undo_voxels += r.undo_voxels;
         voxels_seen += r.voxels_seen;
         let bytes = if r.editor {
             &mut editor_bytes
@@ -378,6 +388,9 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
         bytes_out: per(editor_bytes.1 + viewer_bytes.1, connections),
         resyncs,
         rejected,
+        undos,
+        undos_refused,
+        undo_voxels,
         errors: failures.len() as u64,
     };
     let details = LoadDetails {
@@ -410,7 +423,7 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
 
 /// A full copy of the scene as a new client gets it.
 async fn fetch(url: &str, token: Option<&str>) -> Result<Replica, LoadError> {
-    let mut link = Link::connect(url, "brickcast load check", token, None)
+    let mut link = Link::connect(url, "brickcast load check", 0, token, None)
         .await
         .map_err(LoadError::Fresh)?;
     let mut replica = Replica::new(&link.welcome.scene, link.welcome.size)?;
@@ -603,6 +616,18 @@ impl LoadOutcome {
             );
             row("server sessions s", list(&server.session));
         }
+        if r.undos + r.undos_refused > 0 {
+            row(
+                "undo / redo",
+                format!(
+                    "{} applied ({:.0}/s), {} refused, {} voxels put back",
+                    r.undos,
+                    r.undos as f64 / r.duration_s,
+                    r.undos_refused,
+                    r.undo_voxels
+                ),
+            );
+        }
         row(
             "resyncs / rejected / errors",
             format!("{} / {} / {}", r.resyncs, r.rejected, r.errors),
@@ -680,6 +705,7 @@ mod tests {
             op: OpKind::Voxel,
             radius: 1.0,
             region: RegionSpec::default(),
+            undo_ratio: 0.0,
             viewers: 0,
             token: None,
             json: false,

@@ -42,6 +42,12 @@ pub struct LoadArgs {
     /// (the scene or box cut into one slab per client, on brick boundaries when wide enough).
     #[arg(long, default_value = "all")]
     pub region: RegionSpec,
+    /// The fraction of each editor's messages that are undos or redos of its own steps instead
+    /// of edits (0 to 1): an undo after an edit, a redo after an undo. Undo messages count as
+    /// messages in `--rate` and their acks in the latency figures; their voxels are reported
+    /// apart.
+    #[arg(long, default_value_t = 0.0)]
+    pub undo_ratio: f64,
     /// Extra clients that only watch (receive every delta, never edit).
     #[arg(long, default_value_t = 0)]
     pub viewers: u32,
@@ -121,6 +127,8 @@ pub enum OptionError {
     Duration(f64),
     #[error("--rate {0} is not a number of ops per second ≥ 0")]
     Rate(f64),
+    #[error("--undo-ratio {0} is out of range: 0 to 1")]
+    UndoRatio(f64),
     #[error("--batch {batch} is out of range: 1 to {max} ops per message")]
     Batch { batch: u32, max: u32 },
     #[error("--radius {radius} is out of range: above 0 and at most {max} (the server's limit)")]
@@ -205,6 +213,9 @@ impl LoadArgs {
         }
         if !(self.rate.is_finite() && self.rate >= 0.0) {
             return Err(OptionError::Rate(self.rate));
+        }
+        if !(0.0..=1.0).contains(&self.undo_ratio) {
+            return Err(OptionError::UndoRatio(self.undo_ratio));
         }
         if self.batch == 0 || self.batch > MAX_OPS_PER_BATCH {
             return Err(OptionError::Batch {

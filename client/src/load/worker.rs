@@ -129,6 +129,8 @@ pub struct EditorPlan {
     pub area: VoxelBox,
     pub radius: f32,
     pub batch: u32,
+    /// Fraction of messages that are undos or redos instead of edits.
+    pub undo_ratio: f64,
     /// Time between batches; `None`: as fast as [`max_unacked`] allows.
     pub interval: Option<Duration>,
     /// The connection whose arrivals time this editor's edits (`None` with nobody else).
@@ -170,6 +172,9 @@ pub struct ClientReport {
     pub ops_acked: u64,
     pub rejected: u64,
     pub resyncs: u64,
+    pub undos: u64,
+    pub undos_refused: u64,
+    pub undo_voxels: u64,
     pub ack_latency: Histogram,
     pub last_ack: Option<Instant>,
     /// Voxels the received deltas changed in this copy (only with `count_voxels`).
@@ -189,6 +194,9 @@ impl ClientReport {
             ops_acked: 0,
             rejected: 0,
             resyncs: 0,
+            undos: 0,
+            undos_refused: 0,
+            undo_voxels: 0,
             ack_latency: Histogram::default(),
             last_ack: None,
             voxels_seen: 0,
@@ -237,6 +245,9 @@ pub async fn client(
         ready_sent: false,
         drained_sent: false,
         inflight: VecDeque::new(),
+        user: crate::identity::random_id(),
+        undo_credit: 0.0,
+        undone: 0,
     };
     let mut report = ClientReport::new(c.plan.index, c.plan.editor.is_some());
     let mut link = None;
@@ -278,6 +289,12 @@ struct Client {
     drained_sent: bool,
     /// Sent, unacknowledged batches: (client_seq, when sent).
     inflight: VecDeque<(u64, Instant)>,
+    /// This client's user id: its undo history.
+    user: u64,
+    /// `--undo-ratio` bookkeeping: owed history messages, and steps undone since the last edit
+    /// (a redo is sent while there are some).
+    undo_credit: f64,
+    undone: u32,
 }
 
 impl Client {
@@ -294,8 +311,14 @@ impl Client {
         // Connect and sync, unless the run is aborted meanwhile.
         let mut abort = self.control.clone();
         let setup = async {
-            let mut link =
-                Link::connect(&self.plan.url, &name, self.plan.token.as_deref(), None).await?;
+            let mut link = Link::connect(
+                &self.plan.url,
+                &name,
+                self.user,
+                self.plan.token.as_deref(),
+                None,
+            )
+            .await?;
             let welcome = link.welcome.clone();
             if self.plan.editor.is_some() && welcome.role != Role::Editor {
                 return Err(ClientError::NotEditor(welcome.role));
@@ -366,13 +389,24 @@ impl Client {
                             let mut fed = false;
                             let window = max_unacked(plan.batch, op_cost(plan.op, plan.radius));
                             while self.inflight.len() < window && now >= *due {
-                                let batch = (0..plan.batch).map(|_| ops.next_op()).collect();
+                                let client_seq = next_client_seq;
+                                self.undo_credit += plan.undo_ratio;
+                                let msg = if self.undo_credit >= 1.0 {
+                                    self.undo_credit -= 1.0;
+                                    if self.undone > 0 {
+                                        self.undone -= 1;
+                                        ClientMsg::Redo { client_seq }
+                                    } else {
+                                        self.undone += 1;
+                                        ClientMsg::Undo { client_seq }
+                                    }
+                                } else {
+                                    self.undone = 0;
+                                    let ops = (0..plan.batch).map(|_| ops.next_op()).collect();
+                                    ClientMsg::Edit { client_seq, ops }
+                                };
                                 let sent = Instant::now();
-                                link.feed(&ClientMsg::Edit {
-                                    client_seq: next_client_seq,
-                                    ops: batch,
-                                })
-                                .await?;
+                                link.feed(&msg).await?;
                                 self.inflight.push_back((next_client_seq, sent));
                                 next_client_seq += 1;
                                 fed = true;
@@ -491,6 +525,40 @@ impl Client {
                 live.ack_ns
                     .fetch_add(took.as_nanos().min(u128::from(u64::MAX)) as u64, Relaxed);
                 live.rejected.fetch_add(rejected.len() as u64, Relaxed);
+                if let (Some(seq), Some(observer)) =
+                    (seq, self.plan.editor.as_ref().and_then(|e| e.observer))
+                {
+                    self.shared.observer(observer).acked(*seq, sent);
+                }
+            }
+            ServerMsg::Undone {
+                client_seq,
+                seq,
+                restored,
+                refused,
+                ..
+            } => {
+                let i = self
+                    .inflight
+                    .iter()
+                    .position(|&(c, _)| c == *client_seq)
+                    .ok_or(ClientError::UnknownAck(*client_seq))?;
+                let (_, sent) = self
+                    .inflight
+                    .remove(i)
+                    .ok_or(ClientError::UnknownAck(*client_seq))?;
+                let took = at.saturating_duration_since(sent);
+                report.ack_latency.record(took);
+                report.last_ack = Some(at);
+                if refused.is_some() {
+                    report.undos_refused += 1;
+                } else {
+                    report.undos += 1;
+                    report.undo_voxels += restored;
+                }
+                live.acks.fetch_add(1, Relaxed);
+                live.ack_ns
+                    .fetch_add(took.as_nanos().min(u128::from(u64::MAX)) as u64, Relaxed);
                 if let (Some(seq), Some(observer)) =
                     (seq, self.plan.editor.as_ref().and_then(|e| e.observer))
                 {

@@ -2,6 +2,9 @@
 
 use serde::{Deserialize, Serialize};
 
+/// Highest presence rate a server may announce.
+pub const MAX_PRESENCE_HZ: u32 = 100;
+
 use super::{MAX_BRICKS_PER_FRAME, MAX_FRAME_BYTES, MAX_OPS_PER_BATCH, MIN_FRAME_BYTES, WireError};
 
 /// The limits a server announces in `Welcome` and then enforces.
@@ -24,6 +27,13 @@ pub struct Limits {
     pub max_box_extent: u32,
     /// Voxel edits one client may request per second before `RateLimited`.
     pub max_edits_per_second: u32,
+    /// Most undo steps the server keeps per user (oldest dropped first).
+    pub max_undo_steps: u32,
+    /// Most bytes of history (compressed before/after images of the bricks each step changed)
+    /// the server keeps per user (oldest dropped first; the newest step is always kept).
+    pub max_undo_bytes: u64,
+    /// Presence messages a client may send per second, and presence frames the server sends.
+    pub presence_hz: u32,
 }
 
 impl Default for Limits {
@@ -35,6 +45,9 @@ impl Default for Limits {
             max_brush_radius: 64.0,
             max_box_extent: 256,
             max_edits_per_second: 200_000,
+            max_undo_steps: 256,
+            max_undo_bytes: 64 << 20,
+            presence_hz: 20,
         }
     }
 }
@@ -51,6 +64,9 @@ impl Limits {
             max_brush_radius: f32::MAX,
             max_box_extent: u32::MAX,
             max_edits_per_second: u32::MAX,
+            max_undo_steps: u32::MAX,
+            max_undo_bytes: u64::MAX,
+            presence_hz: MAX_PRESENCE_HZ,
         }
     }
 
@@ -100,6 +116,13 @@ impl Limits {
         }
         if self.max_edits_per_second == 0 {
             return invalid("max_edits_per_second", 0.0, "must be at least 1");
+        }
+        if self.presence_hz == 0 || self.presence_hz > MAX_PRESENCE_HZ {
+            return invalid(
+                "presence_hz",
+                self.presence_hz.into(),
+                "must be between 1 and 100",
+            );
         }
         Ok(())
     }

@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::collab::{Cursor, MAX_PEERS_PER_FRAME, Peer, PeerId, PeerState, Refusal, UserId, View};
 use super::{
     BrickBlob, EditOp, Limits, MAX_MESSAGE_BYTES, MAX_NAME_BYTES, MAX_OPS_PER_BATCH,
     MAX_REMOVED_PER_FRAME, MAX_SCENE_NAME_BYTES, MAX_TOKEN_BYTES, Rejection, WireError, bounded,
@@ -10,12 +11,15 @@ use super::{
 
 /// Everything a client can send to the server.
 ///
-/// Variant order is the wire format: append only, and `Hello` stays first and unchanged so a
-/// server can always read the version of a client that is too old or too new.
+/// Variant order is the wire format: append only, and `Hello` stays first with the version as
+/// its first field, so a server can always read the version of a client that is too old or too
+/// new (the rest of `Hello` may change with the version).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum ClientMsg {
-    /// First message on a connection. `resume_from` is the last server sequence the client
-    /// holds a picture of (from a previous connection), so a reconnect can skip full sync.
+    /// First message on a connection. `name` is the user's display name and `user` their stable
+    /// id (`0`: none, the server picks one for this connection); with `--auth`, a token that
+    /// names a user overrides both. `resume_from` is the last server sequence the client holds
+    /// a picture of (from a previous connection), so a reconnect can skip full sync.
     Hello {
         protocol: u32,
         #[serde(deserialize_with = "bounded::string::<_, MAX_NAME_BYTES>")]
@@ -23,6 +27,7 @@ pub enum ClientMsg {
         #[serde(deserialize_with = "bounded::opt_string::<_, MAX_TOKEN_BYTES>")]
         token: Option<String>,
         resume_from: Option<u64>,
+        user: UserId,
     },
     /// A batch of edits, applied in order. `client_seq` comes back in the matching `Ack`.
     Edit {
@@ -37,6 +42,26 @@ pub enum ClientMsg {
     Resume { since: u64 },
     /// Keep-alive and latency probe; answered by `Pong` with the same nonce.
     Ping { nonce: u64 },
+    /// Undo this user's most recent edit message (one message = one step): each voxel it
+    /// changed goes back to its value before it, except where someone changed it since.
+    /// Answered by `Undone`.
+    Undo { client_seq: u64 },
+    /// Re-apply the step most recently undone, the same way. A new edit clears what could be
+    /// redone. Answered by `Undone`.
+    Redo { client_seq: u64 },
+    /// Where this peer looks and points, shared with everyone in the scene (latest wins, at most
+    /// `Limits::presence_hz` a second). Also orders the peer's own sync, like `Camera`.
+    /// Non-finite numbers earn a `Refused`, not a closed connection.
+    Presence {
+        view: Option<View>,
+        cursor: Option<Cursor>,
+    },
+    /// A new display name. Parsed up to 1 KiB so that an over-long name earns a `Refused`
+    /// (the limit is [`MAX_DISPLAY_NAME_BYTES`](super::MAX_DISPLAY_NAME_BYTES)).
+    Rename {
+        #[serde(deserialize_with = "bounded::string::<_, MAX_MESSAGE_BYTES>")]
+        name: String,
+    },
 }
 
 /// What a connected client may do, decided by the server from its token.
@@ -81,12 +106,15 @@ pub enum ErrorCode {
 
 /// Everything the server can send to a client.
 ///
-/// Variant order is the wire format: append only, and `Welcome` keeps its place and layout.
+/// Variant order is the wire format: append only, and `Welcome` keeps its place (a client of
+/// another version never sees one: the server answers its `Hello` with `VersionMismatch`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum ServerMsg {
     /// Answer to `Hello`: who the server is, the scene's size, the sequence number the scene is
     /// at, and the limits this connection will be held to. `total_bricks` lets the client show
-    /// sync progress and size its GPU buffers before the first brick arrives.
+    /// sync progress and size its GPU buffers before the first brick arrives. `you` is this
+    /// connection as others see it; `peers` everyone else present when it joined (presence
+    /// frames keep the list current from there).
     Welcome {
         protocol: u32,
         #[serde(deserialize_with = "bounded::string::<_, MAX_NAME_BYTES>")]
@@ -98,6 +126,9 @@ pub enum ServerMsg {
         role: Role,
         limits: Limits,
         total_bricks: u32,
+        you: Peer,
+        #[serde(deserialize_with = "bounded::vec::<_, _, MAX_PEERS_PER_FRAME>")]
+        peers: Vec<Peer>,
     },
     /// Part of the initial (or re-) sync; progress is `sent / total` bricks.
     SyncBatch {
@@ -138,6 +169,34 @@ pub enum ServerMsg {
     },
     /// Answer to `Ping`.
     Pong { nonce: u64 },
+    /// Who else is here and what they look at, at most `Limits::presence_hz` times a second:
+    /// peers that joined or were renamed (replace by id), peers that left, and the latest state
+    /// of each peer whose state changed. `full` means the lists are the whole roster and every
+    /// state: forget peers not in it (sent to a peer that skipped frames while its queue was
+    /// long, so it never has to catch up on old ones).
+    Presence {
+        full: bool,
+        #[serde(deserialize_with = "bounded::vec::<_, _, MAX_PEERS_PER_FRAME>")]
+        joined: Vec<Peer>,
+        #[serde(deserialize_with = "bounded::vec::<_, _, MAX_PEERS_PER_FRAME>")]
+        left: Vec<PeerId>,
+        #[serde(deserialize_with = "bounded::vec::<_, _, MAX_PEERS_PER_FRAME>")]
+        states: Vec<PeerState>,
+    },
+    /// Outcome of `Undo` (`redo: false`) or `Redo`: `seq` is the server sequence holding the
+    /// change (`None` when no voxel changed), `restored` how many voxels went back, `kept` how
+    /// many stayed because someone else changed them since. `refused` says why nothing
+    /// happened (nothing to undo, a viewer, too fast).
+    Undone {
+        client_seq: u64,
+        redo: bool,
+        seq: Option<u64>,
+        restored: u64,
+        kept: u64,
+        refused: Option<Refusal>,
+    },
+    /// A `Presence` or `Rename` was refused; nothing changed and the connection stays.
+    Refused { reason: Refusal },
 }
 
 fn check_len(what: &'static str, len: usize, max: usize) -> Result<(), WireError> {
@@ -164,6 +223,12 @@ fn check_finite(what: &'static str, v: &[f32]) -> Result<(), WireError> {
     }
 }
 
+fn check_peers<'a>(peers: impl IntoIterator<Item = &'a Peer>) -> Result<(), WireError> {
+    peers
+        .into_iter()
+        .try_for_each(|p| check_len("peer name", p.name.len(), MAX_NAME_BYTES))
+}
+
 impl ClientMsg {
     /// Checks the message against `limits` and the protocol's hard caps. Decoding runs this on
     /// every frame; encoding runs it against [`Limits::hard_caps`] so a client notices its own
@@ -187,14 +252,21 @@ impl ClientMsg {
                 check_finite("camera eye", eye)?;
                 check_finite("camera forward", forward)
             }
-            ClientMsg::Resume { .. } | ClientMsg::Ping { .. } => Ok(()),
+            // Presence and names are checked by the server, which refuses a bad one without
+            // closing the connection.
+            ClientMsg::Resume { .. }
+            | ClientMsg::Ping { .. }
+            | ClientMsg::Undo { .. }
+            | ClientMsg::Redo { .. }
+            | ClientMsg::Presence { .. } => Ok(()),
+            ClientMsg::Rename { name } => check_len("name", name.len(), MAX_MESSAGE_BYTES),
         }
     }
 }
 
 impl ServerMsg {
     /// The name of every variant, in wire order (for logs and per-kind metrics).
-    pub const KINDS: [&'static str; 8] = [
+    pub const KINDS: [&'static str; 11] = [
         "Welcome",
         "SyncBatch",
         "SyncDone",
@@ -203,6 +275,9 @@ impl ServerMsg {
         "Ack",
         "Error",
         "Pong",
+        "Presence",
+        "Undone",
+        "Refused",
     ];
 
     /// The variant's name, one of [`ServerMsg::KINDS`].
@@ -216,6 +291,9 @@ impl ServerMsg {
             ServerMsg::Ack { .. } => 5,
             ServerMsg::Error { .. } => 6,
             ServerMsg::Pong { .. } => 7,
+            ServerMsg::Presence { .. } => 8,
+            ServerMsg::Undone { .. } => 9,
+            ServerMsg::Refused { .. } => 10,
         }]
     }
 
@@ -237,12 +315,28 @@ impl ServerMsg {
                 server,
                 scene,
                 limits: announced,
+                you,
+                peers,
                 ..
             } => {
                 check_len("server name", server.len(), MAX_NAME_BYTES)?;
                 check_len("scene name", scene.len(), MAX_SCENE_NAME_BYTES)?;
+                check_peers(std::iter::once(you).chain(peers))?;
+                check_count("peers", peers.len(), MAX_PEERS_PER_FRAME)?;
                 announced.validate()
             }
+            ServerMsg::Presence {
+                joined,
+                left,
+                states,
+                ..
+            } => {
+                check_count("joined peers", joined.len(), MAX_PEERS_PER_FRAME)?;
+                check_count("left peers", left.len(), MAX_PEERS_PER_FRAME)?;
+                check_count("peer states", states.len(), MAX_PEERS_PER_FRAME)?;
+                check_peers(joined)
+            }
+            ServerMsg::Undone { .. } | ServerMsg::Refused { .. } => Ok(()),
             ServerMsg::SyncBatch { bricks, .. } => bricks.validate_header(limits.brick_cap()),
             ServerMsg::Delta {
                 bricks, removed, ..

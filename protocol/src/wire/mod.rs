@@ -25,6 +25,7 @@
 mod blob;
 mod bounded;
 mod codec;
+mod collab;
 mod edit;
 mod error;
 mod limits;
@@ -34,14 +35,21 @@ pub use blob::{BlobDecoder, BlobEncoder, BrickBlob, BrickRef};
 pub use codec::{
     decode_client, decode_server, encode_client, encode_server, encode_server_into, hello_version,
 };
+pub use collab::{
+    Cursor, MAX_DISPLAY_NAME_BYTES, MAX_PEERS_PER_FRAME, Peer, PeerId, PeerState, Refusal, UserId,
+    View, check_display_name,
+};
 pub use edit::{BrushMode, EditOp, RayAction, Rejection};
 pub use error::WireError;
-pub use limits::Limits;
+pub use limits::{Limits, MAX_PRESENCE_HZ};
 pub use message::{ClientMsg, ErrorCode, OpRejection, Role, ServerMsg};
 
 /// Version of this wire format. A `Hello` carrying another number is answered with
 /// [`ErrorCode::VersionMismatch`] rather than a decode failure, so that old clients learn why.
-pub const PROTOCOL_VERSION: u32 = 1;
+///
+/// 2 added identity (`Hello.user`, `Welcome.you`/`peers`), presence, undo/redo and the history
+/// and presence limits.
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// Largest frame either side will ever encode or decode, whatever a server announces. It is also
 /// bincode's decode limit, the ceiling on what a length prefix can make the decoder reserve.

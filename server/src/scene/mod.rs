@@ -17,11 +17,13 @@
 //! * `sync.rs`: joins, resumes and resyncs, streamed nearest-first.
 //! * `outbox.rs`: a session's byte-counted outgoing queue.
 //! * `cells.rs`: the set of bricks the next snapshot writes.
+//! * `history.rs`: per-user undo and redo stacks and what undoing a step does.
 //!
 //! This file holds what sessions see (commands, the handle) and the thread that feeds commands
 //! to the owner.
 
 mod cells;
+pub mod history;
 mod outbox;
 mod owner;
 mod sync;
@@ -30,7 +32,7 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicU64;
 use std::time::{Duration, Instant};
 
-use brickcast_protocol::wire::{EditOp, Limits, Role};
+use brickcast_protocol::wire::{EditOp, Limits, Peer, Role};
 use tokio::sync::{mpsc, oneshot};
 
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
@@ -61,6 +63,8 @@ pub enum Command {
         out: Outbox,
         role: Role,
         resume_from: Option<u64>,
+        /// Who joins, and who it saw present (for the Welcome).
+        who: Joiner,
         /// Fired once the Welcome is queued: the session sends nothing before it.
         joined: oneshot::Sender<()>,
     },
@@ -80,12 +84,46 @@ pub enum Command {
         session: SessionId,
         since: u64,
     },
+    /// Undo (or redo) the session's user's latest step.
+    Undo {
+        session: SessionId,
+        client_seq: u64,
+        redo: bool,
+    },
     /// Write a snapshot now (CLI, tests).
     Snapshot {
         done: oneshot::Sender<Result<(), String>>,
     },
     /// Apply what is queued, commit, snapshot, and stop.
     Shutdown,
+}
+
+/// Who a joining session is.
+#[derive(Clone, Debug)]
+pub struct Joiner {
+    /// The session as others see it (`peer.user` keys its history).
+    pub peer: Peer,
+    /// False for a user without a stable id: its history is dropped when it leaves.
+    pub stable: bool,
+    /// Everyone else present when it joined (from the presence hub), for the Welcome.
+    pub roster: Vec<Peer>,
+}
+
+impl Joiner {
+    /// An editor or viewer with a stable id and nobody else around (tests, the simulation).
+    pub fn solo(session: SessionId, user: u64, role: Role) -> Joiner {
+        Joiner {
+            peer: Peer {
+                id: session,
+                user,
+                name: format!("user-{user}"),
+                colour: crate::identity::colour_of(user),
+                role,
+            },
+            stable: true,
+            roster: Vec::new(),
+        }
+    }
 }
 
 /// Figures about a scene readable without asking the owner (for `/scenes` and `/metrics`).
@@ -96,6 +134,8 @@ pub struct SceneInfo {
     pub voxels: AtomicU64,
     pub clients: AtomicU64,
     pub gpu_bytes: AtomicU64,
+    /// Users with undo history.
+    pub history_users: AtomicU64,
 }
 
 /// What one connection may ask of the owner in edit work (voxels visited, `EditOp::work`):
@@ -170,6 +210,8 @@ pub struct SceneHandle {
     /// Queue bound of each session (see [`OwnerConfig::max_queue_bytes`]).
     pub max_queue_bytes: usize,
     pub info: Arc<SceneInfo>,
+    /// Who is here and what they look at (lives beside the owner, see `crate::presence`).
+    pub presence: Arc<crate::presence::Hub>,
     tx: mpsc::Sender<Command>,
 }
 
@@ -193,6 +235,10 @@ pub struct SceneGone;
 pub(crate) struct Subscriber {
     out: Outbox,
     role: Role,
+    /// Whose history this session's edits go to.
+    user: u64,
+    /// Forget the user's history when this session leaves.
+    stable: bool,
     camera: [f32; 3],
     /// Every change up to this sequence has been queued to the client.
     delivered: u64,
@@ -226,6 +272,11 @@ pub fn spawn(
         config,
         Arc::new(Instant::now),
     )?;
+    let presence = Arc::new(crate::presence::Hub::new(limits.presence_hz));
+    runtime.spawn(crate::presence::run(
+        presence.clone(),
+        owner.metrics.clone(),
+    ));
     let handle = SceneHandle {
         name: name.clone(),
         size: owner.map().size(),
@@ -233,6 +284,7 @@ pub fn spawn(
         budget,
         max_queue_bytes,
         info: owner.info(),
+        presence: presence.clone(),
         tx,
     };
     let thread = std::thread::Builder::new()
@@ -243,6 +295,7 @@ pub fn spawn(
                 tracing::error!(scene = %name, error = %e, "scene owner stopped on a storage error");
                 owner.fail_all(&e.to_string());
             }
+            presence.close();
         })?;
     Ok((handle, thread))
 }

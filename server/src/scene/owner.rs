@@ -21,13 +21,15 @@ use std::time::{Duration, Instant};
 use brickcast_protocol::BrickMap;
 use brickcast_protocol::apply::{apply_resolved, resolve};
 use brickcast_protocol::wire::{
-    BlobEncoder, BrickBlob, EditOp, OpRejection, Rejection, Role, ServerMsg, encode_server,
+    BlobEncoder, BrickBlob, EditOp, OpRejection, Refusal, Rejection, Role, ServerMsg, encode_server,
 };
 use bytes::Bytes;
 
 use super::cells::CellSet;
+use super::history::{Direction, History, Step, plan_revert, write_bricks};
 use super::{Clock, Command, OwnerConfig, SceneInfo, SessionId, Subscriber};
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
+use crate::record::LogRecord;
 use crate::store::{Loaded, Store, StoreError};
 
 /// Voxels visited per single-voxel op of replay time (~10 ns per brushed voxel against ~300 ns
@@ -80,15 +82,35 @@ pub struct Owner {
     last_snapshot_took: Duration,
     last_snapshot: Instant,
     clock: Clock,
+    /// Every user's undo and redo stacks.
+    pub(super) history: History,
 }
 
-/// One edit batch waiting for its commit.
+/// A reply (`Ack` or `Undone`) waiting for the commit of what it reports.
 struct PendingAck {
+    session: SessionId,
+    msg: ServerMsg,
+}
+
+/// What this turn logs, in order.
+type Log = Vec<(u64, LogRecord)>;
+
+fn ack(
     session: SessionId,
     client_seq: u64,
     seq: Option<u64>,
     applied: u32,
     rejected: Vec<OpRejection>,
+) -> PendingAck {
+    PendingAck {
+        session,
+        msg: ServerMsg::Ack {
+            client_seq,
+            seq,
+            applied,
+            rejected,
+        },
+    }
 }
 
 impl Owner {
@@ -107,8 +129,16 @@ impl Owner {
             seq,
             replayed,
             replay_touched,
+            history,
+            last_step_id,
             ..
         } = loaded;
+        let history = History::new(
+            history,
+            last_step_id,
+            config.limits.max_undo_steps,
+            config.limits.max_undo_bytes,
+        );
         map.set_sequence(seq);
         map.record_touched(true);
         let now = clock();
@@ -133,6 +163,7 @@ impl Owner {
             last_snapshot_took: Duration::ZERO,
             last_snapshot: now,
             clock,
+            history,
         };
         owner.publish_info();
         Ok(owner)
@@ -181,7 +212,7 @@ impl Owner {
             Metrics::add(&self.metrics.owner_turns, 1);
         }
         let mut acks: Vec<PendingAck> = Vec::new();
-        let mut log: Vec<(u64, Vec<EditOp>)> = Vec::new();
+        let mut log: Log = Vec::new();
         let mut stop = false;
         let mut snapshot_requests = Vec::new();
         let mut cameras = BTreeMap::new();
@@ -192,26 +223,41 @@ impl Owner {
                     client_seq,
                     ops,
                 } => {
-                    let allowed = self
+                    let editor = self
                         .subs
                         .get(&session)
-                        .is_some_and(|s| s.role == Role::Editor);
-                    acks.push(self.apply_batch(session, client_seq, ops, allowed, &mut log));
+                        .filter(|s| s.role == Role::Editor)
+                        .map(|s| s.user);
+                    acks.push(self.apply_batch(session, client_seq, ops, editor, &mut log));
+                }
+                Command::Undo {
+                    session,
+                    client_seq,
+                    redo,
+                } => {
+                    if let Some(ack) = self.undo(session, client_seq, redo, &mut log) {
+                        acks.push(ack);
+                    }
                 }
                 Command::Join {
                     session,
                     out,
                     role,
                     resume_from,
+                    who,
                     joined,
                 } => {
                     self.publish(&mut log, &mut acks, clock)?;
-                    if self.join(session, out, role, resume_from) {
+                    if self.join(session, out, role, resume_from, who) {
                         let _ = joined.send(());
                     }
                 }
                 Command::Leave { session } => {
-                    self.subs.remove(&session);
+                    if let Some(sub) = self.subs.remove(&session)
+                        && !sub.stable
+                    {
+                        self.history.forget(sub.user);
+                    }
                     cameras.remove(&session);
                 }
                 // Only the latest camera of a session counts: one re-sort per session and turn.
@@ -246,16 +292,15 @@ impl Owner {
     /// could still lose.
     fn publish(
         &mut self,
-        log: &mut Vec<(u64, Vec<EditOp>)>,
+        log: &mut Log,
         acks: &mut Vec<PendingAck>,
         clock: &mut PhaseClock,
     ) -> Result<(), StoreError> {
         clock.mark(&self.metrics, OwnerPhase::Apply);
-        if !log.is_empty() {
+        if !log.is_empty() || self.history.has_writes() {
             let started = Instant::now();
-            let batches: Vec<(u64, &[EditOp])> =
-                log.iter().map(|(s, ops)| (*s, ops.as_slice())).collect();
-            self.store.append(&self.name, &batches)?;
+            let history = self.history.take_writes();
+            self.store.append(&self.name, log, &history)?;
             self.metrics.observe_commit(started.elapsed());
             self.log_entries += log.len() as u64;
             log.clear();
@@ -263,13 +308,7 @@ impl Owner {
         clock.mark(&self.metrics, OwnerPhase::Commit);
         for ack in acks.drain(..) {
             if let Some(sub) = self.subs.get(&ack.session) {
-                let msg = ServerMsg::Ack {
-                    client_seq: ack.client_seq,
-                    seq: ack.seq,
-                    applied: ack.applied,
-                    rejected: ack.rejected,
-                };
-                sub.out.send(&msg, &self.metrics);
+                sub.out.send(&ack.msg, &self.metrics);
             }
         }
         clock.mark(&self.metrics, OwnerPhase::Ack);
@@ -281,16 +320,18 @@ impl Owner {
     /// changes anything, so the map is stamped with the batch's sequence only once an op is
     /// certain to apply: a batch whose every op is rejected leaves the map and the sequence as
     /// they were.
+    ///
+    /// `editor` is the user whose history records the batch (`None`: the session may not edit).
     fn apply_batch(
         &mut self,
         session: SessionId,
         client_seq: u64,
         ops: Vec<EditOp>,
-        allowed: bool,
-        log: &mut Vec<(u64, Vec<EditOp>)>,
+        editor: Option<u64>,
+        log: &mut Log,
     ) -> PendingAck {
         let mut rejected = Vec::new();
-        if !allowed {
+        let Some(user) = editor else {
             rejected = (0..ops.len() as u32)
                 .map(|index| OpRejection {
                     index,
@@ -298,15 +339,10 @@ impl Owner {
                 })
                 .collect();
             Metrics::add(&self.metrics.ops_rejected, ops.len() as u64);
-            return PendingAck {
-                session,
-                client_seq,
-                seq: None,
-                applied: 0,
-                rejected,
-            };
-        }
+            return ack(session, client_seq, None, 0, rejected);
+        };
         let seq = self.seq + 1;
+        self.map.begin_journal();
         let size = self.map.size();
         let mut applied = Vec::with_capacity(ops.len());
         let mut voxels = 0;
@@ -327,6 +363,7 @@ impl Owner {
                 }),
             }
         }
+        let journal = self.map.end_journal();
         Metrics::add(&self.metrics.ops_rejected, rejected.len() as u64);
         Metrics::add(&self.metrics.ops_applied, applied.len() as u64);
         Metrics::add(&self.metrics.voxels_changed, voxels);
@@ -335,21 +372,102 @@ impl Owner {
             None
         } else {
             // Only batches that applied something take a sequence number and a log entry; ops
-            // that changed no voxel are still logged so replay matches op for op.
+            // that changed no voxel are still logged so replay matches op for op. The message
+            // is one step of its user's history, even if it changed nothing: one gesture, one
+            // undo.
+            self.history
+                .record_edit(user, &Step::from_journal(&self.map, journal));
             self.seq = seq;
             self.log_ops += applied.len() as u64;
             self.log_work = self.log_work.saturating_add(work);
             Metrics::add(&self.metrics.edit_batches, 1);
-            log.push((seq, applied));
+            log.push((seq, LogRecord::Ops { user, ops: applied }));
             Some(seq)
         };
-        PendingAck {
+        ack(session, client_seq, seq, count, rejected)
+    }
+
+    /// Undoes (or redoes) the session's user's latest step: see `history.rs` for the rule. The
+    /// bricks it writes take the next sequence number and are logged as a `Restore` record;
+    /// the history change commits with them. `None` when the session is gone.
+    fn undo(
+        &mut self,
+        session: SessionId,
+        client_seq: u64,
+        redo: bool,
+        log: &mut Log,
+    ) -> Option<PendingAck> {
+        let sub = self.subs.get(&session)?;
+        let user = sub.user;
+        let reply = |seq, restored, kept, refused| PendingAck {
             session,
-            client_seq,
-            seq,
-            applied: count,
-            rejected,
+            msg: ServerMsg::Undone {
+                client_seq,
+                redo,
+                seq,
+                restored,
+                kept,
+                refused,
+            },
+        };
+        let (direction, nothing) = if redo {
+            (Direction::Redo, Refusal::NothingToRedo)
+        } else {
+            (Direction::Undo, Refusal::NothingToUndo)
+        };
+        if sub.role != Role::Editor {
+            Metrics::add(&self.metrics.history_refused, 1);
+            return Some(reply(None, 0, 0, Some(Refusal::NotAllowed)));
         }
+        let store = self.store.clone();
+        let name = self.name.clone();
+        let popped = self.history.pop(user, direction, |id| {
+            store.history_step(&name, id).map_err(|e| e.to_string())
+        });
+        let step = match popped {
+            Ok(Some(step)) => step,
+            Ok(None) => {
+                Metrics::add(&self.metrics.history_refused, 1);
+                return Some(reply(None, 0, 0, Some(nothing)));
+            }
+            Err(e) => {
+                // The step is gone from the stack either way; say so rather than stop the scene.
+                tracing::error!(scene = %self.name, user, error = %e, "an undo step could not be read; it is dropped");
+                Metrics::add(&self.metrics.history_refused, 1);
+                return Some(reply(None, 0, 0, Some(nothing)));
+            }
+        };
+        let revert = plan_revert(&self.map, &step);
+        let mut seq = None;
+        if !revert.writes.is_empty() {
+            let next = self.seq + 1;
+            self.map.set_sequence(next);
+            if let Err(e) = write_bricks(&mut self.map, &revert.writes) {
+                // Planned from this map's own bricks: cannot happen.
+                tracing::error!(scene = %self.name, error = %e, "an undo wrote a brick the map refused");
+            }
+            self.seq = next;
+            self.log_ops += revert.writes.len() as u64;
+            log.push((
+                next,
+                LogRecord::Restore {
+                    user,
+                    redo,
+                    bricks: revert.writes,
+                },
+            ));
+            seq = Some(next);
+        }
+        self.history.push_record(user, direction, &revert.record);
+        let counter = if redo {
+            &self.metrics.redos
+        } else {
+            &self.metrics.undos
+        };
+        Metrics::add(counter, 1);
+        Metrics::add(&self.metrics.undo_voxels_restored, revert.restored);
+        Metrics::add(&self.metrics.undo_voxels_kept, revert.kept);
+        Some(reply(seq, revert.restored, revert.kept, None))
     }
 
     /// Sends everything touched this turn to every subscriber that keeps up. A turn that
@@ -458,6 +576,9 @@ impl Owner {
     }
 
     pub(super) fn publish_info(&self) {
+        self.info
+            .history_users
+            .store(self.history.user_count() as u64, Relaxed);
         self.info.seq.store(self.seq, Relaxed);
         self.info.bricks.store(self.map.brick_count(), Relaxed);
         self.info.voxels.store(self.map.solid_voxels(), Relaxed);

@@ -26,12 +26,15 @@ impl Owner {
         out: Outbox,
         role: Role,
         resume_from: Option<u64>,
+        who: super::Joiner,
     ) -> bool {
         let size = self.map.size();
         let camera = [size[0] as f32 * 0.5, size[1] as f32, size[2] as f32 * 0.5];
         let mut sub = Subscriber {
             out,
             role,
+            user: who.peer.user,
+            stable: who.stable,
             camera,
             delivered: self.seq,
             lagging: false,
@@ -58,6 +61,8 @@ impl Owner {
             role,
             limits: self.config.limits.clone(),
             total_bricks: total,
+            you: who.peer,
+            peers: who.roster,
         };
         if !sub.out.send(&welcome, &self.metrics) {
             return false;

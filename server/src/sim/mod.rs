@@ -247,6 +247,7 @@ impl Sim {
             out,
             role,
             resume_from,
+            who: crate::scene::Joiner::solo(session, c as u64 + 1, role),
             joined,
         });
         self.stats.joins += 1;

@@ -100,7 +100,9 @@ impl Model {
                         },
                     );
                 }
+                // The simulation sends no undo (yet): `server/tests/collab.rs` tests it.
                 Command::Camera { .. }
+                | Command::Undo { .. }
                 | Command::Resume { .. }
                 | Command::Snapshot { .. }
                 | Command::Shutdown => {}

@@ -116,13 +116,13 @@ fn an_entry_at_or_below_the_snapshot_is_refused_then_repaired() {
     };
     map.set_sequence(1);
     apply_op(&mut map, &set(1), &Limits::default()).unwrap();
-    store.append("old", &[(1, &[set(1)][..])]).unwrap();
+    store.append_ops("old", &[(1, &[set(1)][..])]).unwrap();
     // The old owner's snapshot: the map stamped 2 after a fully rejected batch.
     map.set_sequence(2);
     let cells: Vec<u32> = map.brick_cells().map(|(c, _)| map.cell_index(c)).collect();
     store.snapshot("old", &map, &cells, 2).unwrap();
     // The next real batch, numbered 2 by the old owner, logged after the snapshot.
-    store.append("old", &[(2, &[set(2)][..])]).unwrap();
+    store.append_ops("old", &[(2, &[set(2)][..])]).unwrap();
     let err = store.load_scene("old").err().expect("refused");
     let text = err.to_string();
     assert!(
@@ -149,7 +149,9 @@ fn gaps_and_mismatched_snapshots_are_refused() {
         pos: [1, 1, 1],
         colour: Colour::WHITE,
     }];
-    store.append("g", &[(1, &op[..]), (3, &op[..])]).unwrap();
+    store
+        .append_ops("g", &[(1, &op[..]), (3, &op[..])])
+        .unwrap();
     let text = store.load_scene("g").err().expect("refused").to_string();
     assert!(
         text.contains("scene g") && text.contains("jumps from entry 1 to 3"),
@@ -157,7 +159,7 @@ fn gaps_and_mismatched_snapshots_are_refused() {
     );
     let store = Store::with_backend(SimDisk::new()).unwrap();
     store.create_scene("h", &map).unwrap();
-    store.append("h", &[(2, &op[..])]).unwrap();
+    store.append_ops("h", &[(2, &op[..])]).unwrap();
     let text = store.load_scene("h").err().expect("refused").to_string();
     assert!(text.contains("starts at 2"), "{text}");
     // A snapshot behind the log, or of a map stamped otherwise, is refused.

@@ -7,6 +7,7 @@ use std::net::SocketAddr;
 use std::path::Path;
 use std::time::Duration;
 
+use brickcast_protocol::roster::Roster;
 use brickcast_protocol::wire::{
     BlobDecoder, ClientMsg, EditOp, ErrorCode, Limits, PROTOCOL_VERSION, Role, ServerMsg,
     decode_server, encode_client,
@@ -94,6 +95,8 @@ pub struct Client {
     pub resyncs: u32,
     pub errors: Vec<(ErrorCode, String)>,
     pub closed: bool,
+    /// Who we are and who else is here, from the Welcome and presence frames.
+    pub roster: Roster,
     decoder: BlobDecoder,
     next_client_seq: u64,
 }
@@ -117,14 +120,36 @@ impl Client {
         since: Option<u64>,
         map: Option<BrickMap>,
     ) -> Result<Client, Refused> {
+        Self::open(url, token, since, map, 0, "test").await
+    }
+
+    /// Connects as user `user` named `name`.
+    pub async fn as_user(
+        url: &str,
+        token: Option<&str>,
+        user: u64,
+        name: &str,
+    ) -> Result<Client, Refused> {
+        Self::open(url, token, None, None, user, name).await
+    }
+
+    pub async fn open(
+        url: &str,
+        token: Option<&str>,
+        since: Option<u64>,
+        map: Option<BrickMap>,
+        user: u64,
+        name: &str,
+    ) -> Result<Client, Refused> {
         let (mut ws, _) = tokio_tungstenite::connect_async(url)
             .await
             .expect("websocket connects");
         let hello = ClientMsg::Hello {
             protocol: PROTOCOL_VERSION,
-            name: "test".into(),
+            name: name.into(),
             token: token.map(String::from),
             resume_from: since,
+            user,
         };
         ws.send(Message::Binary(encode_client(&hello).unwrap().into()))
             .await
@@ -137,7 +162,10 @@ impl Client {
             Some(Ok(Message::Binary(b))) => b,
             _ => return Err(Refused::Closed),
         };
-        match decode_server(&bytes, &limits).expect("server frames decode") {
+        let welcome = decode_server(&bytes, &limits).expect("server frames decode");
+        let mut roster = Roster::default();
+        roster.apply(&welcome);
+        match welcome {
             ServerMsg::Welcome {
                 size,
                 role,
@@ -145,6 +173,7 @@ impl Client {
                 total_bricks,
                 ..
             } => Ok(Client {
+                roster,
                 ws,
                 map: map.unwrap_or_else(|| BrickMap::new(size).unwrap()),
                 role,
@@ -249,8 +278,43 @@ impl Client {
                 }
             }
             ServerMsg::Error { code, message } => self.errors.push((*code, message.clone())),
+            ServerMsg::Presence { .. } => {
+                self.roster.apply(msg);
+            }
             _ => {}
         }
+    }
+
+    /// Sends Undo (or Redo) and returns the `Undone` that answers it.
+    pub async fn undo(&mut self, redo: bool) -> ServerMsg {
+        let client_seq = self.next_client_seq;
+        self.next_client_seq += 1;
+        let msg = if redo {
+            ClientMsg::Redo { client_seq }
+        } else {
+            ClientMsg::Undo { client_seq }
+        };
+        self.send(&msg).await;
+        loop {
+            match self.next().await {
+                Some(reply @ ServerMsg::Undone { client_seq: c, .. }) if c == client_seq => {
+                    return reply;
+                }
+                Some(_) => {}
+                None => panic!("closed before the undo reply: {:?}", self.errors),
+            }
+        }
+    }
+
+    /// Reads until `check` holds for a message (or the roster after it); false if the server
+    /// closes first.
+    pub async fn until(&mut self, mut check: impl FnMut(&Client, &ServerMsg) -> bool) -> bool {
+        while let Some(msg) = self.next().await {
+            if check(self, &msg) {
+                return true;
+            }
+        }
+        false
     }
 
     /// Reads until the initial sync (or a resync) is complete.

@@ -1,0 +1,108 @@
+//! What collaborators learn about each other: who is here (identity), where they look and point
+//! (presence), and the outcome of an undo or redo.
+//!
+//! Identity is per *user* (a stable id the client keeps across runs, or one pinned by an auth
+//! token); presence is per *peer* (one connection: a user with two windows is two peers with one
+//! name and colour). History (undo/redo) belongs to the user, so it survives reconnecting.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use super::{MAX_NAME_BYTES, Role, bounded};
+use crate::colour::Colour;
+
+/// A connection within one server (the server's session id), named in presence frames.
+pub type PeerId = u64;
+
+/// A user's stable id: chosen by the client and kept across runs (the viewer keeps it in a file
+/// under the user's config directory), or derived from the auth token's name. `0` means "none":
+/// the server then picks one for the connection, and its history ends with it.
+pub type UserId = u64;
+
+/// Longest display name, in UTF-8 bytes (the same cap as `Hello`'s name).
+pub const MAX_DISPLAY_NAME_BYTES: usize = MAX_NAME_BYTES;
+
+/// Most peers one `Welcome` or presence frame may list.
+pub const MAX_PEERS_PER_FRAME: usize = 65_536;
+
+/// Where a peer's camera is and where it points.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct View {
+    pub eye: [f32; 3],
+    /// Need not be normalised; never zero-length when the server forwards it.
+    pub forward: [f32; 3],
+}
+
+/// What a peer points at: the voxel under its pointer and the radius of its brush (0 for a
+/// single voxel).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Cursor {
+    pub voxel: [u32; 3],
+    pub radius: f32,
+}
+
+/// A connected peer as everyone else sees it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Peer {
+    pub id: PeerId,
+    pub user: UserId,
+    #[serde(deserialize_with = "bounded::string::<_, MAX_DISPLAY_NAME_BYTES>")]
+    pub name: String,
+    /// Given by the server from the user id, so a user keeps a colour across reconnects.
+    pub colour: Colour,
+    pub role: Role,
+}
+
+/// One peer's latest presence. `None` fields mean "not shared" (a headless client) or "pointing
+/// at nothing" (the pointer is on the sky or outside the window).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PeerState {
+    pub id: PeerId,
+    pub view: Option<View>,
+    pub cursor: Option<Cursor>,
+}
+
+/// Why a request that is not an edit op was refused. The connection stays open: each of these
+/// is the client's mistake or impatience, not a broken peer.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Error)]
+pub enum Refusal {
+    #[error("there is nothing of yours to undo")]
+    NothingToUndo,
+    #[error("there is nothing of yours to redo (a new edit clears what could be redone)")]
+    NothingToRedo,
+    #[error("this connection may watch but not edit")]
+    NotAllowed,
+    #[error("too many requests; slow down")]
+    RateLimited,
+    #[error("a position or direction is not a finite number, or a direction has no length")]
+    NotFinite,
+    #[error("a name must be 1 to {max} bytes of printable text")]
+    BadName { max: u32 },
+    #[error("the cursor is outside the scene or its radius is out of range")]
+    OutOfRange,
+}
+
+impl View {
+    /// Finite numbers and a direction with length.
+    pub fn is_valid(&self) -> bool {
+        let finite = self.eye.iter().chain(&self.forward).all(|v| v.is_finite());
+        let len2: f32 = self.forward.iter().map(|v| v * v).sum();
+        finite && len2.is_finite() && len2 > 1e-12
+    }
+}
+
+/// Why a display name is refused: empty after trimming, too long, or holding control characters
+/// (names are drawn on other people's screens).
+pub fn check_display_name(name: &str) -> Result<(), Refusal> {
+    let trimmed = name.trim();
+    if trimmed.is_empty()
+        || name.len() > MAX_DISPLAY_NAME_BYTES
+        || trimmed.len() != name.len()
+        || name.chars().any(char::is_control)
+    {
+        return Err(Refusal::BadName {
+            max: MAX_DISPLAY_NAME_BYTES as u32,
+        });
+    }
+    Ok(())
+}

@@ -1,0 +1,151 @@
+//! Who a connection is: the user id its history is kept under, the name and colour others see.
+//!
+//! **Why ids come from the client.** History must survive reconnecting and restarts, so a
+//! user needs an id that outlives a connection; the viewer keeps a random one in a file under
+//! the user's config directory and sends it in `Hello`. Without `--auth` nothing stops a client
+//! from claiming someone else's id (and everyone may edit anyway): the server is trusted by
+//! people who trust each other. With `--auth`, a token line that names a user pins the id:
+//! token-pinned ids have the top bit set and ids a client sends have it cleared, so no client
+//! can claim a token's user by choosing its id.
+
+use brickcast_protocol::Colour;
+use brickcast_protocol::wire::{MAX_DISPLAY_NAME_BYTES, UserId, check_display_name};
+
+/// Who a connection is.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Identity {
+    pub user: UserId,
+    pub name: String,
+    pub colour: Colour,
+    /// False for a connection that sent no id: its history is dropped when it leaves.
+    pub stable: bool,
+    /// The name (and id) come from the auth file: the user cannot rename themself.
+    pub pinned: bool,
+}
+
+const PINNED: u64 = 1 << 63;
+
+/// Distinct, readable-on-dark-and-light colours, one per user by id.
+const PALETTE: [(u8, u8, u8); 12] = [
+    (230, 57, 70),
+    (29, 120, 230),
+    (46, 170, 80),
+    (245, 160, 20),
+    (150, 70, 200),
+    (20, 180, 190),
+    (230, 90, 170),
+    (120, 150, 30),
+    (250, 110, 60),
+    (90, 100, 240),
+    (190, 140, 80),
+    (60, 200, 140),
+];
+
+fn mix(mut x: u64) -> u64 {
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xff51_afd7_ed55_8ccd);
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xc4ce_b9fe_1a85_ec53);
+    x ^ (x >> 33)
+}
+
+/// FNV-1a, then mixed: stable across runs and builds (ids are stored).
+fn hash_name(name: &str) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in name.bytes() {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    mix(h)
+}
+
+/// The colour a user is drawn in.
+pub fn colour_of(user: UserId) -> Colour {
+    let (r, g, b) = PALETTE[(mix(user) % PALETTE.len() as u64) as usize];
+    Colour::from_rgb8(r, g, b)
+}
+
+/// A name fit to show: the client's if it is one, else its printable part, else `guest-N`.
+fn display_name(asked: &str, session: u64) -> String {
+    if check_display_name(asked).is_ok() {
+        return asked.to_string();
+    }
+    let mut name: String = asked
+        .chars()
+        .filter(|c| !c.is_control())
+        .collect::<String>()
+        .trim()
+        .to_string();
+    while name.len() > MAX_DISPLAY_NAME_BYTES {
+        name.pop();
+    }
+    if name.is_empty() {
+        format!("guest-{session}")
+    } else {
+        name
+    }
+}
+
+/// Decides a connection's identity from its `Hello` (`asked_user`, `asked_name`) and, with
+/// `--auth`, the name its token's line gives (`token_name`). `open` is whether the server runs
+/// without `--auth`.
+pub fn identify(
+    open: bool,
+    token_name: Option<&str>,
+    asked_user: UserId,
+    asked_name: &str,
+    session: u64,
+) -> Identity {
+    let (user, name, stable) = match token_name {
+        Some(name) => (hash_name(name) | PINNED, name.to_string(), true),
+        None => {
+            let asked = if open {
+                asked_user
+            } else {
+                asked_user & !PINNED
+            };
+            if asked == 0 {
+                // Any id unlikely to meet another: it lives as long as the connection.
+                let user = mix(session ^ 0x9e37_79b9_7f4a_7c15 ^ nanos()) & !PINNED;
+                (user.max(1), display_name(asked_name, session), false)
+            } else {
+                (asked, display_name(asked_name, session), true)
+            }
+        }
+    };
+    Identity {
+        user,
+        name,
+        colour: colour_of(user),
+        stable,
+        pinned: token_name.is_some(),
+    }
+}
+
+fn nanos() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tokens_pin_ids_and_clients_cannot_claim_them() {
+        let alice = identify(false, Some("alice"), 5, "x", 1);
+        assert_eq!(alice.name, "alice");
+        assert!(alice.stable);
+        assert_eq!(alice, identify(false, Some("alice"), 77, "y", 2));
+        let claim = identify(false, None, alice.user, "mallory", 3);
+        assert_ne!(claim.user, alice.user);
+        // Without --auth an id is taken as sent.
+        assert_eq!(identify(true, None, alice.user, "m", 3).user, alice.user);
+        let anon = identify(true, None, 0, "", 9);
+        assert!(!anon.stable && anon.user != 0);
+        assert_eq!(anon.name, "guest-9");
+        assert_eq!(identify(true, None, 4, " bad\u{7}name ", 9).name, "badname");
+        assert_eq!(identify(true, None, 4, "bob", 9).colour, colour_of(4));
+    }
+}

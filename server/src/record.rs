@@ -1,0 +1,124 @@
+//! The edit log's record: what one sequence number did to a scene, in a durable format of its
+//! own rather than the wire's `Vec<EditOp>`, so that the log can hold more than edit ops (an
+//! undo writes whole bricks) and the wire can change without rewriting stores.
+//!
+//! Format: `[0, VERSION]` then the bincode of [`LogRecord`]. Stores written by brickcast 0.1
+//! hold a bare bincode `Vec<EditOp>`; those are read as [`LogRecord::Ops`] with no user. They
+//! never start with a 0 byte followed by more bytes (a 0 length prefix is an empty list, and
+//! only batches that applied something were logged), so the two cannot be confused.
+
+use brickcast_protocol::BrickMap;
+use brickcast_protocol::wire::{EditOp, Limits, UserId};
+use serde::{Deserialize, Serialize};
+
+use crate::scene::history::{Image, write_bricks};
+
+/// The version of [`LogRecord`] written now.
+const VERSION: u8 = 2;
+
+/// What one logged sequence did.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum LogRecord {
+    /// An edit message's ops that applied, replayed through the same `apply_op` as live edits.
+    Ops { user: UserId, ops: Vec<EditOp> },
+    /// An undo or redo: the bricks it wrote (linear cell → contents, `None`: emptied), replayed
+    /// as written. The history that decided them is not needed to replay.
+    Restore {
+        user: UserId,
+        redo: bool,
+        bricks: Vec<(u32, Option<Image>)>,
+    },
+}
+
+impl LogRecord {
+    pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), String> {
+        out.clear();
+        out.extend_from_slice(&[0, VERSION]);
+        bincode::serde::encode_into_std_write(self, out, bincode::config::standard())
+            .map(|_| ())
+            .map_err(|e| e.to_string())
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<LogRecord, String> {
+        let config = bincode::config::standard();
+        match bytes {
+            [0, VERSION, body @ ..] => {
+                let (record, read): (LogRecord, usize) =
+                    bincode::serde::decode_from_slice(body, config).map_err(|e| e.to_string())?;
+                if read != body.len() {
+                    return Err(format!("{} bytes after the record", body.len() - read));
+                }
+                Ok(record)
+            }
+            [0, version, _, ..] => Err(format!(
+                "log record version {version}, this server reads up to {VERSION}"
+            )),
+            _ => {
+                let (ops, _): (Vec<EditOp>, usize) =
+                    bincode::serde::decode_from_slice(bytes, config).map_err(|e| e.to_string())?;
+                Ok(LogRecord::Ops { user: 0, ops })
+            }
+        }
+    }
+
+    /// Replays the record onto `map` (stamped with the record's sequence by the caller).
+    pub fn replay(&self, map: &mut BrickMap, limits: &Limits) -> Result<(), String> {
+        match self {
+            LogRecord::Ops { ops, .. } => ops.iter().try_for_each(|op| {
+                brickcast_protocol::apply::apply_op(map, op, limits)
+                    .map(|_| ())
+                    .map_err(|e| e.to_string())
+            }),
+            LogRecord::Restore { bricks, .. } => write_bricks(map, bricks),
+        }
+    }
+
+    /// Ops in the record (for replay cost accounting).
+    pub fn op_count(&self) -> usize {
+        match self {
+            LogRecord::Ops { ops, .. } => ops.len(),
+            LogRecord::Restore { bricks, .. } => bricks.len(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use brickcast_protocol::Colour;
+
+    #[test]
+    fn records_round_trip_and_old_logs_still_read() {
+        let ops = vec![EditOp::Set {
+            pos: [1, 2, 3],
+            colour: Colour::WHITE,
+        }];
+        let mut buf = Vec::new();
+        for record in [
+            LogRecord::Ops {
+                user: 9,
+                ops: ops.clone(),
+            },
+            LogRecord::Restore {
+                user: 9,
+                redo: true,
+                bricks: vec![(4, None)],
+            },
+        ] {
+            record.encode(&mut buf).unwrap();
+            assert_eq!(LogRecord::decode(&buf).unwrap(), record);
+        }
+        let old = bincode::serde::encode_to_vec(&ops, bincode::config::standard()).unwrap();
+        assert_eq!(
+            LogRecord::decode(&old).unwrap(),
+            LogRecord::Ops { user: 0, ops }
+        );
+        assert!(
+            LogRecord::decode(&[0, 3, 1])
+                .unwrap_err()
+                .contains("version 3")
+        );
+        assert!(LogRecord::decode(&[0, VERSION, 7, 7, 7]).is_err());
+        assert!(LogRecord::decode(&[]).is_err());
+    }
+}

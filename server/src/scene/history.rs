@@ -1,0 +1,537 @@
+//! Per-user undo and redo: what each edit message changed, and how to take it back without
+//! taking back anyone else's work.
+//!
+//! **Why here, in the owner's order.** An undo is an edit like any other: it must be applied
+//! between the edits around it, logged, acknowledged after the commit and broadcast as a delta.
+//! So the owner calls this module inside its turn, and the history's changes are written in the
+//! same redb transaction as the log entries of that turn: an acknowledged edit's undo record is
+//! as durable as the edit. Snapshots never trim history.
+//!
+//! **A step** is one edit message (one gesture: a click, a brush stroke), an undo or a redo: the
+//! bricks it changed, each as it was before and after (whole bricks, from the map's journal).
+//! Undoing a step puts back, voxel by voxel, the before-value of every voxel the step changed,
+//! *only where the voxel still holds the step's after-value*: a later change by anyone wins and
+//! is counted as kept. The undo is itself recorded as a step, on the redo stack; redo undoes that
+//! record the same way, and goes back on the undo stack. A new edit clears the redo stack.
+//!
+//! **Bounds.** Per user at most `Limits::max_undo_steps` steps and `Limits::max_undo_bytes`
+//! bytes of stored (compressed) steps, undo and redo together; the oldest go first. In memory
+//! the owner keeps only each user's list of step ids and sizes: step bodies live in the store
+//! (and, until the turn commits, in [`HistoryWrites`]), read back when undone.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
+
+use brickcast_protocol::brick::{BrickData, Mask};
+use brickcast_protocol::wire::UserId;
+use brickcast_protocol::{BrickMap, Colour};
+use serde::{Deserialize, Serialize};
+
+/// A brick's contents without its position.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Image {
+    pub mask: Mask,
+    pub colours: Vec<Colour>,
+}
+
+impl Image {
+    pub fn of(brick: Option<BrickData>) -> Option<Image> {
+        brick.map(|b| Image {
+            mask: b.mask,
+            colours: b.colours,
+        })
+    }
+
+    /// Every voxel's colour (`None`: empty), in bit order.
+    fn voxels(image: Option<&Image>) -> [Option<Colour>; 512] {
+        let mut out = [None; 512];
+        if let Some(image) = image {
+            let mut next = image.colours.iter();
+            for (bit, voxel) in out.iter_mut().enumerate() {
+                if (image.mask[bit / 64] >> (bit % 64)) & 1 == 1 {
+                    *voxel = next.next().copied();
+                }
+            }
+        }
+        out
+    }
+
+    fn from_voxels(voxels: &[Option<Colour>; 512]) -> Option<Image> {
+        let mut mask = [0u64; 8];
+        let mut colours = Vec::new();
+        for (bit, voxel) in voxels.iter().enumerate() {
+            if let Some(c) = voxel {
+                mask[bit / 64] |= 1 << (bit % 64);
+                colours.push(*c);
+            }
+        }
+        (!colours.is_empty()).then_some(Image { mask, colours })
+    }
+}
+
+/// One brick a step changed.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BrickChange {
+    /// Linear cell index.
+    pub cell: u32,
+    pub before: Option<Image>,
+    pub after: Option<Image>,
+}
+
+/// What one edit message, undo or redo changed.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Step {
+    pub bricks: Vec<BrickChange>,
+}
+
+impl Step {
+    /// The step an edit made, from the map's journal (see [`BrickMap::begin_journal`]): each
+    /// journaled cell with its brick now, leaving out cells that ended as they began.
+    pub fn from_journal(map: &BrickMap, journal: Vec<(u32, Option<BrickData>)>) -> Step {
+        let bricks = journal
+            .into_iter()
+            .filter_map(|(cell, before)| {
+                let before = Image::of(before);
+                let after = Image::of(map.brick(map.cell_coords(cell)));
+                (before != after).then_some(BrickChange {
+                    cell,
+                    before,
+                    after,
+                })
+            })
+            .collect();
+        Step { bricks }
+    }
+
+    /// Stored form: a version byte, then bincode, zstd-compressed when that pays.
+    pub fn encode(&self) -> Vec<u8> {
+        let raw = bincode::serde::encode_to_vec(self, bincode::config::standard())
+            .expect("a step always encodes");
+        if raw.len() > 256
+            && let Ok(packed) = zstd::bulk::compress(&raw, 1)
+            && packed.len() < raw.len()
+        {
+            let mut out = Vec::with_capacity(packed.len() + 5);
+            out.push(STEP_ZSTD);
+            out.extend_from_slice(&(raw.len() as u32).to_le_bytes());
+            out.extend_from_slice(&packed);
+            return out;
+        }
+        let mut out = Vec::with_capacity(raw.len() + 1);
+        out.push(STEP_RAW);
+        out.extend_from_slice(&raw);
+        out
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Step, String> {
+        let raw;
+        let body = match bytes.split_first() {
+            Some((&STEP_RAW, body)) => body,
+            Some((&STEP_ZSTD, rest)) if rest.len() >= 4 => {
+                let len = u32::from_le_bytes([rest[0], rest[1], rest[2], rest[3]]) as usize;
+                if len > MAX_STEP_BYTES {
+                    return Err(format!("a step of {len} bytes is over {MAX_STEP_BYTES}"));
+                }
+                raw = zstd::bulk::decompress(&rest[4..], len).map_err(|e| e.to_string())?;
+                &raw
+            }
+            _ => return Err("unknown step format".into()),
+        };
+        let (step, _): (Step, usize) =
+            bincode::serde::decode_from_slice(body, bincode::config::standard())
+                .map_err(|e| e.to_string())?;
+        Ok(step)
+    }
+}
+
+const STEP_RAW: u8 = 1;
+const STEP_ZSTD: u8 = 2;
+/// Largest decoded step: every brick of the largest box brush, before and after.
+const MAX_STEP_BYTES: usize = 1 << 30;
+
+/// What undoing a step would do to the map now.
+pub struct Revert {
+    /// Cells whose brick changes, with the brick they get (`None`: the cell empties), and the
+    /// record of the change (for the opposite stack).
+    pub writes: Vec<(u32, Option<Image>)>,
+    pub record: Step,
+    /// Voxels that go back to the step's before-value.
+    pub restored: u64,
+    /// Voxels the step changed that someone changed again since: left as they are.
+    pub kept: u64,
+}
+
+/// Plans undoing `step` against the map as it is: every voxel the step changed goes back to its
+/// before-value where it still holds the after-value. Changes nothing.
+pub fn plan_revert(map: &BrickMap, step: &Step) -> Revert {
+    let mut revert = Revert {
+        writes: Vec::new(),
+        record: Step::default(),
+        restored: 0,
+        kept: 0,
+    };
+    for change in &step.bricks {
+        let coords = map.cell_coords(change.cell);
+        let now = Image::of(map.brick(coords));
+        let before = Image::voxels(change.before.as_ref());
+        let after = Image::voxels(change.after.as_ref());
+        let mut voxels = Image::voxels(now.as_ref());
+        for i in 0..512 {
+            if before[i] == after[i] {
+                continue;
+            }
+            if voxels[i] == after[i] {
+                voxels[i] = before[i];
+                revert.restored += 1;
+            } else {
+                revert.kept += 1;
+            }
+        }
+        let next = Image::from_voxels(&voxels);
+        if next != now {
+            revert.writes.push((change.cell, next.clone()));
+            revert.record.bricks.push(BrickChange {
+                cell: change.cell,
+                before: now,
+                after: next,
+            });
+        }
+    }
+    revert
+}
+
+/// Writes whole bricks (a planned revert, or a logged one being replayed).
+pub fn write_bricks(map: &mut BrickMap, writes: &[(u32, Option<Image>)]) -> Result<(), String> {
+    let cells = map.cell_dims();
+    let count = u64::from(cells[0]) * u64::from(cells[1]) * u64::from(cells[2]);
+    for (cell, image) in writes {
+        if u64::from(*cell) >= count {
+            return Err(format!("cell {cell} is outside the scene"));
+        }
+        let coords = map.cell_coords(*cell);
+        match image {
+            Some(image) => map
+                .put_brick(&BrickData {
+                    cell: coords,
+                    mask: image.mask,
+                    colours: image.colours.clone(),
+                })
+                .map_err(|e| e.to_string())?,
+            None => {
+                map.remove_brick(coords);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A stored step, as a user's stacks name it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StepRef {
+    pub id: u64,
+    pub bytes: u64,
+}
+
+/// One user's undo and redo stacks (oldest first), as stored.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Stacks {
+    pub undo: VecDeque<StepRef>,
+    pub redo: Vec<StepRef>,
+}
+
+impl Stacks {
+    fn bytes(&self) -> u64 {
+        self.undo.iter().chain(&self.redo).map(|s| s.bytes).sum()
+    }
+
+    fn steps(&self) -> usize {
+        self.undo.len() + self.redo.len()
+    }
+}
+
+/// What a turn changed in the history, written in the turn's commit.
+#[derive(Default)]
+pub struct HistoryWrites {
+    /// New steps: id → stored bytes.
+    pub steps: BTreeMap<u64, Vec<u8>>,
+    /// Steps dropped (bounds, a cleared redo stack, undone or redone).
+    pub removed: BTreeSet<u64>,
+    /// Users whose stacks changed, with their stacks now (`None`: forget the user).
+    pub users: BTreeMap<UserId, Option<Stacks>>,
+}
+
+impl HistoryWrites {
+    pub fn is_empty(&self) -> bool {
+        self.steps.is_empty() && self.removed.is_empty() && self.users.is_empty()
+    }
+}
+
+/// Which stack an operation takes its step from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Direction {
+    Undo,
+    Redo,
+}
+
+/// Every user's stacks, and this turn's unwritten changes.
+pub struct History {
+    users: HashMap<UserId, Stacks>,
+    next_id: u64,
+    max_steps: usize,
+    max_bytes: u64,
+    pending: HistoryWrites,
+}
+
+impl History {
+    /// History as recovered from the store: each user's stacks, and the highest step id in use.
+    pub fn new(users: Vec<(UserId, Stacks)>, last_id: u64, max_steps: u32, max_bytes: u64) -> Self {
+        History {
+            users: users.into_iter().collect(),
+            next_id: last_id + 1,
+            max_steps: max_steps.max(1) as usize,
+            max_bytes,
+            pending: HistoryWrites::default(),
+        }
+    }
+
+    /// A user's stacks (for tests and metrics).
+    pub fn stacks(&self, user: UserId) -> Option<&Stacks> {
+        self.users.get(&user)
+    }
+
+    /// Users with any history.
+    pub fn user_count(&self) -> usize {
+        self.users.len()
+    }
+
+    /// Bytes of stored steps over every user.
+    pub fn total_bytes(&self) -> u64 {
+        self.users.values().map(Stacks::bytes).sum()
+    }
+
+    /// Records an edit message's step: onto the undo stack, clearing the redo stack.
+    pub fn record_edit(&mut self, user: UserId, step: &Step) {
+        let stacks = self.users.entry(user).or_default();
+        for dropped in stacks.redo.drain(..) {
+            self.pending.removed.insert(dropped.id);
+            self.pending.steps.remove(&dropped.id);
+        }
+        self.push(user, Direction::Undo, step);
+    }
+
+    /// The top of a user's undo (or redo) stack, removed from it. `load` reads a stored step.
+    pub fn pop(
+        &mut self,
+        user: UserId,
+        direction: Direction,
+        load: impl FnOnce(u64) -> Result<Option<Vec<u8>>, String>,
+    ) -> Result<Option<Step>, String> {
+        let Some(stacks) = self.users.get_mut(&user) else {
+            return Ok(None);
+        };
+        let top = match direction {
+            Direction::Undo => stacks.undo.pop_back(),
+            Direction::Redo => stacks.redo.pop(),
+        };
+        let Some(top) = top else {
+            return Ok(None);
+        };
+        self.pending.users.insert(user, Some(stacks.clone()));
+        self.pending.removed.insert(top.id);
+        let bytes = match self.pending.steps.remove(&top.id) {
+            Some(bytes) => bytes,
+            None => load(top.id)?.ok_or_else(|| format!("history step {} is missing", top.id))?,
+        };
+        Step::decode(&bytes).map(Some)
+    }
+
+    /// Pushes the record of an undo (onto the redo stack) or a redo (onto the undo stack).
+    pub fn push_record(&mut self, user: UserId, popped_from: Direction, record: &Step) {
+        let onto = match popped_from {
+            Direction::Undo => Direction::Redo,
+            Direction::Redo => Direction::Undo,
+        };
+        self.push(user, onto, record);
+    }
+
+    /// Forgets a user (a connection without a stable id, once it leaves).
+    pub fn forget(&mut self, user: UserId) {
+        if let Some(stacks) = self.users.remove(&user) {
+            for s in stacks.undo.iter().chain(&stacks.redo) {
+                self.pending.removed.insert(s.id);
+                self.pending.steps.remove(&s.id);
+            }
+            self.pending.users.insert(user, None);
+        }
+    }
+
+    fn push(&mut self, user: UserId, onto: Direction, step: &Step) {
+        let bytes = step.encode();
+        let id = self.next_id;
+        self.next_id += 1;
+        let entry = StepRef {
+            id,
+            bytes: bytes.len() as u64,
+        };
+        self.pending.removed.remove(&id);
+        self.pending.steps.insert(id, bytes);
+        let stacks = self.users.entry(user).or_default();
+        match onto {
+            Direction::Undo => stacks.undo.push_back(entry),
+            Direction::Redo => stacks.redo.push(entry),
+        }
+        // Oldest first: the bottom of the undo stack, then of the redo stack; the step just
+        // pushed always stays.
+        while stacks.steps() > 1
+            && (stacks.steps() > self.max_steps || stacks.bytes() > self.max_bytes)
+        {
+            let dropped = if stacks.undo.len() > usize::from(onto == Direction::Undo) {
+                stacks.undo.pop_front()
+            } else if !stacks.redo.is_empty()
+                && stacks.redo.len() > usize::from(onto == Direction::Redo)
+            {
+                Some(stacks.redo.remove(0))
+            } else {
+                None
+            };
+            let Some(dropped) = dropped else { break };
+            self.pending.removed.insert(dropped.id);
+            self.pending.steps.remove(&dropped.id);
+        }
+        self.pending.users.insert(user, Some(stacks.clone()));
+    }
+
+    /// This turn's changes, for the commit; the history starts the next turn with none.
+    pub fn take_writes(&mut self) -> HistoryWrites {
+        std::mem::take(&mut self.pending)
+    }
+
+    /// Whether the turn changed the history.
+    pub fn has_writes(&self) -> bool {
+        !self.pending.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn red() -> Colour {
+        Colour::from_rgb8(255, 0, 0)
+    }
+    fn blue() -> Colour {
+        Colour::from_rgb8(0, 0, 255)
+    }
+
+    /// Applies an edit with the journal on and returns its step.
+    fn edit(map: &mut BrickMap, f: impl FnOnce(&mut BrickMap)) -> Step {
+        map.begin_journal();
+        f(map);
+        let journal = map.end_journal();
+        Step::from_journal(map, journal)
+    }
+
+    fn undo(map: &mut BrickMap, step: &Step) -> Revert {
+        let revert = plan_revert(map, step);
+        write_bricks(map, &revert.writes).unwrap();
+        revert
+    }
+
+    #[test]
+    fn undo_restores_only_voxels_nobody_changed_since() {
+        let mut map = BrickMap::new([32, 32, 32]).unwrap();
+        map.set([1, 1, 1], blue());
+        let before = map.content_hash();
+        let mine = edit(&mut map, |m| {
+            m.set([1, 1, 1], red());
+            m.set([2, 1, 1], red());
+            m.set([20, 20, 20], red());
+        });
+        // Someone else paints one of my voxels and removes another.
+        map.set([2, 1, 1], blue());
+        map.clear([20, 20, 20]);
+        let r = undo(&mut map, &mine);
+        assert_eq!((r.restored, r.kept), (1, 2));
+        assert_eq!(map.get([1, 1, 1]), Some(blue()));
+        assert_eq!(map.get([2, 1, 1]), Some(blue()));
+        assert_eq!(map.get([20, 20, 20]), None);
+        assert_ne!(map.content_hash(), before);
+        map.check_invariants().unwrap();
+
+        // Redo (undoing the undo's record) puts back what the undo restored.
+        let redo = undo(&mut map, &r.record);
+        assert_eq!((redo.restored, redo.kept), (1, 0));
+        assert_eq!(map.get([1, 1, 1]), Some(red()));
+    }
+
+    #[test]
+    fn undo_of_a_sphere_returns_the_map_exactly() {
+        let mut map = BrickMap::new([96, 96, 96]).unwrap();
+        map.sphere(
+            [40.0, 40.0, 40.0],
+            10.0,
+            brickcast_protocol::BrushMode::Fill,
+            blue(),
+        );
+        let before = map.content_hash();
+        let step = edit(&mut map, |m| {
+            m.sphere(
+                [48.0, 48.0, 48.0],
+                32.0,
+                brickcast_protocol::BrushMode::Fill,
+                red(),
+            );
+        });
+        let changed = map.content_hash();
+        let r = undo(&mut map, &step);
+        assert_eq!(r.kept, 0);
+        assert_eq!(map.content_hash(), before);
+        undo(&mut map, &r.record);
+        assert_eq!(map.content_hash(), changed);
+        map.check_invariants().unwrap();
+        let bytes = step.encode();
+        assert!(
+            bytes.len() < 64 << 10,
+            "a compressed sphere step is {} bytes",
+            bytes.len()
+        );
+        assert_eq!(Step::decode(&bytes).unwrap(), step);
+    }
+
+    #[test]
+    fn bounds_drop_the_oldest_step_and_a_new_edit_clears_redo() {
+        let mut history = History::new(Vec::new(), 0, 3, u64::MAX);
+        let step = Step::default();
+        for _ in 0..5 {
+            history.record_edit(7, &step);
+        }
+        let ids: Vec<u64> = history
+            .stacks(7)
+            .unwrap()
+            .undo
+            .iter()
+            .map(|s| s.id)
+            .collect();
+        assert_eq!(ids, [3, 4, 5]);
+        let popped = history.pop(7, Direction::Undo, |_| Ok(None)).unwrap();
+        assert!(popped.is_some());
+        history.push_record(7, Direction::Undo, &step);
+        assert_eq!(history.stacks(7).unwrap().redo.len(), 1);
+        history.record_edit(7, &step);
+        assert!(history.stacks(7).unwrap().redo.is_empty());
+        let writes = history.take_writes();
+        assert!(writes.removed.contains(&1) && writes.removed.contains(&5));
+        assert!(
+            history
+                .pop(8, Direction::Undo, |_| Ok(None))
+                .unwrap()
+                .is_none()
+        );
+    }
+
+    #[test]
+    fn garbage_steps_are_errors() {
+        for bytes in [&[][..], &[9, 1, 2], &[2, 255, 255, 255, 255, 0], &[1, 200]] {
+            assert!(Step::decode(bytes).is_err());
+        }
+    }
+}

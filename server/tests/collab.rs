@@ -1,0 +1,435 @@
+//! Collaboration against a real server on loopback: per-user undo and redo (only what nobody
+//! changed since goes back), history across reconnects and its bound, refusals that keep the
+//! connection, and presence (who is here, where they look, who left).
+
+mod common;
+
+use std::time::Duration;
+
+use brickcast_protocol::wire::{
+    BrushMode, ClientMsg, Cursor, EditOp, Refusal, Role, ServerMsg, View,
+};
+use brickcast_protocol::{BrickMap, Colour};
+use common::{Client, TestServer, colour, http_get};
+
+const ALICE: u64 = 0xa11ce;
+const BOB: u64 = 0xb0b;
+
+fn set(pos: [u32; 3], c: u32) -> EditOp {
+    EditOp::Set {
+        pos,
+        colour: colour(c),
+    }
+}
+
+/// The undo reply's (seq is some, restored, kept, refused).
+fn outcome(reply: &ServerMsg) -> (bool, u64, u64, Option<Refusal>) {
+    match reply {
+        ServerMsg::Undone {
+            seq,
+            restored,
+            kept,
+            refused,
+            ..
+        } => (seq.is_some(), *restored, *kept, refused.clone()),
+        other => panic!("expected Undone, got {other:?}"),
+    }
+}
+
+fn seq_of(ack: &ServerMsg) -> u64 {
+    match ack {
+        ServerMsg::Ack { seq: Some(s), .. } => *s,
+        ServerMsg::Undone { seq: Some(s), .. } => *s,
+        other => panic!("nothing applied: {other:?}"),
+    }
+}
+
+/// A fresh client's copy: the server's scene as it is now.
+async fn server_map(server: &TestServer) -> BrickMap {
+    let mut fresh = Client::connect(&server.url("demo"), None).await.unwrap();
+    fresh.sync().await;
+    let map = fresh.map.clone();
+    fresh.close().await;
+    map
+}
+
+async fn caught_up(clients: &mut [&mut Client], seq: u64) {
+    for c in clients {
+        c.catch_up(seq).await;
+    }
+}
+
+#[tokio::test]
+async fn undo_reverts_only_what_nobody_changed_since_and_redo_puts_it_back() {
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let url = server.url("demo");
+    let mut a = Client::as_user(&url, None, ALICE, "alice").await.unwrap();
+    let mut b = Client::as_user(&url, None, BOB, "bob").await.unwrap();
+    a.sync().await;
+    b.sync().await;
+    let before = server_map(&server).await;
+
+    // Alice sets three voxels in one message; Bob repaints one of them and clears another.
+    let (x, y, z) = ([10, 40, 10], [11, 40, 10], [100, 50, 100]);
+    a.edit(vec![set(x, 1), set(y, 1), set(z, 1)]).await;
+    let seq = seq_of(&b.edit(vec![set(y, 2), EditOp::Clear { pos: z }]).await);
+    caught_up(&mut [&mut a, &mut b], seq).await;
+
+    let undo = a.undo(false).await;
+    assert_eq!(outcome(&undo), (true, 1, 2, None), "{undo:?}");
+    let seq = seq_of(&undo);
+    caught_up(&mut [&mut a, &mut b], seq).await;
+    assert_eq!(a.map.get(x), before.get(x), "alice's voxel went back");
+    assert_eq!(a.map.get(y), Some(colour(2)), "bob's paint stays");
+    assert_eq!(a.map.get(z), None, "bob's clear stays");
+    let server_now = server_map(&server).await;
+    for map in [&a.map, &b.map] {
+        assert_eq!(map.content_hash(), server_now.content_hash());
+    }
+
+    // Redo puts back what the undo restored.
+    let redo = a.undo(true).await;
+    assert_eq!(outcome(&redo), (true, 1, 0, None), "{redo:?}");
+    caught_up(&mut [&mut a, &mut b], seq_of(&redo)).await;
+    assert_eq!(b.map.get(x), Some(colour(1)));
+
+    // Undo again, then a new edit clears the redo stack.
+    seq_of(&a.undo(false).await);
+    a.edit(vec![set([20, 40, 20], 3)]).await;
+    let refused = a.undo(true).await;
+    assert_eq!(outcome(&refused).3, Some(Refusal::NothingToRedo));
+
+    // Bob's own history is his: his undo takes back his paint and clear only.
+    let bob_undo = b.undo(false).await;
+    assert_eq!(outcome(&bob_undo), (true, 2, 0, None), "{bob_undo:?}");
+    caught_up(&mut [&mut a, &mut b], seq_of(&bob_undo)).await;
+    assert_eq!(
+        b.map.get(z),
+        Some(colour(1)),
+        "alice's voxel is back under bob's clear"
+    );
+
+    // Someone with no history.
+    let mut c = Client::as_user(&url, None, 0xc, "carol").await.unwrap();
+    assert_eq!(
+        outcome(&c.undo(false).await).3,
+        Some(Refusal::NothingToUndo)
+    );
+    assert_eq!(outcome(&c.undo(true).await).3, Some(Refusal::NothingToRedo));
+
+    let server_now = server_map(&server).await;
+    let last = server_now.sequence();
+    caught_up(&mut [&mut a, &mut b, &mut c], last).await;
+    for map in [&a.map, &b.map, &c.map] {
+        assert_eq!(map.content_hash(), server_now.content_hash());
+    }
+    let (_, metrics) = http_get(server.addr, "/metrics").await;
+    assert!(metrics.contains("brickcast_undos_total 3"), "{metrics}");
+    assert!(metrics.contains("brickcast_redos_total 1"), "{metrics}");
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn a_sphere_of_radius_32_undoes_exactly_and_history_outlives_connections() {
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let url = server.url("demo");
+    let mut a = Client::as_user(&url, None, ALICE, "alice").await.unwrap();
+    a.sync().await;
+    let before = a.map.content_hash();
+    let brush = EditOp::Sphere {
+        centre: [64.0, 32.0, 64.0],
+        radius: 32.0,
+        mode: BrushMode::Fill,
+        colour: Colour::from_rgb8(200, 30, 30),
+    };
+    let seq = seq_of(&a.edit(vec![brush]).await);
+    a.catch_up(seq).await;
+    let filled = a.map.content_hash();
+    assert_ne!(filled, before);
+    a.close().await;
+
+    // Reconnected (same user id): the history is still there.
+    let mut a = Client::as_user(&url, None, ALICE, "alice").await.unwrap();
+    a.sync().await;
+    let undo = a.undo(false).await;
+    let (changed, restored, kept, refused) = outcome(&undo);
+    assert!(
+        changed && restored > 100_000 && kept == 0 && refused.is_none(),
+        "{undo:?}"
+    );
+    a.catch_up(seq_of(&undo)).await;
+    assert_eq!(a.map.content_hash(), before);
+    let redo = a.undo(true).await;
+    a.catch_up(seq_of(&redo)).await;
+    assert_eq!(a.map.content_hash(), filled);
+    assert_eq!(server_map(&server).await.content_hash(), filled);
+
+    // A clean restart keeps every user's history.
+    a.close().await;
+    server.shutdown().await.unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let mut a = Client::as_user(&server.url("demo"), None, ALICE, "alice")
+        .await
+        .unwrap();
+    a.sync().await;
+    let undo = a.undo(false).await;
+    a.catch_up(seq_of(&undo)).await;
+    assert_eq!(a.map.content_hash(), before);
+
+    // A connection without a user id keeps its history only while it stays.
+    let mut guest = Client::connect(&server.url("demo"), None).await.unwrap();
+    guest.sync().await;
+    guest.edit(vec![set([1, 60, 1], 5)]).await;
+    guest.close().await;
+    let mut guest = Client::connect(&server.url("demo"), None).await.unwrap();
+    assert_eq!(
+        outcome(&guest.undo(false).await).3,
+        Some(Refusal::NothingToUndo)
+    );
+
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn the_history_bound_drops_the_oldest_step_and_viewers_cannot_undo() {
+    let data = tempfile::tempdir().unwrap();
+    let auth = data.path().join("auth");
+    std::fs::write(&auth, "ed editor Alice Liddell\nlook viewer\n").unwrap();
+    let server = TestServer::start(data.path(), |c| {
+        c.owner.limits.max_undo_steps = 3;
+        c.auth = brickcast_server::auth::Auth::from_file(&auth).unwrap();
+    })
+    .await;
+    let url = server.url("demo");
+    let mut a = Client::as_user(&url, Some("ed"), 42, "ignored")
+        .await
+        .unwrap();
+    assert_eq!(a.roster.you.as_ref().unwrap().name, "Alice Liddell");
+    a.sync().await;
+    for i in 0..5 {
+        a.edit(vec![set([30 + i, 45, 30], i)]).await;
+    }
+    for _ in 0..3 {
+        assert_eq!(outcome(&a.undo(false).await).3, None);
+    }
+    assert_eq!(
+        outcome(&a.undo(false).await).3,
+        Some(Refusal::NothingToUndo)
+    );
+    let map = server_map(&server).await;
+    assert_eq!(
+        map.get([30, 45, 30]),
+        Some(colour(0)),
+        "the oldest steps stay applied"
+    );
+    assert_eq!(map.get([31, 45, 30]), Some(colour(1)));
+    assert_eq!(map.get([32, 45, 30]), None);
+
+    // A token names the user: the same person on another connection has the same history
+    // (redo of what the first connection undid), whatever id the client sends.
+    let mut again = Client::as_user(&url, Some("ed"), 7, "x").await.unwrap();
+    assert_eq!(outcome(&again.undo(true).await), (true, 1, 0, None));
+
+    let mut viewer = Client::as_user(&url, Some("look"), 42, "v").await.unwrap();
+    assert_eq!(viewer.role, Role::Viewer);
+    assert_eq!(
+        outcome(&viewer.undo(false).await).3,
+        Some(Refusal::NotAllowed)
+    );
+    // A client without a token cannot claim the token user's id.
+    let mut claim = Client::as_user(&url, None, a.roster.you.as_ref().unwrap().user, "m")
+        .await
+        .unwrap();
+    assert_ne!(
+        claim.roster.you.as_ref().unwrap().user,
+        a.roster.you.as_ref().unwrap().user
+    );
+    assert_eq!(
+        outcome(&claim.undo(false).await).3,
+        Some(Refusal::NotAllowed)
+    );
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn presence_shows_who_is_here_where_they_look_and_who_left() {
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let url = server.url("demo");
+    let mut a = Client::as_user(&url, None, ALICE, "alice").await.unwrap();
+    a.sync().await;
+    let mut b = Client::as_user(&url, None, BOB, "bob").await.unwrap();
+    let alice = a.roster.you.clone().unwrap();
+    assert!(
+        b.roster.others.contains_key(&alice.id),
+        "bob's Welcome lists alice"
+    );
+    b.sync().await;
+
+    let view = View {
+        eye: [64.0, 80.0, -20.0],
+        forward: [0.0, -0.5, 1.0],
+    };
+    let cursor = Cursor {
+        voxel: [64, 20, 64],
+        radius: 3.0,
+    };
+    a.send(&ClientMsg::Presence {
+        view: Some(view),
+        cursor: Some(cursor),
+    })
+    .await;
+    let seen = tokio::time::timeout(
+        Duration::from_secs(20),
+        b.until(|b, _| {
+            b.roster
+                .others
+                .get(&alice.id)
+                .is_some_and(|p| p.state.view == Some(view) && p.state.cursor == Some(cursor))
+        }),
+    )
+    .await;
+    assert_eq!(seen, Ok(true), "bob never saw alice's view and cursor");
+    assert_eq!(b.roster.others[&alice.id].peer.name, "alice");
+
+    // A rename reaches the others; a bad one is refused and the connection stays.
+    a.send(&ClientMsg::Rename {
+        name: "Alice".into(),
+    })
+    .await;
+    assert!(
+        b.until(|b, _| b.roster.others[&alice.id].peer.name == "Alice")
+            .await
+    );
+    for (msg, want) in [
+        (
+            ClientMsg::Rename {
+                name: "x".repeat(65),
+            },
+            Refusal::BadName { max: 64 },
+        ),
+        (
+            ClientMsg::Rename {
+                name: "tab\there".into(),
+            },
+            Refusal::BadName { max: 64 },
+        ),
+        (
+            ClientMsg::Presence {
+                view: Some(View {
+                    eye: [f32::NAN, 0.0, 0.0],
+                    forward: [0.0, 0.0, 1.0],
+                }),
+                cursor: None,
+            },
+            Refusal::NotFinite,
+        ),
+        (
+            ClientMsg::Presence {
+                view: None,
+                cursor: Some(Cursor {
+                    voxel: [9999, 0, 0],
+                    radius: 1.0,
+                }),
+            },
+            Refusal::OutOfRange,
+        ),
+    ] {
+        a.send(&msg).await;
+        let got = a
+            .until(|_, m| matches!(m, ServerMsg::Refused { reason } if *reason == want))
+            .await;
+        assert!(got, "no {want:?} for {msg:?}");
+    }
+    // Too fast: more than presence_hz in a burst.
+    for i in 0..60 {
+        a.send(&ClientMsg::Presence {
+            view: None,
+            cursor: Some(Cursor {
+                voxel: [i, 0, 0],
+                radius: 0.0,
+            }),
+        })
+        .await;
+    }
+    assert!(
+        a.until(|_, m| matches!(
+            m,
+            ServerMsg::Refused {
+                reason: Refusal::RateLimited
+            }
+        ))
+        .await
+    );
+    a.send(&ClientMsg::Ping { nonce: 77 }).await;
+    assert!(
+        a.until(|_, m| matches!(m, ServerMsg::Pong { nonce: 77 }))
+            .await
+    );
+    assert!(a.errors.is_empty(), "{:?}", a.errors);
+
+    // Alice leaves: bob's roster drops her.
+    a.close().await;
+    assert!(
+        b.until(|b, _| !b.roster.others.contains_key(&alice.id))
+            .await
+    );
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn a_client_that_never_reads_does_not_queue_presence() {
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let url = server.url("demo");
+    // Says hello and then never reads a byte.
+    let silent = Client::as_user(&url, None, 5, "silent").await.unwrap();
+    let mut movers = Vec::new();
+    for i in 0..4 {
+        let mut c = Client::as_user(&url, None, 100 + i, &format!("m{i}"))
+            .await
+            .unwrap();
+        c.sync().await;
+        movers.push(c);
+    }
+    // Four peers move at 20 Hz for 4 seconds.
+    for step in 0..80 {
+        for (i, c) in movers.iter_mut().enumerate() {
+            c.send(&ClientMsg::Presence {
+                view: Some(View {
+                    eye: [step as f32, i as f32, 1.0],
+                    forward: [0.0, 0.0, 1.0],
+                }),
+                cursor: None,
+            })
+            .await;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        // The movers read what comes, like a viewer does.
+        for c in movers.iter_mut() {
+            while let Ok(Some(_)) = tokio::time::timeout(Duration::from_millis(1), c.next()).await {
+            }
+        }
+    }
+    let (_, metrics) = http_get(server.addr, "/metrics").await;
+    let value = |name: &str| -> f64 {
+        metrics
+            .lines()
+            .find(|l| l.starts_with(name) && l[name.len()..].starts_with(' '))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("{name} missing:\n{metrics}"))
+    };
+    let queued = value("brickcast_queued_bytes");
+    // The silent client holds its sync (bounded by the queue limits) and at most one presence
+    // frame past the presence bound, not 80 ticks of them.
+    // (Loopback socket buffers can absorb all of it; `presence::tests` fills a queue past the
+    // bound directly.)
+    let frames = value("brickcast_presence_frames_total");
+    assert!(frames > 100.0, "presence frames sent: {frames}");
+    assert!(queued < (1 << 20) as f64, "queued {queued} bytes");
+    drop(silent);
+    server.shutdown().await.unwrap();
+}
