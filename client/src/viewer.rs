@@ -29,9 +29,13 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, ModifiersState, PhysicalKey};
 use winit::window::{CursorGrabMode, Window, WindowId};
 
+use crate::follow::Follow;
 use crate::gpu::{BackendChoice, GpuContext, GpuScene, Tracer, new_instance};
 use crate::link::websocket_url;
 use crate::live::{Live, Status};
+use crate::overlay::canvas::Canvas;
+use crate::overlay::gpu::OverlayPass;
+use crate::overlay::{OverlayInput, draw as draw_overlay};
 
 /// Options of `brickcast view` besides the address.
 #[derive(Debug, Clone, clap::Args)]
@@ -55,6 +59,9 @@ pub struct ViewArgs {
     /// The name others see (default: the OS user name).
     #[arg(long)]
     pub name: Option<String>,
+    /// Ride along with this user's camera as soon as they are present (F cycles, moving stops).
+    #[arg(long)]
+    pub follow: Option<String>,
 }
 
 /// The palette behind keys 1–8.
@@ -120,6 +127,17 @@ impl FlyCamera {
         }
     }
 
+    /// Puts the camera at `view`'s eye, looking where it looks (following someone).
+    pub fn look_along(&mut self, view: View) {
+        let f = view.forward;
+        let flat = (f[0] * f[0] + f[2] * f[2]).sqrt();
+        if view.is_valid() {
+            self.eye = view.eye;
+            self.yaw = f[2].atan2(f[0]);
+            self.pitch = f[1].atan2(flat).clamp(-1.55, 1.55);
+        }
+    }
+
     pub fn look(&mut self, dx: f32, dy: f32) {
         const SENSITIVITY: f32 = 0.003;
         self.yaw += dx * SENSITIVITY;
@@ -137,6 +155,7 @@ struct Gpu {
     blit: wgpu::RenderPipeline,
     blit_layout: wgpu::BindGroupLayout,
     sampler: wgpu::Sampler,
+    overlay: OverlayPass,
     scene: Option<GpuScene>,
 }
 
@@ -165,6 +184,10 @@ struct App {
     /// The presence last sent, and when the next may go.
     presence_sent: Option<(Option<View>, Option<Cursor>)>,
     presence_at: Instant,
+    /// What my pointer is on (traced on the local copy each frame).
+    my_cursor: Option<Cursor>,
+    follow: Follow,
+    overlay: Canvas,
 }
 
 /// Opens the window and runs until it is closed.
@@ -189,6 +212,7 @@ pub fn run(url: &str, token: Option<String>, args: ViewArgs) -> Result<()> {
     brickcast_protocol::wire::check_display_name(&name).map_err(|e| anyhow!("--name: {e}"))?;
     let live = Live::start(url, name, crate::identity::user_id(), token)
         .context("starting the network thread")?;
+    let follow = Follow::by_name(args.follow.clone());
     let mut app = App {
         args: ViewArgs {
             size: format!("{w}x{h}"),
@@ -215,6 +239,9 @@ pub fn run(url: &str, token: Option<String>, args: ViewArgs) -> Result<()> {
         projection: None,
         presence_sent: None,
         presence_at: Instant::now(),
+        my_cursor: None,
+        follow,
+        overlay: Canvas::new(1, 1),
     };
     event_loop
         .run_app(&mut app)
@@ -289,6 +316,7 @@ impl App {
             ..Default::default()
         });
         tracing::info!("tracing on {}", ctx.adapter_name);
+        let overlay = OverlayPass::new(&ctx.device, config.format);
         self.gpu = Some(Gpu {
             window,
             surface,
@@ -298,6 +326,7 @@ impl App {
             blit,
             blit_layout,
             sampler,
+            overlay,
             scene: None,
         });
         Ok(())
@@ -370,8 +399,18 @@ impl App {
         if let Status::Failed(reason) = &status {
             return Err(anyhow!("{reason}"));
         }
+        if movement != [0.0; 3] {
+            self.follow.stop();
+        }
+        let followed = {
+            let live = self.live.lock();
+            self.follow.view(&live.roster)
+        };
         if let Some(camera) = &mut self.camera {
-            camera.fly(movement, dt);
+            match followed {
+                Some(view) => camera.look_along(view),
+                None => camera.fly(movement, dt),
+            }
         }
         self.share_presence();
         let Some(gpu) = &mut self.gpu else {
@@ -418,6 +457,39 @@ impl App {
             },
             _ => false,
         };
+        // The overlay, drawn at the window's resolution.
+        if let Some(camera) = &self.camera
+            && let Some(projection) = camera.camera().project(gpu.config.width, gpu.config.height)
+        {
+            let live = self.live.lock();
+            let mut notes = vec![status_text(&status, progress)];
+            if let Some(why) = &rejected {
+                notes.push(format!("last edit rejected: {why}"));
+            }
+            if let Some(undo) = &undo {
+                notes.push(undo.clone());
+            }
+            notes.push("Ctrl+Z undo, Ctrl+Y redo, F follow".into());
+            let (r, g, b) = PALETTE[self.colour];
+            draw_overlay(
+                &mut self.overlay,
+                &OverlayInput {
+                    projection,
+                    roster: &live.roster,
+                    cursor: self.my_cursor.map(|c| Cursor {
+                        radius: self.radius,
+                        ..c
+                    }),
+                    colour: Colour::from_rgb8(r, g, b),
+                    captured: self.captured,
+                    notes,
+                    following: self.follow.target,
+                },
+            );
+            drop(live);
+            gpu.overlay
+                .upload(&gpu.ctx.device, &gpu.ctx.queue, &self.overlay);
+        }
         {
             let group = match (traced, gpu.tracer.image_view()) {
                 (true, Some(view)) => Some(gpu.ctx.device.create_bind_group(
@@ -464,6 +536,7 @@ impl App {
                 pass.set_bind_group(0, group, &[]);
                 pass.draw(0..3, 0..1);
             }
+            gpu.overlay.draw(&mut pass);
         }
         if synced && traced {
             self.synced_frames += 1;
@@ -495,13 +568,7 @@ impl App {
             self.fps = self.frames_since_title as f32 / since.as_secs_f32();
             self.frames_since_title = 0;
             self.title_at = now;
-            let state = match &status {
-                Status::Connecting => "connecting".to_string(),
-                Status::Syncing => format!("syncing {}/{} bricks", progress.0, progress.1),
-                Status::Live => "live".to_string(),
-                Status::Reconnecting(why) => format!("reconnecting ({why})"),
-                Status::Failed(why) => format!("failed: {why}"),
-            };
+            let state = status_text(&status, progress);
             let role = match role {
                 Some(Role::Editor) => "editor",
                 Some(Role::Viewer) => "viewer (read-only)",
@@ -584,9 +651,6 @@ impl App {
     /// allows. The cursor voxel is traced on the local copy, which is what the user sees.
     fn share_presence(&mut self) {
         let now = Instant::now();
-        if now < self.presence_at {
-            return;
-        }
         let Some(camera) = self.camera else { return };
         let view = Some(View {
             eye: camera.eye,
@@ -608,6 +672,10 @@ impl App {
             };
             (hz, cursor)
         };
+        self.my_cursor = cursor;
+        if now < self.presence_at {
+            return;
+        }
         let now_sharing = (view, cursor);
         if self.presence_sent != Some(now_sharing) {
             self.live.presence(view, cursor);
@@ -674,6 +742,10 @@ impl ApplicationHandler for App {
                 match code {
                     KeyCode::KeyZ if ctrl => self.live.undo(shift),
                     KeyCode::KeyY if ctrl => self.live.undo(true),
+                    KeyCode::KeyF => {
+                        let roster = self.live.lock().roster.clone();
+                        self.follow.cycle(&roster);
+                    }
                     KeyCode::Escape if self.captured => self.set_captured(false),
                     KeyCode::Escape => event_loop.exit(),
                     KeyCode::Tab => self.set_captured(!self.captured),
@@ -728,6 +800,7 @@ impl ApplicationHandler for App {
             && (self.looking || self.captured)
             && let Some(camera) = &mut self.camera
         {
+            self.follow.stop();
             camera.look(delta.0 as f32, delta.1 as f32);
         }
     }
@@ -749,6 +822,17 @@ impl ApplicationHandler for App {
                 gpu.window.request_redraw();
             }
         }
+    }
+}
+
+/// Where the connection stands, in words.
+fn status_text(status: &Status, progress: (u32, u32)) -> String {
+    match status {
+        Status::Connecting => "connecting".to_string(),
+        Status::Syncing => format!("syncing {}/{} bricks", progress.0, progress.1),
+        Status::Live => "live".to_string(),
+        Status::Reconnecting(why) => format!("reconnecting ({why})"),
+        Status::Failed(why) => format!("failed: {why}"),
     }
 }
 

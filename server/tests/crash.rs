@@ -324,3 +324,91 @@ async fn acknowledged_edits_survive_sigkill() {
     eprintln!("{snapshots_seen} snapshots were written during the rounds");
     assert!(snapshots_seen > 0, "snapshots were mixed in");
 }
+
+/// Undo history is as durable as the edits it undoes: steps made, undone and redone before a
+/// SIGKILL are all still there after the restart, with snapshots taken in between (they never
+/// trim history).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn undo_history_survives_sigkill() {
+    let dir = tempfile::tempdir().unwrap();
+    let addr = free_port();
+    let url = format!("ws://{addr}/scenes/demo/ws");
+    let flags = ["--snapshot-every", "0.05"];
+    let alice = 0xa11ce;
+    let undone = |reply: &ServerMsg| match reply {
+        ServerMsg::Undone {
+            seq: Some(seq),
+            refused: None,
+            restored,
+            ..
+        } => (*seq, *restored),
+        other => panic!("the undo applies: {other:?}"),
+    };
+
+    let mut server = start(addr, dir.path(), &flags).await;
+    let mut a = Client::as_user(&url, None, alice, "alice").await.unwrap();
+    a.sync().await;
+    let empty = a.map.content_hash();
+    let mut hashes = vec![empty];
+    for i in 0..4u32 {
+        let ServerMsg::Ack { seq: Some(seq), .. } = a
+            .edit(vec![EditOp::Sphere {
+                centre: [20.0 + 25.0 * i as f32, 40.0, 64.0],
+                radius: 9.0,
+                mode: brickcast_protocol::BrushMode::Fill,
+                colour: colour(i),
+            }])
+            .await
+        else {
+            panic!("the sphere applies");
+        };
+        a.catch_up(seq).await;
+        hashes.push(a.map.content_hash());
+    }
+    // Undo the last step and let snapshots happen (every 50 ms while the log has entries), then
+    // SIGKILL.
+    let before = snapshots(addr).await;
+    let (seq, _) = undone(&a.undo(false).await);
+    a.catch_up(seq).await;
+    assert_eq!(a.map.content_hash(), hashes[3]);
+    // An idle owner looks at the snapshot clock at least once a second.
+    tokio::time::sleep(Duration::from_millis(1200)).await;
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while snapshots(addr).await <= before {
+        assert!(Instant::now() < deadline, "no snapshot around the undo");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    server.kill();
+
+    let mut server = start(addr, dir.path(), &flags).await;
+    let mut a = Client::as_user(&url, None, alice, "alice").await.unwrap();
+    a.sync().await;
+    assert_eq!(a.map.content_hash(), hashes[3], "the scene after the undo");
+    // The redo stack survived: redo, then undo everything back to the empty scene.
+    let (seq, restored) = undone(&a.undo(true).await);
+    assert!(restored > 1000);
+    a.catch_up(seq).await;
+    assert_eq!(a.map.content_hash(), hashes[4]);
+    server.kill();
+
+    let _server = start(addr, dir.path(), &flags).await;
+    let mut a = Client::as_user(&url, None, alice, "alice").await.unwrap();
+    a.sync().await;
+    assert_eq!(a.map.content_hash(), hashes[4]);
+    for step in (0..4).rev() {
+        let (seq, _) = undone(&a.undo(false).await);
+        a.catch_up(seq).await;
+        assert_eq!(
+            a.map.content_hash(),
+            hashes[step],
+            "undo down to step {step}"
+        );
+    }
+    match a.undo(false).await {
+        ServerMsg::Undone {
+            refused: Some(brickcast_protocol::wire::Refusal::NothingToUndo),
+            ..
+        } => {}
+        other => panic!("{other:?}"),
+    }
+}

@@ -329,7 +329,7 @@ async fn bad_frames_close_only_their_connection() {
     }
     let (_, metrics) = http_get(server.addr, "/metrics").await;
     assert!(
-        metrics.contains("brickcast_rejected_frames_total 4"),
+        metrics.contains("brickcast_rejected_frames_total 5"),
         "{metrics}"
     );
     for line in [

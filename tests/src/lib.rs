@@ -191,8 +191,12 @@ impl VirtualDisplay {
     /// Starts Xvfb on a free display number. Errors (rather than skipping) when Xvfb is missing:
     /// scripts/test installs it.
     pub fn start() -> Result<VirtualDisplay> {
-        let base = 100 + std::process::id() % 400;
-        for number in base..base + 50 {
+        // Tests in one process start displays at once: each takes its own numbers, so two
+        // cannot both see a free number and then share the display the winner started.
+        static TAKEN: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let base = 100 + (std::process::id() % 400) * 8;
+        for _ in 0..50 {
+            let number = base + TAKEN.fetch_add(1, std::sync::atomic::Ordering::Relaxed) % 4000;
             if Path::new(&format!("/tmp/.X11-unix/X{number}")).exists()
                 || Path::new(&format!("/tmp/.X{number}-lock")).exists()
             {
@@ -219,7 +223,8 @@ impl VirtualDisplay {
             let socket = PathBuf::from(format!("/tmp/.X11-unix/X{number}"));
             let started = Instant::now();
             while started.elapsed() < Duration::from_secs(10) {
-                if socket.exists() {
+                // Ours only if our Xvfb is still running (a loser of a race exits).
+                if socket.exists() && child.try_wait()?.is_none() {
                     return Ok(VirtualDisplay {
                         display: format!(":{number}"),
                         child,

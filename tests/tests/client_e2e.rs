@@ -380,3 +380,116 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
     );
     server.stop().expect("clean shutdown");
 }
+
+/// Two users in one scene. Bob (a live connection in this process) shares where he stands and
+/// looks; Alice's window draws his marker at the pixel where his camera projects in her view
+/// (found in her screenshot, in the colour the server gave him), and with `--follow bob` her
+/// camera sits at his eye, looking his way (her shared view, as a third user sees it).
+#[test]
+fn viewer_draws_other_users_where_they_stand_and_follows_them() {
+    use brickcast_client::viewer::FlyCamera;
+    use brickcast_protocol::Camera;
+    use brickcast_protocol::wire::View;
+
+    let data = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(data.path(), local()).expect("server");
+    let display = VirtualDisplay::start().expect("Xvfb");
+    let url = server.url("demo");
+    let ws = brickcast_client::link::websocket_url(&url).expect("url");
+    let size = fetch(&url).expect("fresh copy").map.size();
+    let (w, h) = (320u32, 200u32);
+    let alice_view = FlyCamera::from_camera(&Camera::overview(size), size)
+        .camera()
+        .project(w, h)
+        .expect("a projection");
+    // Bob stands 30 rays' lengths along Alice's pixel (250, 150), looking across the scene.
+    let ray = alice_view.ray(250, 150);
+    let eye = [0, 1, 2].map(|i| ray.origin[i] + ray.dir[i] * 30.0);
+    let forward = [0.4, -0.3, 1.0];
+    let bob = Live::start(ws.clone(), "bob".into(), 77, None).expect("bob");
+    assert!(
+        wait_until(Duration::from_secs(30), || bob.lock().status
+            == Status::Live),
+        "bob never got live"
+    );
+    bob.presence(Some(View { eye, forward }), None);
+
+    let out = tempfile::tempdir().expect("tempdir");
+    let shot = out.path().join("alice.png");
+    let size_arg = format!("{w}x{h}");
+    let (status, _, stderr) = run_brickcast(
+        &[
+            "view",
+            &url,
+            "--vulkan",
+            "--size",
+            &size_arg,
+            "--name",
+            "alice",
+            "--exit-after",
+            "20",
+            "--screenshot",
+            shot.to_str().expect("utf-8 path"),
+        ],
+        &[("DISPLAY", &display.display), ("WAYLAND_DISPLAY", "")],
+        RUN_LIMIT,
+    )
+    .expect("brickcast view");
+    assert!(status.success(), "viewer failed: {stderr}");
+    let (sw, sh, pixels) = read_png(&shot).expect("screenshot");
+    assert_eq!((sw, sh), (w, h));
+    let (x, y, _) =
+        brickcast_client::overlay::to_screen(&alice_view, eye).expect("bob is in front of alice");
+    let (px, py) = (x as u32, y as u32);
+    assert_eq!(
+        (px, py),
+        (250, 150),
+        "bob stands on alice's pixel (250, 150)"
+    );
+    let [r, g, b] = brickcast_server::identity::colour_of(77).to_rgb8();
+    let got = pixels[(py * w + px) as usize];
+    let distance = (0..3)
+        .map(|i| (i32::from(got[i]) - i32::from([r, g, b][i])).abs())
+        .max()
+        .unwrap_or(0);
+    assert!(
+        distance <= 4,
+        "alice's window shows {got:?} where bob's marker (#{r:02x}{g:02x}{b:02x}) should be"
+    );
+
+    // Carol watches Alice follow Bob.
+    let carol = Live::start(ws, "carol".into(), 78, None).expect("carol");
+    let mut follower = spawn_brickcast(
+        &[
+            "view", &url, "--vulkan", "--size", &size_arg, "--name", "alice", "--follow", "bob",
+        ],
+        &[("DISPLAY", &display.display), ("WAYLAND_DISPLAY", "")],
+    )
+    .expect("brickcast view --follow");
+    let len = forward.iter().map(|v| v * v).sum::<f32>().sqrt();
+    let along = forward.map(|v| v / len);
+    let mut seen = None;
+    let followed = wait_until(Duration::from_secs(60), || {
+        let s = carol.lock();
+        seen = s
+            .roster
+            .others
+            .values()
+            .find(|p| p.peer.name == "alice")
+            .and_then(|p| p.state.view);
+        seen.is_some_and(|v| {
+            let l = v.forward.iter().map(|c| c * c).sum::<f32>().sqrt();
+            (0..3).all(|i| (v.eye[i] - eye[i]).abs() < 1e-3)
+                && (0..3).all(|i| (v.forward[i] / l - along[i]).abs() < 1e-3)
+        })
+    });
+    assert!(
+        followed,
+        "alice's camera is not at bob's eye ({eye:?} looking {along:?}); carol saw {seen:?}"
+    );
+    let _ = follower.0.kill();
+    let _ = follower.wait_exit(Duration::from_secs(10));
+    drop(bob);
+    drop(carol);
+    server.stop().expect("clean shutdown");
+}

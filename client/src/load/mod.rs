@@ -105,14 +105,22 @@ pub struct LoadReport {
     pub bytes_out: u64,
     pub resyncs: u64,
     pub rejected: u64,
-    /// Undo and redo messages acknowledged (with `--undo-ratio`), those refused (nothing to
-    /// undo), and the voxels they put back.
-    pub undos: u64,
-    pub undos_refused: u64,
-    pub undo_voxels: u64,
+    /// Only with `--undo-ratio` (so the fields issue #6 fixed stay the same without it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub undo: Option<UndoReport>,
     /// Clients that failed (connection, protocol, unacknowledged batches) plus copies that did
     /// not match the server's: any error makes the run fail.
     pub errors: u64,
+}
+
+/// Undo and redo messages acknowledged (with `--undo-ratio`), those refused (nothing to undo),
+/// and the voxels they put back.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct UndoReport {
+    pub applied: u64,
+    pub per_s: f64,
+    pub refused: u64,
+    pub voxels: u64,
 }
 
 /// Everything else the run learned, for the table.
@@ -388,9 +396,12 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
         bytes_out: per(editor_bytes.1 + viewer_bytes.1, connections),
         resyncs,
         rejected,
-        undos,
-        undos_refused,
-        undo_voxels,
+        undo: (args.undo_ratio > 0.0).then(|| UndoReport {
+            applied: undos,
+            per_s: undos as f64 / duration_s,
+            refused: undos_refused,
+            voxels: undo_voxels,
+        }),
         errors: failures.len() as u64,
     };
     let details = LoadDetails {
@@ -616,15 +627,12 @@ impl LoadOutcome {
             );
             row("server sessions s", list(&server.session));
         }
-        if r.undos + r.undos_refused > 0 {
+        if let Some(u) = &r.undo {
             row(
                 "undo / redo",
                 format!(
                     "{} applied ({:.0}/s), {} refused, {} voxels put back",
-                    r.undos,
-                    r.undos as f64 / r.duration_s,
-                    r.undos_refused,
-                    r.undo_voxels
+                    u.applied, u.per_s, u.refused, u.voxels
                 ),
             );
         }
