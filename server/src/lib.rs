@@ -371,6 +371,11 @@ async fn metrics_text(State(app): State<Arc<App>>) -> Response {
             rss,
         );
     }
+    if let Some(cpu) = metrics::cpu_seconds() {
+        text.push_str(&format!(
+            "# HELP brickcast_process_cpu_seconds_total CPU time (user and system) of the server process.\n# TYPE brickcast_process_cpu_seconds_total counter\nbrickcast_process_cpu_seconds_total {cpu}\n"
+        ));
+    }
     for (name, scene) in app.scene_list() {
         let info = &scene.info;
         for (metric, value) in [
@@ -379,6 +384,9 @@ async fn metrics_text(State(app): State<Arc<App>>) -> Response {
             ("scene_voxels", info.voxels.load(Relaxed)),
             ("scene_clients", info.clients.load(Relaxed)),
             ("scene_gpu_bytes", info.gpu_bytes.load(Relaxed)),
+            ("scene_history_users", info.history_users.load(Relaxed)),
+            ("scene_history_bytes", info.history_bytes.load(Relaxed)),
+            ("scene_present", scene.presence.len() as u64),
         ] {
             text.push_str(&format!("brickcast_{metric}{{scene=\"{name}\"}} {value}\n"));
         }

@@ -108,6 +108,13 @@ pub struct LoadReport {
     /// Only with `--undo-ratio` (so the fields issue #6 fixed stay the same without it).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub undo: Option<UndoReport>,
+    /// Only with `--presence-hz`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub presence: Option<PresenceReport>,
+    /// Server CPU time over the run divided by its length (1.0 = one core), when `/metrics`
+    /// answers. Only with `--presence-hz` or `--undo-ratio`, like the sections above.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub server_cpu_cores: Option<f64>,
     /// Clients that failed (connection, protocol, unacknowledged batches) plus copies that did
     /// not match the server's: any error makes the run fail.
     pub errors: u64,
@@ -121,6 +128,17 @@ pub struct UndoReport {
     pub per_s: f64,
     pub refused: u64,
     pub voxels: u64,
+}
+
+/// Presence under load (`--presence-hz`): from a client sending to another seeing it, and what
+/// the server sent.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct PresenceReport {
+    pub sent: u64,
+    pub latency_ms: AckPercentiles,
+    pub samples: u64,
+    /// Presence frame bytes the server queued per client per second (from `/metrics`).
+    pub bytes_per_client_s: Option<f64>,
 }
 
 /// Everything else the run learned, for the table.
@@ -210,6 +228,7 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
             editor,
             // The observer of editor 0 also counts the voxels it sees change.
             count_voxels: index == 1 % connections,
+            presence_hz: args.presence_hz,
         };
         tasks.push(tokio::spawn(worker::client(
             plan,
@@ -337,6 +356,8 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     let mut failures = Vec::new();
     let (mut ops_acked, mut rejected, mut resyncs, mut voxels_seen) = (0, 0, 0, 0);
     let (mut undos, mut undos_refused, mut undo_voxels) = (0, 0, 0);
+    let mut presence_latency = Histogram::default();
+    let mut presence_sent = 0;
     let (mut editor_bytes, mut viewer_bytes) = ((0, 0), (0, 0));
     let mut verified = 0;
     for r in &reports {
@@ -345,6 +366,8 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
         rejected += r.rejected;
         resyncs += r.resyncs;
         undos += r.undos;
+        presence_latency.merge(&r.presence_latency);
+        presence_sent += r.presence_sent;
         undos_refused += r.undos_refused;
         undo_voxels += r.undo_voxels;
         voxels_seen += r.voxels_seen;
@@ -402,6 +425,25 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
             refused: undos_refused,
             voxels: undo_voxels,
         }),
+        presence: (args.presence_hz > 0.0).then(|| PresenceReport {
+            sent: presence_sent,
+            latency_ms: AckPercentiles {
+                p50: presence_latency.quantile_ms(0.50),
+                p99: presence_latency.quantile_ms(0.99),
+            },
+            samples: presence_latency.count(),
+            bytes_per_client_s: server
+                .as_ref()
+                .map(|s| s.presence_bytes / connections.max(1) as f64 / duration_s),
+        }),
+        server_cpu_cores: (args.presence_hz > 0.0 || args.undo_ratio > 0.0)
+            .then(|| {
+                server
+                    .as_ref()
+                    .and_then(|s| s.cpu_s)
+                    .map(|c| c / duration_s)
+            })
+            .flatten(),
         errors: failures.len() as u64,
     };
     let details = LoadDetails {
@@ -485,6 +527,9 @@ fn parse_metrics(response: &str) -> Option<BTreeMap<String, f64>> {
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ServerTimes {
     pub voxels_changed: f64,
+    /// Server process CPU seconds (absent from servers that do not export it).
+    pub cpu_s: Option<f64>,
+    pub presence_bytes: f64,
     pub turns: f64,
     /// (phase, seconds) of the scene owners' wall time.
     pub owner: Vec<(String, f64)>,
@@ -505,8 +550,11 @@ impl ServerTimes {
                 })
                 .collect()
         };
+        let cpu = "brickcast_process_cpu_seconds_total";
         ServerTimes {
             voxels_changed: delta("brickcast_voxels_changed_total"),
+            cpu_s: (before.contains_key(cpu) && after.contains_key(cpu)).then(|| delta(cpu)),
+            presence_bytes: delta("brickcast_presence_bytes_total"),
             turns: delta("brickcast_owner_turns_total"),
             owner: phases("brickcast_owner_seconds_total"),
             session: phases("brickcast_session_seconds_total"),
@@ -627,6 +675,24 @@ impl LoadOutcome {
             );
             row("server sessions s", list(&server.session));
         }
+        if let Some(p) = &r.presence {
+            row(
+                "presence",
+                format!(
+                    "{} sent, seen by others p50 {:.1} ms p99 {:.1} ms ({} samples){}",
+                    p.sent,
+                    p.latency_ms.p50,
+                    p.latency_ms.p99,
+                    p.samples,
+                    p.bytes_per_client_s
+                        .map(|b| format!(", {} per client per s", human_bytes(b as u64)))
+                        .unwrap_or_default()
+                ),
+            );
+        }
+        if let Some(cpu) = r.server_cpu_cores {
+            row("server cpu", format!("{:.0}% of one core", cpu * 100.0));
+        }
         if let Some(u) = &r.undo {
             row(
                 "undo / redo",
@@ -690,6 +756,8 @@ mod tests {
             ServerTimes::between(&before, &after),
             ServerTimes {
                 voxels_changed: 12_245.0,
+                cpu_s: None,
+                presence_bytes: 0.0,
                 turns: 20.0,
                 owner: vec![("apply".into(), 2.5), ("commit".into(), 0.0)],
                 session: vec![("decode".into(), 0.0)],
@@ -714,6 +782,7 @@ mod tests {
             radius: 1.0,
             region: RegionSpec::default(),
             undo_ratio: 0.0,
+            presence_hz: 0.0,
             viewers: 0,
             token: None,
             json: false,

@@ -48,6 +48,11 @@ pub struct LoadArgs {
     /// apart.
     #[arg(long, default_value_t = 0.0)]
     pub undo_ratio: f64,
+    /// Presence messages each client (editors and viewers) sends per second, as a viewer moving
+    /// its camera and pointer would (0: none). The report adds how long presence takes to reach
+    /// the other clients and what it costs the server.
+    #[arg(long, default_value_t = 0.0)]
+    pub presence_hz: f64,
     /// Extra clients that only watch (receive every delta, never edit).
     #[arg(long, default_value_t = 0)]
     pub viewers: u32,
@@ -129,6 +134,8 @@ pub enum OptionError {
     Rate(f64),
     #[error("--undo-ratio {0} is out of range: 0 to 1")]
     UndoRatio(f64),
+    #[error("--presence-hz {0} is out of range: 0 to 1000")]
+    PresenceHz(f64),
     #[error("--batch {batch} is out of range: 1 to {max} ops per message")]
     Batch { batch: u32, max: u32 },
     #[error("--radius {radius} is out of range: above 0 and at most {max} (the server's limit)")]
@@ -216,6 +223,9 @@ impl LoadArgs {
         }
         if !(0.0..=1.0).contains(&self.undo_ratio) {
             return Err(OptionError::UndoRatio(self.undo_ratio));
+        }
+        if !(self.presence_hz.is_finite() && (0.0..=1000.0).contains(&self.presence_hz)) {
+            return Err(OptionError::PresenceHz(self.presence_hz));
         }
         if self.batch == 0 || self.batch > MAX_OPS_PER_BATCH {
             return Err(OptionError::Batch {

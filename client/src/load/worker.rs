@@ -10,7 +10,9 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use brickcast_protocol::wire::{ClientMsg, ErrorCode, Role, ServerMsg};
+use std::collections::HashMap;
+
+use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, PeerId, Role, ServerMsg, View};
 use futures_util::FutureExt;
 use tokio::sync::{mpsc, watch};
 
@@ -96,12 +98,63 @@ pub struct Live {
     pub errors: AtomicU64,
 }
 
+/// Presence messages a client sent, for timing when the others see them: the message's number
+/// travels in its view (`eye[0]`), the send time stays here.
+#[derive(Default)]
+pub struct PresenceBoard {
+    /// Server peer id → client index.
+    peers: Mutex<HashMap<PeerId, usize>>,
+    /// Per client: (message number, sent), the last few.
+    sent: Vec<Mutex<VecDeque<(u32, Instant)>>>,
+}
+
+/// How many sends a client remembers: a presence older than this many messages is not timed.
+const PRESENCE_REMEMBERED: usize = 64;
+
+impl PresenceBoard {
+    fn new(connections: usize) -> PresenceBoard {
+        PresenceBoard {
+            peers: Mutex::default(),
+            sent: (0..connections).map(|_| Mutex::default()).collect(),
+        }
+    }
+
+    fn register(&self, peer: PeerId, index: usize) {
+        self.peers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(peer, index);
+    }
+
+    fn sent(&self, index: usize, number: u32, at: Instant) {
+        let mut sent = self.sent[index].lock().unwrap_or_else(|e| e.into_inner());
+        if sent.len() == PRESENCE_REMEMBERED {
+            sent.pop_front();
+        }
+        sent.push_back((number, at));
+    }
+
+    /// When peer `peer` sent its message `number`, if remembered.
+    fn sent_at(&self, peer: PeerId, number: u32) -> Option<(usize, Instant)> {
+        let index = *self
+            .peers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(&peer)?;
+        let sent = self.sent[index].lock().unwrap_or_else(|e| e.into_inner());
+        sent.iter()
+            .find(|(n, _)| *n == number)
+            .map(|&(_, at)| (index, at))
+    }
+}
+
 /// State every client task shares.
 pub struct Shared {
     /// One per connection: what that connection saw, for the editor it observes.
     pub observers: Vec<Mutex<ObserverLog>>,
     pub live: Live,
     pub cache: DeltaCache,
+    pub presence: PresenceBoard,
 }
 
 impl Shared {
@@ -110,6 +163,7 @@ impl Shared {
             observers: (0..connections).map(|_| Mutex::default()).collect(),
             live: Live::default(),
             cache: DeltaCache::default(),
+            presence: PresenceBoard::new(connections),
         }
     }
 
@@ -148,6 +202,8 @@ pub struct ClientPlan {
     /// Whether this client also counts the voxels each delta changes in its copy (see
     /// [`LazyCopy`]).
     pub count_voxels: bool,
+    /// Presence messages per second (0: none).
+    pub presence_hz: f64,
 }
 
 /// The outcome of the end-of-run check.
@@ -176,6 +232,9 @@ pub struct ClientReport {
     pub undos_refused: u64,
     pub undo_voxels: u64,
     pub ack_latency: Histogram,
+    /// From another client sending a presence to this one seeing it.
+    pub presence_latency: Histogram,
+    pub presence_sent: u64,
     pub last_ack: Option<Instant>,
     /// Voxels the received deltas changed in this copy (only with `count_voxels`).
     pub voxels_seen: u64,
@@ -198,6 +257,8 @@ impl ClientReport {
             undos_refused: 0,
             undo_voxels: 0,
             ack_latency: Histogram::default(),
+            presence_latency: Histogram::default(),
+            presence_sent: 0,
             last_ack: None,
             voxels_seen: 0,
             errors: Vec::new(),
@@ -248,6 +309,7 @@ pub async fn client(
         user: crate::identity::random_id(),
         undo_credit: 0.0,
         undone: 0,
+        presence_seen: HashMap::new(),
     };
     let mut report = ClientReport::new(c.plan.index, c.plan.editor.is_some());
     let mut link = None;
@@ -295,6 +357,8 @@ struct Client {
     /// (a redo is sent while there are some).
     undo_credit: f64,
     undone: u32,
+    /// The highest presence number seen from each other client (older ones are not timed).
+    presence_seen: HashMap<usize, u32>,
 }
 
 impl Client {
@@ -320,6 +384,7 @@ impl Client {
             )
             .await?;
             let welcome = link.welcome.clone();
+            self.shared.presence.register(welcome.you.id, index);
             if self.plan.editor.is_some() && welcome.role != Role::Editor {
                 return Err(ClientError::NotEditor(welcome.role));
             }
@@ -368,6 +433,10 @@ impl Client {
         let index = self.plan.index;
         let mut next_client_seq = 1u64;
         let mut due: Option<Instant> = None;
+        let presence_every = (self.plan.presence_hz > 0.0)
+            .then(|| Duration::from_secs_f64(1.0 / self.plan.presence_hz));
+        let mut presence_due: Option<Instant> = None;
+        let mut presence_number = 0u32;
         // Whether the copy changed since it was last hashed.
         let mut dirty = true;
         loop {
@@ -377,6 +446,35 @@ impl Client {
                 Phase::Abort => return Err(ClientError::Aborted),
                 Phase::Setup => {}
                 Phase::Run { start, end } => {
+                    if let Some(every) = presence_every
+                        && Instant::now() < end
+                    {
+                        // Spread over one interval, like the edits.
+                        let due = presence_due.get_or_insert_with(|| {
+                            start + every.mul_f64(index as f64 / self.shared.observers.len() as f64)
+                        });
+                        let now = Instant::now();
+                        if now >= *due {
+                            presence_number += 1;
+                            let msg = ClientMsg::Presence {
+                                view: Some(View {
+                                    eye: [presence_number as f32, index as f32, 0.0],
+                                    forward: [0.0, 0.0, 1.0],
+                                }),
+                                cursor: Some(Cursor {
+                                    voxel: [0, 0, 0],
+                                    radius: (presence_number % 8) as f32,
+                                }),
+                            };
+                            self.shared.presence.sent(index, presence_number, now);
+                            link.send(&msg).await?;
+                            report.presence_sent += 1;
+                            while *due <= now {
+                                *due += every;
+                            }
+                        }
+                        wake = Some(*due);
+                    }
                     if let (Some(plan), Some(ops)) = (&self.plan.editor, &mut ops) {
                         let now = Instant::now();
                         if now < end {
@@ -417,10 +515,11 @@ impl Client {
                             if fed {
                                 link.flush().await?;
                             }
-                            wake = Some(match plan.interval {
+                            let edits_wake = match plan.interval {
                                 Some(_) if self.inflight.len() < window => (*due).min(end),
                                 _ => end,
-                            });
+                            };
+                            wake = Some(wake.map_or(edits_wake, |w: Instant| w.min(edits_wake)));
                         } else if self.inflight.is_empty() && !self.drained_sent {
                             let _ = self.events.send(Event::Drained {
                                 index,
@@ -574,6 +673,25 @@ impl Client {
             ServerMsg::Resync { .. } => {
                 report.resyncs += 1;
                 live.resyncs.fetch_add(1, Relaxed);
+            }
+            ServerMsg::Presence { states, .. } => {
+                for state in states {
+                    let Some(view) = state.view else { continue };
+                    let number = view.eye[0] as u32;
+                    let Some((from, sent)) = self.shared.presence.sent_at(state.id, number) else {
+                        continue;
+                    };
+                    if from == self.plan.index {
+                        continue;
+                    }
+                    let seen = self.presence_seen.entry(from).or_insert(0);
+                    if number > *seen {
+                        *seen = number;
+                        report
+                            .presence_latency
+                            .record(at.saturating_duration_since(sent));
+                    }
+                }
             }
             _ => {}
         }

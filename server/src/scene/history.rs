@@ -275,6 +275,8 @@ pub enum Direction {
 /// Every user's stacks, and this turn's unwritten changes.
 pub struct History {
     users: HashMap<UserId, Stacks>,
+    /// Bytes of every stored step, kept as steps come and go.
+    bytes: u64,
     next_id: u64,
     max_steps: usize,
     max_bytes: u64,
@@ -284,8 +286,10 @@ pub struct History {
 impl History {
     /// History as recovered from the store: each user's stacks, and the highest step id in use.
     pub fn new(users: Vec<(UserId, Stacks)>, last_id: u64, max_steps: u32, max_bytes: u64) -> Self {
+        let users: HashMap<UserId, Stacks> = users.into_iter().collect();
         History {
-            users: users.into_iter().collect(),
+            bytes: users.values().map(Stacks::bytes).sum(),
+            users,
             next_id: last_id + 1,
             max_steps: max_steps.max(1) as usize,
             max_bytes,
@@ -305,13 +309,14 @@ impl History {
 
     /// Bytes of stored steps over every user.
     pub fn total_bytes(&self) -> u64 {
-        self.users.values().map(Stacks::bytes).sum()
+        self.bytes
     }
 
     /// Records an edit message's step: onto the undo stack, clearing the redo stack.
     pub fn record_edit(&mut self, user: UserId, step: &Step) {
         let stacks = self.users.entry(user).or_default();
         for dropped in stacks.redo.drain(..) {
+            self.bytes -= dropped.bytes;
             self.pending.removed.insert(dropped.id);
             self.pending.steps.remove(&dropped.id);
         }
@@ -335,6 +340,7 @@ impl History {
         let Some(top) = top else {
             return Ok(None);
         };
+        self.bytes -= top.bytes;
         self.pending.users.insert(user, Some(stacks.clone()));
         self.pending.removed.insert(top.id);
         let bytes = match self.pending.steps.remove(&top.id) {
@@ -356,6 +362,7 @@ impl History {
     /// Forgets a user (a connection without a stable id, once it leaves).
     pub fn forget(&mut self, user: UserId) {
         if let Some(stacks) = self.users.remove(&user) {
+            self.bytes -= stacks.bytes();
             for s in stacks.undo.iter().chain(&stacks.redo) {
                 self.pending.removed.insert(s.id);
                 self.pending.steps.remove(&s.id);
@@ -374,6 +381,7 @@ impl History {
         };
         self.pending.removed.remove(&id);
         self.pending.steps.insert(id, bytes);
+        self.bytes += entry.bytes;
         let stacks = self.users.entry(user).or_default();
         match onto {
             Direction::Undo => stacks.undo.push_back(entry),
@@ -394,6 +402,7 @@ impl History {
                 None
             };
             let Some(dropped) = dropped else { break };
+            self.bytes -= dropped.bytes;
             self.pending.removed.insert(dropped.id);
             self.pending.steps.remove(&dropped.id);
         }
@@ -520,6 +529,8 @@ mod tests {
         assert!(history.stacks(7).unwrap().redo.is_empty());
         let writes = history.take_writes();
         assert!(writes.removed.contains(&1) && writes.removed.contains(&5));
+        let stored: u64 = writes.steps.values().map(|b| b.len() as u64).sum();
+        assert_eq!(history.total_bytes(), stored);
         assert!(
             history
                 .pop(8, Direction::Undo, |_| Ok(None))

@@ -134,8 +134,9 @@ pub struct SceneInfo {
     pub voxels: AtomicU64,
     pub clients: AtomicU64,
     pub gpu_bytes: AtomicU64,
-    /// Users with undo history.
+    /// Users with undo history, and the bytes of their stored steps.
     pub history_users: AtomicU64,
+    pub history_bytes: AtomicU64,
 }
 
 /// What one connection may ask of the owner in edit work (voxels visited, `EditOp::work`):

@@ -579,6 +579,9 @@ impl Owner {
         self.info
             .history_users
             .store(self.history.user_count() as u64, Relaxed);
+        self.info
+            .history_bytes
+            .store(self.history.total_bytes(), Relaxed);
         self.info.seq.store(self.seq, Relaxed);
         self.info.bricks.store(self.map.brick_count(), Relaxed);
         self.info.voxels.store(self.map.solid_voxels(), Relaxed);
