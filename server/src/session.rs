@@ -220,10 +220,11 @@ struct Session<'a> {
     who: &'a Identity,
 }
 
-/// Undo and redo requests one session may make per second (each may rewrite a large brush's
-/// bricks), with this many of burst.
-const UNDOS_PER_SECOND: f64 = 20.0;
-const UNDO_BURST: f64 = 40.0;
+/// Undo and redo messages one session may send per second, with this much burst: a guard
+/// against a flood of messages. What each costs (the bricks its step changed) is charged by the
+/// owner against the edit work budget.
+const UNDOS_PER_SECOND: f64 = 1000.0;
+const UNDO_BURST: f64 = 1000.0;
 /// Renames per second, with this many of burst.
 const RENAMES_PER_SECOND: f64 = 1.0;
 const RENAME_BURST: f64 = 5.0;

@@ -111,8 +111,8 @@ pub struct LoadReport {
     /// Only with `--presence-hz`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub presence: Option<PresenceReport>,
-    /// Server CPU time over the run divided by its length (1.0 = one core), when `/metrics`
-    /// answers. Only with `--presence-hz` or `--undo-ratio`, like the sections above.
+    /// Server CPU time over the edit window divided by its length (1.0 = one core), when the
+    /// server's `/metrics` exports it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub server_cpu_cores: Option<f64>,
     /// Clients that failed (connection, protocol, unacknowledged batches) plus copies that did

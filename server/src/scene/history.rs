@@ -42,7 +42,7 @@ impl Image {
     }
 
     /// Every voxel's colour (`None`: empty), in bit order.
-    fn voxels(image: Option<&Image>) -> [Option<Colour>; 512] {
+    pub(crate) fn voxels(image: Option<&Image>) -> [Option<Colour>; 512] {
         let mut out = [None; 512];
         if let Some(image) = image {
             let mut next = image.colours.iter();
@@ -229,6 +229,8 @@ pub fn write_bricks(map: &mut BrickMap, writes: &[(u32, Option<Image>)]) -> Resu
 pub struct StepRef {
     pub id: u64,
     pub bytes: u64,
+    /// Bricks the step changed: what undoing it costs (512 voxels compared each).
+    pub bricks: u32,
 }
 
 /// One user's undo and redo stacks (oldest first), as stored.
@@ -302,6 +304,11 @@ impl History {
         self.users.get(&user)
     }
 
+    /// Every user's stacks (copies).
+    pub fn users(&self) -> impl Iterator<Item = (UserId, Stacks)> + '_ {
+        self.users.iter().map(|(u, s)| (*u, s.clone()))
+    }
+
     /// Users with any history.
     pub fn user_count(&self) -> usize {
         self.users.len()
@@ -321,6 +328,15 @@ impl History {
             self.pending.steps.remove(&dropped.id);
         }
         self.push(user, Direction::Undo, step);
+    }
+
+    /// The top of a user's undo (or redo) stack, left there.
+    pub fn peek(&self, user: UserId, direction: Direction) -> Option<StepRef> {
+        let stacks = self.users.get(&user)?;
+        match direction {
+            Direction::Undo => stacks.undo.back().copied(),
+            Direction::Redo => stacks.redo.last().copied(),
+        }
     }
 
     /// The top of a user's undo (or redo) stack, removed from it. `load` reads a stored step.
@@ -378,6 +394,7 @@ impl History {
         let entry = StepRef {
             id,
             bytes: bytes.len() as u64,
+            bricks: step.bricks.len().min(u32::MAX as usize) as u32,
         };
         self.pending.removed.remove(&id);
         self.pending.steps.insert(id, bytes);

@@ -13,7 +13,7 @@
 //! never runs ahead of the owner, and a snapshot records the owner's `seq` (the store refuses
 //! one whose map stamp or log disagrees with it).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
@@ -84,6 +84,9 @@ pub struct Owner {
     clock: Clock,
     /// Every user's undo and redo stacks.
     pub(super) history: History,
+    /// Undo work each user may still ask for (voxels compared), and when it was counted: undo
+    /// and redo are charged like edits, by what they cost, on the owner's clock.
+    undo_budget: HashMap<u64, (f64, Instant)>,
 }
 
 /// A reply (`Ack` or `Undone`) waiting for the commit of what it reports.
@@ -164,6 +167,7 @@ impl Owner {
             last_snapshot: now,
             clock,
             history,
+            undo_budget: HashMap::new(),
         };
         owner.publish_info();
         Ok(owner)
@@ -177,6 +181,11 @@ impl Owner {
     /// The authoritative map.
     pub fn map(&self) -> &BrickMap {
         &self.map
+    }
+
+    /// Every user's undo and redo stacks.
+    pub fn history(&self) -> &History {
+        &self.history
     }
 
     /// Figures readable without asking the owner.
@@ -253,10 +262,13 @@ impl Owner {
                     }
                 }
                 Command::Leave { session } => {
-                    if let Some(sub) = self.subs.remove(&session)
-                        && !sub.stable
-                    {
-                        self.history.forget(sub.user);
+                    if let Some(sub) = self.subs.remove(&session) {
+                        if !sub.stable {
+                            self.history.forget(sub.user);
+                        }
+                        if !self.subs.values().any(|s| s.user == sub.user) {
+                            self.undo_budget.remove(&sub.user);
+                        }
                     }
                     cameras.remove(&session);
                 }
@@ -419,6 +431,28 @@ impl Owner {
             Metrics::add(&self.metrics.history_refused, 1);
             return Some(reply(None, 0, 0, Some(Refusal::NotAllowed)));
         }
+        // Charged by the bricks the step changed (each compared voxel by voxel), against the
+        // same per-second work budget as edits, refilled on the owner's clock.
+        let Some(top) = self.history.peek(user, direction) else {
+            Metrics::add(&self.metrics.history_refused, 1);
+            return Some(reply(None, 0, 0, Some(nothing)));
+        };
+        let cost = f64::from(top.bricks) * 512.0;
+        let budget = &self.config.budget;
+        let (rate, burst) = (
+            budget.max_work_per_second as f64,
+            budget.max_work_per_second.max(budget.max_work_per_edit) as f64,
+        );
+        let now = (self.clock)();
+        let (tokens, at) = self.undo_budget.entry(user).or_insert((burst, now));
+        *tokens = (*tokens + now.saturating_duration_since(*at).as_secs_f64() * rate).min(burst);
+        *at = now;
+        // A step bigger than the whole burst still goes when the bucket is full.
+        if *tokens < cost.min(burst) {
+            Metrics::add(&self.metrics.history_refused, 1);
+            return Some(reply(None, 0, 0, Some(Refusal::RateLimited)));
+        }
+        *tokens -= cost.min(burst);
         let store = self.store.clone();
         let name = self.name.clone();
         let popped = self.history.pop(user, direction, |id| {

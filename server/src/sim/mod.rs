@@ -31,6 +31,7 @@ mod model;
 mod ops;
 #[cfg(test)]
 mod tests;
+mod undo;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::{Arc, Mutex};
@@ -45,8 +46,9 @@ use rand::{Rng, SeedableRng};
 use tokio::sync::oneshot;
 
 pub use disk::SimDisk;
-use model::{Expected, Model};
+use model::{Expected, ExpectedUndone, Model};
 use ops::{initial_scene, random_batch};
+use undo::{describe, normal, server_history};
 
 use crate::metrics::{Metrics, PhaseClock};
 use crate::scene::{Command, Outbox, OutboxReceiver, Owner, OwnerConfig, SessionId};
@@ -71,6 +73,8 @@ pub struct SimStats {
     pub resumed_joins: u64,
     pub resyncs: u64,
     pub settles: u64,
+    pub undos: u64,
+    pub undos_refused: u64,
 }
 
 impl SimStats {
@@ -87,6 +91,8 @@ impl SimStats {
         self.resumed_joins += o.resumed_joins;
         self.resyncs += o.resyncs;
         self.settles += o.settles;
+        self.undos += o.undos;
+        self.undos_refused += o.undos_refused;
     }
 }
 
@@ -156,7 +162,12 @@ impl Sim {
         let disk = SimDisk::new();
         let store = Arc::new(Store::with_backend(disk.clone()).map_err(|e| e.to_string())?);
         store.create_scene(SCENE, &map).map_err(|e| e.to_string())?;
+        let limits = Limits {
+            max_undo_steps: [2, 4, 16][rng.random_range(0..3)],
+            ..Limits::default()
+        };
         let config = OwnerConfig {
+            limits,
             max_queue_bytes: [4 << 10, 64 << 10, 32 << 20][rng.random_range(0..3)],
             max_queued_total: [16 << 10, 1 << 30][rng.random_range(0..2)],
             max_syncs_per_turn: rng.random_range(1..4),
@@ -203,7 +214,11 @@ impl Sim {
                 acked: 0,
                 subscribed: BTreeMap::new(),
                 expected: BTreeMap::new(),
+                expected_undone: BTreeMap::new(),
                 limits,
+                users: BTreeMap::new(),
+                history: BTreeMap::new(),
+                committed: vec![(0, BTreeMap::new())],
             },
             next_session: 1,
             queued_total: Arc::default(),
@@ -284,6 +299,41 @@ impl Sim {
             client_seq,
             ops,
         });
+    }
+
+    /// Client `c` asks to undo (or redo) its user's latest step.
+    pub fn undo(&mut self, c: usize, redo: bool) {
+        let client = &mut self.clients[c];
+        let Some(conn) = &client.conn else { return };
+        let client_seq = client.next_client_seq;
+        client.next_client_seq += 1;
+        let session = conn.session;
+        self.note(format!(
+            "client {c} {} #{client_seq}",
+            if redo { "redoes" } else { "undoes" }
+        ));
+        self.queue.push(Command::Undo {
+            session,
+            client_seq,
+            redo,
+        });
+    }
+
+    /// The server's history (every step read back from the store) against the model's.
+    fn check_history(&self, what: &str) -> Result<(), Failure> {
+        let server = server_history(
+            &self.store,
+            SCENE,
+            self.owner.map(),
+            self.owner.history().users(),
+        )?;
+        let model = normal(&self.model.history);
+        check!(
+            server == model,
+            "{what}: the undo history differs from the model's: {}",
+            describe(&server, &model)
+        );
+        Ok(())
     }
 
     fn camera(&mut self, c: usize, eye: [f32; 3]) {
@@ -434,6 +484,42 @@ impl Sim {
                         self.stats.batches_rejected += 1;
                     }
                 }
+                ServerMsg::Undone {
+                    client_seq,
+                    seq,
+                    restored,
+                    kept,
+                    refused,
+                    ..
+                } => {
+                    let want = self
+                        .model
+                        .expected_undone
+                        .remove(&(conn.session, *client_seq))
+                        .ok_or_else(|| {
+                            format!(
+                                "client {c} got an undo reply for #{client_seq} nobody expected"
+                            )
+                        })?;
+                    let got = ExpectedUndone {
+                        seq: *seq,
+                        restored: *restored,
+                        kept: *kept,
+                        refused: refused.clone(),
+                    };
+                    check!(
+                        got == want,
+                        "client {c} undo #{client_seq}: reply {got:?}, the model expected {want:?}"
+                    );
+                    if let Some(s) = seq {
+                        self.model.acked = self.model.acked.max(*s);
+                    }
+                    if refused.is_some() {
+                        self.stats.undos_refused += 1;
+                    } else {
+                        self.stats.undos += 1;
+                    }
+                }
                 ServerMsg::Error { code, message } => {
                     return Err(format!("client {c} got an error: {code:?} {message}"));
                 }
@@ -501,6 +587,7 @@ impl Sim {
         }
         self.read_all()?;
         check!(!self.owner.has_blocked_work(), "syncs never finished");
+        self.check_history(&format!("settled at sequence {}", self.model.seq))?;
         let hash = self.owner.map().content_hash();
         for (c, client) in self.clients.iter().enumerate() {
             if client.conn.is_none() {
@@ -550,7 +637,9 @@ impl Sim {
             client.conn = None;
         }
         self.model.subscribed.clear();
+        self.model.users.clear();
         self.model.expected.clear();
+        self.model.expected_undone.clear();
         let disk = self.disk.crash(&mut self.rng, torn);
         self.disk = disk.clone();
         // A new process: new metrics, a store opened on what the disk kept, the scene
@@ -583,6 +672,28 @@ impl Sim {
                 client.replica.seq
             );
         }
+        // The history came back as it was at one of the owner's commits at sequence r.
+        let server = server_history(
+            &self.store,
+            SCENE,
+            self.owner.map(),
+            self.owner.history().users(),
+        )?;
+        let candidates: Vec<_> = self
+            .model
+            .committed
+            .iter()
+            .filter(|(seq, _)| *seq == r)
+            .map(|(_, h)| h.clone())
+            .collect();
+        let Some(history) = candidates.into_iter().find(|h| normal(h) == server) else {
+            return Err(format!(
+                "the undo history recovered at sequence {r} is none the owner committed at {r}: {}",
+                describe(&server, &normal(&self.model.history))
+            ));
+        };
+        self.model.history = history.clone();
+        self.model.committed = vec![(r, history)];
         // Batches after r were never acknowledged and are gone: the model forgets them too.
         self.model.seq = r;
         self.model.hashes.truncate(r as usize + 1);
@@ -622,6 +733,13 @@ impl Sim {
             loaded.map.content_hash() == hash,
             "the snapshot of a clean stop differs from the scene"
         );
+        let stored = server_history(&store, SCENE, &loaded.map, loaded.history.into_iter())?;
+        let model = normal(&self.model.history);
+        check!(
+            stored == model,
+            "the history a clean stop left differs from the model's: {}",
+            describe(&stored, &model)
+        );
         Ok(())
     }
 
@@ -633,6 +751,9 @@ impl Sim {
             0..=34 => {
                 if self.clients[c].conn.is_none() {
                     self.join(c);
+                } else if self.rng.random_bool(0.2) {
+                    let redo = self.rng.random_bool(0.4);
+                    self.undo(c, redo);
                 } else {
                     let ops = random_batch(&mut self.rng, self.owner.map().size());
                     self.edit(c, ops);

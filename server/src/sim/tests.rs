@@ -249,7 +249,11 @@ fn simulated_crashes_lose_no_acknowledged_edit() {
         "the seeds must crash, also mid-I/O and torn: {stats:?}"
     );
     assert!(
-        stats.batches_rejected > 0 && stats.resumed_joins > 0 && stats.snapshots > 0,
-        "the seeds must cover rejected batches, resumes and snapshots: {stats:?}"
+        stats.batches_rejected > 0
+            && stats.resumed_joins > 0
+            && stats.snapshots > 0
+            && stats.undos > 0
+            && stats.undos_refused > 0,
+        "the seeds must cover rejected batches, resumes, snapshots and undos: {stats:?}"
     );
 }
