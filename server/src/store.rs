@@ -14,6 +14,7 @@
 //! Every commit uses `Durability::Immediate` (fsync before `commit` returns); the scene owner
 //! batches many edits per commit (group commit) because commits, not records, are what cost.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use brickcast_protocol::brick::{BrickData, Mask};
@@ -25,7 +26,10 @@ use redb::{
 use serde::{Deserialize, Serialize};
 
 use crate::record::LogRecord;
-use crate::scene::history::{HistoryWrites, Stacks};
+use crate::scene::history::{HistoryWrites, Stacks, StepMeta};
+
+/// `undo/<scene>`: (user, step id) → bincode [`StepMeta`].
+type UndoIndex<'a> = TableDefinition<'a, (u64, u64), &'static [u8]>;
 
 /// Scene name → bincode [`SceneMeta`].
 const SCENES: TableDefinition<&str, &[u8]> = TableDefinition::new("scenes");
@@ -318,7 +322,7 @@ impl Store {
             txn.delete_table(TableDefinition::<u32, &[u8]>::new(&bricks_table(name)))?;
             txn.delete_table(TableDefinition::<u64, &[u8]>::new(&log_table(name)))?;
             txn.delete_table(TableDefinition::<u64, &[u8]>::new(&history_table(name)))?;
-            txn.delete_table(TableDefinition::<u64, &[u8]>::new(&undo_table(name)))?;
+            txn.delete_table(UndoIndex::new(&undo_table(name)))?;
         }
         txn.commit()?;
         Ok(existed)
@@ -437,17 +441,21 @@ impl Store {
         map.rebuild_clearance();
         let replay_touched = map.take_touched();
         map.record_touched(false);
-        let mut history = Vec::new();
-        if let Some(users) = open_optional::<u64, &[u8]>(&txn, &undo_table(name))? {
-            for row in users.iter()? {
-                let (user, bytes) = row?;
-                let (stacks, _): (Stacks, usize) =
-                    bincode::serde::decode_from_slice(bytes.value(), bincode_config()).map_err(
-                        |e| corrupt(format!("undo stacks of user {}: {e}", user.value())),
-                    )?;
-                history.push((user.value(), stacks));
+        let mut rows: BTreeMap<u64, Vec<(u64, StepMeta)>> = BTreeMap::new();
+        if let Some(index) = open_optional::<(u64, u64), &[u8]>(&txn, &undo_table(name))? {
+            for row in index.iter()? {
+                let (key, bytes) = row?;
+                let (user, id) = key.value();
+                let (meta, _): (StepMeta, usize) =
+                    bincode::serde::decode_from_slice(bytes.value(), bincode_config())
+                        .map_err(|e| corrupt(format!("undo step {id} of user {user}: {e}")))?;
+                rows.entry(user).or_default().push((id, meta));
             }
         }
+        let history = rows
+            .into_iter()
+            .map(|(user, rows)| (user, Stacks::from_rows(rows)))
+            .collect();
         let last_step_id = match open_optional::<u64, &[u8]>(&txn, &history_table(name))? {
             Some(steps) => steps.last()?.map_or(0, |(id, _)| id.value()),
             None => 0,
@@ -497,30 +505,18 @@ impl Store {
             if !history.is_empty() {
                 let steps_name = history_table(scene);
                 let mut steps = txn.open_table(TableDefinition::<u64, &[u8]>::new(&steps_name))?;
-                for id in &history.removed {
+                let index_name = undo_table(scene);
+                let mut index = txn.open_table(UndoIndex::new(&index_name))?;
+                for (id, user) in &history.removed {
                     steps.remove(*id)?;
+                    index.remove((*user, *id))?;
                 }
-                for (id, bytes) in &history.steps {
+                for (id, (user, meta, bytes)) in &history.steps {
                     steps.insert(*id, bytes.as_slice())?;
-                }
-                let users_name = undo_table(scene);
-                let mut users = txn.open_table(TableDefinition::<u64, &[u8]>::new(&users_name))?;
-                for (user, stacks) in &history.users {
-                    match stacks {
-                        Some(stacks) => {
-                            buf.clear();
-                            bincode::serde::encode_into_std_write(
-                                stacks,
-                                &mut buf,
-                                bincode_config(),
-                            )
-                            .map_err(|e| corrupt(e.to_string()))?;
-                            users.insert(*user, buf.as_slice())?;
-                        }
-                        None => {
-                            users.remove(*user)?;
-                        }
-                    }
+                    buf.clear();
+                    bincode::serde::encode_into_std_write(meta, &mut buf, bincode_config())
+                        .map_err(|e| corrupt(e.to_string()))?;
+                    index.insert((*user, *id), buf.as_slice())?;
                 }
             }
         }

@@ -19,7 +19,7 @@
 //! the owner keeps only each user's list of step ids and sizes: step bodies live in the store
 //! (and, until the turn commits, in [`HistoryWrites`]), read back when undone.
 
-use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 
 use brickcast_protocol::brick::{BrickData, Mask};
 use brickcast_protocol::wire::UserId;
@@ -34,27 +34,6 @@ pub struct Image {
 }
 
 impl Image {
-    pub fn of(brick: Option<BrickData>) -> Option<Image> {
-        brick.map(|b| Image {
-            mask: b.mask,
-            colours: b.colours,
-        })
-    }
-
-    /// Every voxel's colour (`None`: empty), in bit order.
-    pub(crate) fn voxels(image: Option<&Image>) -> [Option<Colour>; 512] {
-        let mut out = [None; 512];
-        if let Some(image) = image {
-            let mut next = image.colours.iter();
-            for (bit, voxel) in out.iter_mut().enumerate() {
-                if (image.mask[bit / 64] >> (bit % 64)) & 1 == 1 {
-                    *voxel = next.next().copied();
-                }
-            }
-        }
-        out
-    }
-
     fn from_voxels(voxels: &[Option<Colour>; 512]) -> Option<Image> {
         let mut mask = [0u64; 8];
         let mut colours = Vec::new();
@@ -68,13 +47,35 @@ impl Image {
     }
 }
 
-/// One brick a step changed.
+/// One voxel a step changed: its bit in the brick (`brick::voxel_bit`), before and after.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct VoxelChange {
+    pub bit: u16,
+    pub before: Option<Colour>,
+    pub after: Option<Colour>,
+}
+
+/// One brick a step changed: the voxels that differ (a few bytes each, so a single-voxel
+/// edit's step is a dozen bytes, not two brick images).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct BrickChange {
     /// Linear cell index.
     pub cell: u32,
-    pub before: Option<Image>,
-    pub after: Option<Image>,
+    pub voxels: Vec<VoxelChange>,
+}
+
+/// Every voxel's colour of a brick (`None`: empty), in bit order.
+fn brick_voxels(brick: Option<&BrickData>) -> [Option<Colour>; 512] {
+    let mut out = [None; 512];
+    if let Some(b) = brick {
+        let mut next = b.colours.iter();
+        for (bit, voxel) in out.iter_mut().enumerate() {
+            if (b.mask[bit / 64] >> (bit % 64)) & 1 == 1 {
+                *voxel = next.next().copied();
+            }
+        }
+    }
+    out
 }
 
 /// What one edit message, undo or redo changed.
@@ -90,23 +91,32 @@ impl Step {
         let bricks = journal
             .into_iter()
             .filter_map(|(cell, before)| {
-                let before = Image::of(before);
-                let after = Image::of(map.brick(map.cell_coords(cell)));
-                (before != after).then_some(BrickChange {
-                    cell,
-                    before,
-                    after,
-                })
+                let before = brick_voxels(before.as_ref());
+                let after = brick_voxels(map.brick(map.cell_coords(cell)).as_ref());
+                let voxels: Vec<VoxelChange> = (0..512)
+                    .filter(|&i| before[i] != after[i])
+                    .map(|i| VoxelChange {
+                        bit: i as u16,
+                        before: before[i],
+                        after: after[i],
+                    })
+                    .collect();
+                (!voxels.is_empty()).then_some(BrickChange { cell, voxels })
             })
             .collect();
         Step { bricks }
+    }
+
+    /// Voxels the step changed.
+    pub fn voxel_count(&self) -> usize {
+        self.bricks.iter().map(|b| b.voxels.len()).sum()
     }
 
     /// Stored form: a version byte, then bincode, zstd-compressed when that pays.
     pub fn encode(&self) -> Vec<u8> {
         let raw = bincode::serde::encode_to_vec(self, bincode::config::standard())
             .expect("a step always encodes");
-        if raw.len() > 256
+        if raw.len() > 4096
             && let Ok(packed) = zstd::bulk::compress(&raw, 1)
             && packed.len() < raw.len()
         {
@@ -169,30 +179,36 @@ pub fn plan_revert(map: &BrickMap, step: &Step) -> Revert {
         restored: 0,
         kept: 0,
     };
+    let cells = map.cell_dims();
+    let count = u64::from(cells[0]) * u64::from(cells[1]) * u64::from(cells[2]);
     for change in &step.bricks {
+        if u64::from(change.cell) >= count {
+            continue; // Not this scene's step: nothing of it can be restored.
+        }
         let coords = map.cell_coords(change.cell);
-        let now = Image::of(map.brick(coords));
-        let before = Image::voxels(change.before.as_ref());
-        let after = Image::voxels(change.after.as_ref());
-        let mut voxels = Image::voxels(now.as_ref());
-        for i in 0..512 {
-            if before[i] == after[i] {
-                continue;
-            }
-            if voxels[i] == after[i] {
-                voxels[i] = before[i];
-                revert.restored += 1;
+        let mut voxels = brick_voxels(map.brick(coords).as_ref());
+        let mut undone = Vec::new();
+        for v in &change.voxels {
+            let i = usize::from(v.bit) % 512;
+            if voxels[i] == v.after {
+                voxels[i] = v.before;
+                undone.push(VoxelChange {
+                    bit: v.bit,
+                    before: v.after,
+                    after: v.before,
+                });
             } else {
                 revert.kept += 1;
             }
         }
-        let next = Image::from_voxels(&voxels);
-        if next != now {
-            revert.writes.push((change.cell, next.clone()));
+        if !undone.is_empty() {
+            revert.restored += undone.len() as u64;
+            revert
+                .writes
+                .push((change.cell, Image::from_voxels(&voxels)));
             revert.record.bricks.push(BrickChange {
                 cell: change.cell,
-                before: now,
-                after: next,
+                voxels: undone,
             });
         }
     }
@@ -233,14 +249,42 @@ pub struct StepRef {
     pub bricks: u32,
 }
 
-/// One user's undo and redo stacks (oldest first), as stored.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+/// What the store's index keeps per step, under (user, step id): the stack it is on, its
+/// stored size and its bricks. Ids grow with every push, so a user's rows in id order *are* the
+/// stacks, oldest first: no per-user row is rewritten when a step comes or goes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StepMeta {
+    pub redo: bool,
+    pub bytes: u64,
+    pub bricks: u32,
+}
+
+/// One user's undo and redo stacks (oldest first).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Stacks {
     pub undo: VecDeque<StepRef>,
     pub redo: Vec<StepRef>,
 }
 
 impl Stacks {
+    /// Stacks from the index rows of one user, in id order.
+    pub fn from_rows(rows: impl IntoIterator<Item = (u64, StepMeta)>) -> Stacks {
+        let mut stacks = Stacks::default();
+        for (id, meta) in rows {
+            let entry = StepRef {
+                id,
+                bytes: meta.bytes,
+                bricks: meta.bricks,
+            };
+            if meta.redo {
+                stacks.redo.push(entry);
+            } else {
+                stacks.undo.push_back(entry);
+            }
+        }
+        stacks
+    }
+
     fn bytes(&self) -> u64 {
         self.undo.iter().chain(&self.redo).map(|s| s.bytes).sum()
     }
@@ -253,17 +297,15 @@ impl Stacks {
 /// What a turn changed in the history, written in the turn's commit.
 #[derive(Default)]
 pub struct HistoryWrites {
-    /// New steps: id → stored bytes.
-    pub steps: BTreeMap<u64, Vec<u8>>,
-    /// Steps dropped (bounds, a cleared redo stack, undone or redone).
-    pub removed: BTreeSet<u64>,
-    /// Users whose stacks changed, with their stacks now (`None`: forget the user).
-    pub users: BTreeMap<UserId, Option<Stacks>>,
+    /// New steps: id → (user, index entry, stored bytes).
+    pub steps: BTreeMap<u64, (UserId, StepMeta, Vec<u8>)>,
+    /// Steps dropped (bounds, a cleared redo stack, undone or redone): id → user.
+    pub removed: BTreeMap<u64, UserId>,
 }
 
 impl HistoryWrites {
     pub fn is_empty(&self) -> bool {
-        self.steps.is_empty() && self.removed.is_empty() && self.users.is_empty()
+        self.steps.is_empty() && self.removed.is_empty()
     }
 }
 
@@ -324,7 +366,7 @@ impl History {
         let stacks = self.users.entry(user).or_default();
         for dropped in stacks.redo.drain(..) {
             self.bytes -= dropped.bytes;
-            self.pending.removed.insert(dropped.id);
+            self.pending.removed.insert(dropped.id, user);
             self.pending.steps.remove(&dropped.id);
         }
         self.push(user, Direction::Undo, step);
@@ -357,10 +399,9 @@ impl History {
             return Ok(None);
         };
         self.bytes -= top.bytes;
-        self.pending.users.insert(user, Some(stacks.clone()));
-        self.pending.removed.insert(top.id);
+        self.pending.removed.insert(top.id, user);
         let bytes = match self.pending.steps.remove(&top.id) {
-            Some(bytes) => bytes,
+            Some((_, _, bytes)) => bytes,
             None => load(top.id)?.ok_or_else(|| format!("history step {} is missing", top.id))?,
         };
         Step::decode(&bytes).map(Some)
@@ -380,10 +421,9 @@ impl History {
         if let Some(stacks) = self.users.remove(&user) {
             self.bytes -= stacks.bytes();
             for s in stacks.undo.iter().chain(&stacks.redo) {
-                self.pending.removed.insert(s.id);
+                self.pending.removed.insert(s.id, user);
                 self.pending.steps.remove(&s.id);
             }
-            self.pending.users.insert(user, None);
         }
     }
 
@@ -396,8 +436,12 @@ impl History {
             bytes: bytes.len() as u64,
             bricks: step.bricks.len().min(u32::MAX as usize) as u32,
         };
-        self.pending.removed.remove(&id);
-        self.pending.steps.insert(id, bytes);
+        let meta = StepMeta {
+            redo: onto == Direction::Redo,
+            bytes: entry.bytes,
+            bricks: entry.bricks,
+        };
+        self.pending.steps.insert(id, (user, meta, bytes));
         self.bytes += entry.bytes;
         let stacks = self.users.entry(user).or_default();
         match onto {
@@ -420,10 +464,9 @@ impl History {
             };
             let Some(dropped) = dropped else { break };
             self.bytes -= dropped.bytes;
-            self.pending.removed.insert(dropped.id);
+            self.pending.removed.insert(dropped.id, user);
             self.pending.steps.remove(&dropped.id);
         }
-        self.pending.users.insert(user, Some(stacks.clone()));
     }
 
     /// This turn's changes, for the commit; the history starts the next turn with none.
@@ -516,7 +559,7 @@ mod tests {
         map.check_invariants().unwrap();
         let bytes = step.encode();
         assert!(
-            bytes.len() < 64 << 10,
+            bytes.len() < 128 << 10,
             "a compressed sphere step is {} bytes",
             bytes.len()
         );
@@ -545,8 +588,8 @@ mod tests {
         history.record_edit(7, &step);
         assert!(history.stacks(7).unwrap().redo.is_empty());
         let writes = history.take_writes();
-        assert!(writes.removed.contains(&1) && writes.removed.contains(&5));
-        let stored: u64 = writes.steps.values().map(|b| b.len() as u64).sum();
+        assert!(writes.removed.contains_key(&1) && writes.removed.contains_key(&5));
+        let stored: u64 = writes.steps.values().map(|(_, _, b)| b.len() as u64).sum();
         assert_eq!(history.total_bytes(), stored);
         assert!(
             history

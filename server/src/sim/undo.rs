@@ -9,7 +9,7 @@ use std::collections::{BTreeMap, VecDeque};
 use brickcast_protocol::brick::{BRICK_EDGE, bit_voxel};
 use brickcast_protocol::{BrickMap, Colour};
 
-use crate::scene::history::{Image, Stacks, Step};
+use crate::scene::history::{Stacks, Step};
 use crate::store::Store;
 
 /// What one message changed: every voxel whose value differs, sorted by position.
@@ -125,14 +125,13 @@ fn voxel_step(map: &BrickMap, step: &Step) -> VoxelStep {
     let mut out = Vec::new();
     for change in &step.bricks {
         let c = map.cell_coords(change.cell);
-        let before = Image::voxels(change.before.as_ref());
-        let after = Image::voxels(change.after.as_ref());
-        for bit in 0..512u32 {
-            let (b, a) = (before[bit as usize], after[bit as usize]);
-            if b != a {
-                let l = bit_voxel(bit);
-                out.push(([0, 1, 2].map(|i| c[i] * BRICK_EDGE + l[i]), b, a));
-            }
+        for v in &change.voxels {
+            let l = bit_voxel(u32::from(v.bit));
+            out.push((
+                [0, 1, 2].map(|i| c[i] * BRICK_EDGE + l[i]),
+                v.before,
+                v.after,
+            ));
         }
     }
     out.sort_by_key(|(p, _, _)| *p);
