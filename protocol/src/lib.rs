@@ -7,6 +7,7 @@
 //! * [`wire`]: the websocket messages and their compact, compressed brick payloads.
 //! * [`apply`]: what a wire edit op does to a brick map (shared by the server and log replay).
 //! * [`demo`]: the built-in procedural demo scene.
+//! * [`journal`]: before-images of the bricks an edit changes (for undo), and brick diffs.
 //! * [`replica`]: a client's copy of a scene, kept current by applying server messages.
 //! * [`roster`]: a client's list of who else is present and what they look at.
 
@@ -14,6 +15,7 @@ pub mod apply;
 pub mod brick;
 pub mod colour;
 pub mod demo;
+pub mod journal;
 pub mod map;
 pub mod render;
 pub mod replica;

@@ -177,8 +177,8 @@ pub struct BrickMap {
     touched: Vec<u32>,
     track_touched: bool,
     gpu: Option<GpuChanges>,
-    /// While journaling: linear cell index → the brick it held before the first change.
-    journal: Option<HashMap<u32, Option<BrickData>>>,
+    /// While journaling: each changed cell's brick before its first change (`crate::journal`).
+    journal: crate::journal::Journal,
 }
 
 /// Colour capacity given to a brick with `n` solid voxels: rounded up to a multiple of 2 (one
@@ -227,7 +227,7 @@ impl BrickMap {
             touched: Vec::new(),
             track_touched: false,
             gpu: None,
-            journal: None,
+            journal: crate::journal::Journal::default(),
         })
     }
 
@@ -262,32 +262,54 @@ impl BrickMap {
     /// Starts recording the brick every following edit changes, as it was before its first
     /// change: the before-image of a step, for undo. [`BrickMap::end_journal`] hands it over.
     pub fn begin_journal(&mut self) {
-        self.journal = Some(HashMap::new());
+        self.journal.begin();
     }
 
-    /// Stops journaling and returns each cell changed since [`BrickMap::begin_journal`] (linear
-    /// index, ascending) with the brick it held before (`None`: empty). A cell may appear whose
+    /// Stops journaling and calls `f(cell, before, after)` for each cell changed since
+    /// [`BrickMap::begin_journal`] (linear index, in the order first changed) with its brick
+    /// before and now as (mask, colours); an empty mask means no brick. A cell may appear whose
     /// brick ended as it began.
-    pub fn end_journal(&mut self) -> Vec<(u32, Option<BrickData>)> {
-        let mut entries: Vec<_> = self
-            .journal
-            .take()
-            .unwrap_or_default()
-            .into_iter()
-            .collect();
-        entries.sort_unstable_by_key(|(cell, _)| *cell);
-        entries
+    pub fn end_journal(&mut self, mut f: impl FnMut(u32, (&Mask, &[Colour]), (&Mask, &[Colour]))) {
+        let journal = std::mem::take(&mut self.journal);
+        for e in &journal.entries {
+            let before = (
+                &e.mask,
+                &journal.colours[e.start as usize..(e.start + e.len) as usize],
+            );
+            let coords = self.cell_coords(e.cell);
+            match self.slot_of_cell(coords) {
+                Some(slot) => f(
+                    e.cell,
+                    before,
+                    (&self.masks[slot as usize], self.brick_colours(slot)),
+                ),
+                None => f(e.cell, before, (&EMPTY_MASK, &[])),
+            }
+        }
+        self.journal = journal;
+        self.journal.on = false;
     }
 
     /// Journals the cell's brick before a change, once per journal.
     fn note_before(&mut self, cell: [u32; 3]) {
-        let index = self.cell_index(cell);
-        if self.journal.as_ref().is_none_or(|j| j.contains_key(&index)) {
+        if !self.journal.on {
             return;
         }
-        let before = self.brick(cell);
-        if let Some(journal) = &mut self.journal {
-            journal.insert(index, before);
+        let index = self.cell_index(cell);
+        if self.journal.has(index) {
+            return;
+        }
+        match self.slot_of_cell(cell) {
+            Some(slot) => {
+                let s = slot as usize;
+                let base = self.colour_base[s] as usize;
+                let n = popcount(&self.masks[s]) as usize;
+                let mask = self.masks[s];
+                // Split borrows: the colours are read while the journal is written.
+                let colours = &self.colours[base..base + n];
+                self.journal.record(index, mask, colours);
+            }
+            None => self.journal.record(index, EMPTY_MASK, &[]),
         }
     }
 
@@ -427,7 +449,7 @@ impl BrickMap {
         }
         let cell = pos.map(|p| p / BRICK_EDGE);
         let bit = voxel_bit(pos[0], pos[1], pos[2]);
-        if self.journal.is_some() {
+        if self.journal.on {
             self.note_before(cell);
         }
         let Some(slot) = self.slot_of_cell(cell) else {

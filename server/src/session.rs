@@ -299,11 +299,13 @@ async fn read_loop(
             // The owner, the writer, or a reply that could not be encoded ended the session.
             _ = out.closed() => return,
             _ = tokio::time::sleep_until(camera_at), if camera.is_some() => {
-                if let Some(eye) = camera.take() {
-                    // Streaming order is a hint: drop it rather than wait when the owner is busy.
-                    if scene.try_send(Command::Camera { session: id, eye }).is_ok() {
-                        Metrics::add(&app.metrics.camera_updates, 1);
-                    }
+                // Streaming order is a hint: drop it rather than wait when the owner is busy,
+                // and do not wake the owner at all when no sync is going on.
+                if let Some(eye) = camera.take()
+                    && out.is_syncing()
+                    && scene.try_send(Command::Camera { session: id, eye }).is_ok()
+                {
+                    Metrics::add(&app.metrics.camera_updates, 1);
                     camera_at = tokio::time::Instant::now() + CAMERA_INTERVAL;
                 }
                 continue;

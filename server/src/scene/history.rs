@@ -22,6 +22,7 @@
 use std::collections::{BTreeMap, HashMap, VecDeque};
 
 use brickcast_protocol::brick::{BrickData, Mask};
+use brickcast_protocol::journal::diff_bricks;
 use brickcast_protocol::wire::UserId;
 use brickcast_protocol::{BrickMap, Colour};
 use serde::{Deserialize, Serialize};
@@ -85,25 +86,20 @@ pub struct Step {
 }
 
 impl Step {
-    /// The step an edit made, from the map's journal (see [`BrickMap::begin_journal`]): each
-    /// journaled cell with its brick now, leaving out cells that ended as they began.
-    pub fn from_journal(map: &BrickMap, journal: Vec<(u32, Option<BrickData>)>) -> Step {
-        let bricks = journal
-            .into_iter()
-            .filter_map(|(cell, before)| {
-                let before = brick_voxels(before.as_ref());
-                let after = brick_voxels(map.brick(map.cell_coords(cell)).as_ref());
-                let voxels: Vec<VoxelChange> = (0..512)
-                    .filter(|&i| before[i] != after[i])
-                    .map(|i| VoxelChange {
-                        bit: i as u16,
-                        before: before[i],
-                        after: after[i],
-                    })
-                    .collect();
-                (!voxels.is_empty()).then_some(BrickChange { cell, voxels })
-            })
-            .collect();
+    /// The step an edit made, from the map's journal (see [`BrickMap::begin_journal`], which
+    /// this ends): every voxel that differs between each journaled brick and that brick now.
+    pub fn from_journal(map: &mut BrickMap) -> Step {
+        let mut bricks = Vec::new();
+        map.end_journal(|cell, before, after| {
+            let mut voxels = Vec::new();
+            diff_bricks(before, after, |bit, before, after| {
+                voxels.push(VoxelChange { bit, before, after })
+            });
+            if !voxels.is_empty() {
+                bricks.push(BrickChange { cell, voxels });
+            }
+        });
+        bricks.sort_unstable_by_key(|b: &BrickChange| b.cell);
         Step { bricks }
     }
 
@@ -114,10 +110,23 @@ impl Step {
 
     /// Stored form: a version byte, then bincode, zstd-compressed when that pays.
     pub fn encode(&self) -> Vec<u8> {
+        self.encode_with(None)
+    }
+
+    /// [`Step::encode`] with a compressor kept from step to step (creating one per step cost
+    /// as much as compressing a small step).
+    pub fn encode_with(&self, compressor: Option<&mut zstd::bulk::Compressor<'static>>) -> Vec<u8> {
         let raw = bincode::serde::encode_to_vec(self, bincode::config::standard())
             .expect("a step always encodes");
-        if raw.len() > 4096
-            && let Ok(packed) = zstd::bulk::compress(&raw, 1)
+        let packed = if raw.len() > COMPRESS_ABOVE {
+            match compressor {
+                Some(c) => c.compress(&raw).ok(),
+                None => zstd::bulk::compress(&raw, 1).ok(),
+            }
+        } else {
+            None
+        };
+        if let Some(packed) = packed
             && packed.len() < raw.len()
         {
             let mut out = Vec::with_capacity(packed.len() + 5);
@@ -153,6 +162,10 @@ impl Step {
     }
 }
 
+/// Steps above this many bytes are stored zstd-compressed (level 1): a brush's step shrinks
+/// several times, which the commit and the disk gain back (uncompressed, radius-8 brushes
+/// committed twice as long).
+const COMPRESS_ABOVE: usize = 4 << 10;
 const STEP_RAW: u8 = 1;
 const STEP_ZSTD: u8 = 2;
 /// Largest decoded step: every brick of the largest box brush, before and after.
@@ -319,6 +332,7 @@ pub enum Direction {
 /// Every user's stacks, and this turn's unwritten changes.
 pub struct History {
     users: HashMap<UserId, Stacks>,
+    compressor: Option<zstd::bulk::Compressor<'static>>,
     /// Bytes of every stored step, kept as steps come and go.
     bytes: u64,
     next_id: u64,
@@ -332,6 +346,7 @@ impl History {
     pub fn new(users: Vec<(UserId, Stacks)>, last_id: u64, max_steps: u32, max_bytes: u64) -> Self {
         let users: HashMap<UserId, Stacks> = users.into_iter().collect();
         History {
+            compressor: zstd::bulk::Compressor::new(1).ok(),
             bytes: users.values().map(Stacks::bytes).sum(),
             users,
             next_id: last_id + 1,
@@ -428,7 +443,7 @@ impl History {
     }
 
     fn push(&mut self, user: UserId, onto: Direction, step: &Step) {
-        let bytes = step.encode();
+        let bytes = step.encode_with(self.compressor.as_mut());
         let id = self.next_id;
         self.next_id += 1;
         let entry = StepRef {
@@ -495,8 +510,7 @@ mod tests {
     fn edit(map: &mut BrickMap, f: impl FnOnce(&mut BrickMap)) -> Step {
         map.begin_journal();
         f(map);
-        let journal = map.end_journal();
-        Step::from_journal(map, journal)
+        Step::from_journal(map)
     }
 
     fn undo(map: &mut BrickMap, step: &Step) -> Revert {

@@ -56,6 +56,8 @@ struct Shared {
     notify: Notify,
     pong_queued: AtomicBool,
     pong_nonce: AtomicU64,
+    /// The owner is streaming this session a sync: its camera decides what goes next.
+    syncing: AtomicBool,
 }
 
 impl Shared {
@@ -135,6 +137,7 @@ impl Outbox {
             notify: Notify::new(),
             pong_queued: AtomicBool::new(false),
             pong_nonce: AtomicU64::new(0),
+            syncing: AtomicBool::new(false),
         });
         (
             Outbox {
@@ -215,6 +218,18 @@ impl Outbox {
             }
             notified.await;
         }
+    }
+
+    /// Marks whether the owner is streaming this session a sync (set by the owner).
+    pub fn set_syncing(&self, on: bool) {
+        self.shared.syncing.store(on, Relaxed);
+    }
+
+    /// Whether a camera update would change anything: only a sync is ordered by it, so a
+    /// session forwards cameras to the owner only then, and a synced viewer moving at 20 Hz
+    /// costs the owner nothing.
+    pub fn is_syncing(&self) -> bool {
+        self.shared.syncing.load(Relaxed)
     }
 
     /// Bytes this session's queue holds.

@@ -375,7 +375,7 @@ impl Owner {
                 }),
             }
         }
-        let journal = self.map.end_journal();
+        let step = Step::from_journal(&mut self.map);
         Metrics::add(&self.metrics.ops_rejected, rejected.len() as u64);
         Metrics::add(&self.metrics.ops_applied, applied.len() as u64);
         Metrics::add(&self.metrics.voxels_changed, voxels);
@@ -387,8 +387,7 @@ impl Owner {
             // that changed no voxel are still logged so replay matches op for op. The message
             // is one step of its user's history, even if it changed nothing: one gesture, one
             // undo.
-            self.history
-                .record_edit(user, &Step::from_journal(&self.map, journal));
+            self.history.record_edit(user, &step);
             self.seq = seq;
             self.log_ops += applied.len() as u64;
             self.log_work = self.log_work.saturating_add(work);

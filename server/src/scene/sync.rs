@@ -85,6 +85,7 @@ impl Owner {
                 sort_far_to_near(&self.map, &mut sub.pending, sub.camera);
                 sub.sync_total = sub.pending.len() as u32;
                 sub.syncing = true;
+                sub.out.set_syncing(true);
             }
         }
         self.subs.insert(session, sub);
@@ -150,6 +151,7 @@ impl Owner {
         sub.sync_total = sub.pending.len() as u32;
         sub.sync_sent = 0;
         sub.syncing = true;
+        sub.out.set_syncing(true);
         sub.lagging = false;
         sub.delivered = self.seq;
     }
@@ -304,6 +306,7 @@ impl Owner {
                 sub.sync_sent += count;
                 if sub.pending.is_empty() {
                     sub.syncing = false;
+                    sub.out.set_syncing(false);
                     sub.out
                         .send(&ServerMsg::SyncDone { seq: self.seq }, &self.metrics);
                 }
