@@ -25,20 +25,20 @@ pub struct Identity {
 
 const PINNED: u64 = 1 << 63;
 
-/// Distinct, readable-on-dark-and-light colours, one per user by id.
+/// Distinct colours, one per user by id; no greens, which the terrain of most scenes is.
 const PALETTE: [(u8, u8, u8); 12] = [
     (230, 57, 70),
     (29, 120, 230),
-    (46, 170, 80),
     (245, 160, 20),
     (150, 70, 200),
-    (20, 180, 190),
+    (20, 190, 210),
     (230, 90, 170),
-    (120, 150, 30),
+    (250, 220, 40),
     (250, 110, 60),
     (90, 100, 240),
+    (255, 255, 255),
     (190, 140, 80),
-    (60, 200, 140),
+    (255, 150, 200),
 ];
 
 fn mix(mut x: u64) -> u64 {

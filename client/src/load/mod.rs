@@ -436,14 +436,10 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
                 .as_ref()
                 .map(|s| s.presence_bytes / connections.max(1) as f64 / duration_s),
         }),
-        server_cpu_cores: (args.presence_hz > 0.0 || args.undo_ratio > 0.0)
-            .then(|| {
-                server
-                    .as_ref()
-                    .and_then(|s| s.cpu_s)
-                    .map(|c| c / duration_s)
-            })
-            .flatten(),
+        server_cpu_cores: server
+            .as_ref()
+            .and_then(|s| s.cpu_s)
+            .map(|c| c / duration_s),
         errors: failures.len() as u64,
     };
     let details = LoadDetails {

@@ -102,11 +102,19 @@ fn brush_box(canvas: &mut Canvas, p: &Projection, cursor: &Cursor, c: Rgba) {
             if i & bit == 0
                 && let Some((a, b)) = segment(p, corner(i), corner(i | bit))
             {
-                canvas.line(a, b, 3.0, canvas::SHADOW);
-                canvas.line(a, b, 1.0, c);
+                canvas.line(a, b, 4.0, canvas::SHADOW);
+                canvas.line(a, b, 2.0, c);
             }
         }
     }
+}
+
+/// A name on a dark tag with a stripe of the person's colour: readable on any scene.
+fn name_tag(canvas: &mut Canvas, x: i32, y: i32, name: &str, colour: Rgba) {
+    let width = 8 * name.chars().count() as i32;
+    canvas.rect(x, y, width + 10, 12, PANEL);
+    canvas.rect(x, y, 3, 12, colour);
+    canvas.label(x + 6, y + 2, name, WHITE);
 }
 
 /// Draws the overlay for one frame into `canvas` (cleared to the projection's size first).
@@ -140,11 +148,13 @@ pub fn draw(canvas: &mut Canvas, input: &OverlayInput) {
                         canvas.line(a, b, 2.0, colour);
                     }
                 }
-                canvas.disc(x, y, MARKER_RADIUS + 1.5, [0, 0, 0, 200]);
+                canvas.disc(x, y, MARKER_RADIUS + 3.0, [0, 0, 0, 200]);
+                canvas.disc(x, y, MARKER_RADIUS + 1.5, WHITE);
                 canvas.disc(x, y, MARKER_RADIUS, colour);
-                canvas.label(
-                    (x + MARKER_RADIUS + 4.0) as i32,
-                    (y - 4.0) as i32,
+                name_tag(
+                    canvas,
+                    (x + MARKER_RADIUS + 6.0) as i32,
+                    (y - 6.0) as i32,
                     &other.peer.name,
                     colour,
                 );
@@ -166,11 +176,11 @@ pub fn draw(canvas: &mut Canvas, input: &OverlayInput) {
                     canvas.disc(x, y, 5.0, [0, 0, 0, 200]);
                     canvas.disc(x, y, 4.0, colour);
                     let name_x = if x > w * 0.5 {
-                        x as i32 - 12 - 8 * other.peer.name.chars().count() as i32
+                        x as i32 - 20 - 8 * other.peer.name.chars().count() as i32
                     } else {
                         x as i32 + 10
                     };
-                    canvas.label(name_x, (y - 4.0) as i32, &other.peer.name, colour);
+                    name_tag(canvas, name_x, (y - 6.0) as i32, &other.peer.name, colour);
                 }
             }
         }
