@@ -8,6 +8,52 @@ pub use context::{BackendChoice, GpuContext, TRACER_STORAGE_BUFFERS, new_instanc
 pub use scene::{GpuScene, UploadStats};
 pub use tracer::{GpuFrame, Tracer};
 
+/// A pipeline that draws one full-screen triangle (`vs_main`, `fs_main` of `module`) into a
+/// target of `format`: how the viewer presents the traced image and blends its overlay.
+pub fn fullscreen_pipeline(
+    device: &wgpu::Device,
+    label: &str,
+    module: &wgpu::ShaderModule,
+    layout: &wgpu::BindGroupLayout,
+    format: wgpu::TextureFormat,
+    blend: Option<wgpu::BlendState>,
+) -> wgpu::RenderPipeline {
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(label),
+        bind_group_layouts: &[Some(layout)],
+        immediate_size: 0,
+    });
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(label),
+        layout: Some(&pipeline_layout),
+        vertex: wgpu::VertexState {
+            module,
+            entry_point: Some("vs_main"),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: wgpu::PrimitiveState::default(),
+        depth_stencil: None,
+        multisample: wgpu::MultisampleState::default(),
+        fragment: Some(wgpu::FragmentState {
+            module,
+            entry_point: Some("fs_main"),
+            compilation_options: Default::default(),
+            targets: &[Some(wgpu::ColorTargetState {
+                format,
+                blend,
+                write_mask: if blend.is_some() {
+                    wgpu::ColorWrites::COLOR
+                } else {
+                    wgpu::ColorWrites::ALL
+                },
+            })],
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
 /// Everything that can go wrong on the GPU side, naming the adapter where it matters.
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {

@@ -590,6 +590,39 @@ impl Client {
         }
     }
 
+    /// An edit or undo was answered: it leaves the in-flight list, its latency is recorded, and
+    /// the observing client learns which sequence shows it.
+    fn answered(
+        &mut self,
+        client_seq: u64,
+        seq: Option<u64>,
+        at: Instant,
+        report: &mut ClientReport,
+    ) -> Result<(), ClientError> {
+        let i = self
+            .inflight
+            .iter()
+            .position(|&(c, _)| c == client_seq)
+            .ok_or(ClientError::UnknownAck(client_seq))?;
+        let (_, sent) = self
+            .inflight
+            .remove(i)
+            .ok_or(ClientError::UnknownAck(client_seq))?;
+        let took = at.saturating_duration_since(sent);
+        report.ack_latency.record(took);
+        report.last_ack = Some(at);
+        let live = &self.shared.live;
+        live.acks.fetch_add(1, Relaxed);
+        live.ack_ns
+            .fetch_add(took.as_nanos().min(u128::from(u64::MAX)) as u64, Relaxed);
+        if let (Some(seq), Some(observer)) =
+            (seq, self.plan.editor.as_ref().and_then(|e| e.observer))
+        {
+            self.shared.observer(observer).acked(seq, sent);
+        }
+        Ok(())
+    }
+
     fn handle(
         &mut self,
         msg: &ServerMsg,
@@ -597,7 +630,6 @@ impl Client {
         copy: &mut LazyCopy,
         report: &mut ClientReport,
     ) -> Result<(), ClientError> {
-        let live = &self.shared.live;
         match msg {
             ServerMsg::Ack {
                 client_seq,
@@ -605,30 +637,12 @@ impl Client {
                 applied,
                 rejected,
             } => {
-                let i = self
-                    .inflight
-                    .iter()
-                    .position(|&(c, _)| c == *client_seq)
-                    .ok_or(ClientError::UnknownAck(*client_seq))?;
-                let (_, sent) = self
-                    .inflight
-                    .remove(i)
-                    .ok_or(ClientError::UnknownAck(*client_seq))?;
-                let took = at.saturating_duration_since(sent);
-                report.ack_latency.record(took);
+                self.answered(*client_seq, *seq, at, report)?;
                 report.ops_acked += u64::from(*applied);
                 report.rejected += rejected.len() as u64;
-                report.last_ack = Some(at);
+                let live = &self.shared.live;
                 live.ops_acked.fetch_add(u64::from(*applied), Relaxed);
-                live.acks.fetch_add(1, Relaxed);
-                live.ack_ns
-                    .fetch_add(took.as_nanos().min(u128::from(u64::MAX)) as u64, Relaxed);
                 live.rejected.fetch_add(rejected.len() as u64, Relaxed);
-                if let (Some(seq), Some(observer)) =
-                    (seq, self.plan.editor.as_ref().and_then(|e| e.observer))
-                {
-                    self.shared.observer(observer).acked(*seq, sent);
-                }
             }
             ServerMsg::Undone {
                 client_seq,
@@ -637,31 +651,12 @@ impl Client {
                 refused,
                 ..
             } => {
-                let i = self
-                    .inflight
-                    .iter()
-                    .position(|&(c, _)| c == *client_seq)
-                    .ok_or(ClientError::UnknownAck(*client_seq))?;
-                let (_, sent) = self
-                    .inflight
-                    .remove(i)
-                    .ok_or(ClientError::UnknownAck(*client_seq))?;
-                let took = at.saturating_duration_since(sent);
-                report.ack_latency.record(took);
-                report.last_ack = Some(at);
+                self.answered(*client_seq, *seq, at, report)?;
                 if refused.is_some() {
                     report.undos_refused += 1;
                 } else {
                     report.undos += 1;
                     report.undo_voxels += restored;
-                }
-                live.acks.fetch_add(1, Relaxed);
-                live.ack_ns
-                    .fetch_add(took.as_nanos().min(u128::from(u64::MAX)) as u64, Relaxed);
-                if let (Some(seq), Some(observer)) =
-                    (seq, self.plan.editor.as_ref().and_then(|e| e.observer))
-                {
-                    self.shared.observer(observer).acked(*seq, sent);
                 }
             }
             ServerMsg::Error { code, message } => {
@@ -672,7 +667,7 @@ impl Client {
             }
             ServerMsg::Resync { .. } => {
                 report.resyncs += 1;
-                live.resyncs.fetch_add(1, Relaxed);
+                self.shared.live.resyncs.fetch_add(1, Relaxed);
             }
             ServerMsg::Presence { states, .. } => {
                 for state in states {
