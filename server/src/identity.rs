@@ -59,10 +59,25 @@ fn hash_name(name: &str) -> u64 {
     mix(h)
 }
 
-/// The colour a user is drawn in.
+/// The colour a user is drawn in, unless someone else present has it (see [`colour_among`]).
 pub fn colour_of(user: UserId) -> Colour {
-    let (r, g, b) = PALETTE[(mix(user) % PALETTE.len() as u64) as usize];
+    palette_colour((mix(user) % PALETTE.len() as u64) as usize)
+}
+
+fn palette_colour(i: usize) -> Colour {
+    let (r, g, b) = PALETTE[i % PALETTE.len()];
     Colour::from_rgb8(r, g, b)
+}
+
+/// The user's own colour, or, when another user present already shows it, the next palette
+/// colour nobody present shows: people in one scene can tell each other apart (up to twelve of
+/// them), and a user alone or among few keeps the same colour every time.
+pub fn colour_among(user: UserId, taken: &[Colour]) -> Colour {
+    let first = (mix(user) % PALETTE.len() as u64) as usize;
+    (0..PALETTE.len())
+        .map(|k| palette_colour(first + k))
+        .find(|c| !taken.contains(c))
+        .unwrap_or_else(|| colour_of(user))
 }
 
 /// A name fit to show: the client's if it is one, else its printable part, else `guest-N`.
@@ -147,5 +162,12 @@ mod tests {
         assert_eq!(anon.name, "guest-9");
         assert_eq!(identify(true, None, 4, " bad\u{7}name ", 9).name, "badname");
         assert_eq!(identify(true, None, 4, "bob", 9).colour, colour_of(4));
+        // Someone present already shows user 4's colour: the next free one instead.
+        let mine = colour_of(4);
+        let other = colour_among(4, &[mine]);
+        assert_ne!(other, mine);
+        assert_eq!(colour_among(4, &[]), mine);
+        let all: Vec<Colour> = (0..PALETTE.len()).map(palette_colour).collect();
+        assert_eq!(colour_among(4, &all), mine, "twelve taken: keep one's own");
     }
 }

@@ -71,11 +71,20 @@ impl Hub {
         self.roster.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Registers a joining peer and returns everyone else present, for its Welcome. It is sent
-    /// nothing until [`Hub::welcomed`].
-    pub fn join(&self, peer: Peer, out: Outbox) -> Vec<Peer> {
+    /// Registers a joining peer and returns it (its colour changed if another user present
+    /// shows the same one, see `identity::colour_among`) with everyone else present, for its
+    /// Welcome. It is sent nothing until [`Hub::welcomed`].
+    pub fn join(&self, mut peer: Peer, out: Outbox) -> (Peer, Vec<Peer>) {
         let mut roster = self.roster();
-        let others = roster.members.values().map(|m| m.peer.clone()).collect();
+        let others: Vec<Peer> = roster.members.values().map(|m| m.peer.clone()).collect();
+        match others.iter().find(|p| p.user == peer.user) {
+            // The same user in another window keeps the colour it shows there.
+            Some(same) => peer.colour = same.colour,
+            None => {
+                let taken: Vec<_> = others.iter().map(|p| p.colour).collect();
+                peer.colour = crate::identity::colour_among(peer.user, &taken);
+            }
+        }
         let id = peer.id;
         roster.joined.insert(id, peer.clone());
         roster.members.insert(
@@ -86,13 +95,13 @@ impl Hub {
                     view: None,
                     cursor: None,
                 },
-                peer,
+                peer: peer.clone(),
                 out,
                 welcomed: false,
                 stale: true,
             },
         );
-        others
+        (peer, others)
     }
 
     /// The peer's Welcome is queued: frames may follow it.
@@ -266,8 +275,10 @@ mod tests {
         let hub = Hub::new(20);
         let (out1, mut rx1) = Outbox::new(total.clone());
         let (out2, mut rx2) = Outbox::new(total.clone());
-        assert!(hub.join(peer(1), out1.clone()).is_empty());
-        assert_eq!(hub.join(peer(2), out2.clone()).len(), 1);
+        assert!(hub.join(peer(1), out1.clone()).1.is_empty());
+        let (second, others) = hub.join(peer(2), out2.clone());
+        assert_eq!(others.len(), 1);
+        assert_ne!(second.colour, others[0].colour, "two people, two colours");
         // Nothing before the Welcome.
         hub.tick(&metrics);
         assert!(frames(&mut rx1).is_empty());

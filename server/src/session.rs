@@ -64,7 +64,7 @@ pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
             };
             // Registered before the Welcome is built, so the roster it lists and the presence
             // frames after it leave nobody out.
-            let roster = scene.presence.join(peer.clone(), out.clone());
+            let (peer, roster) = scene.presence.join(peer, out.clone());
             let (joined, welcomed) = tokio::sync::oneshot::channel();
             let sent = scene
                 .send(Command::Join {
