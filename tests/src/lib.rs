@@ -182,15 +182,24 @@ fn wait_with_timeout(
 }
 
 /// A virtual X display (`Xvfb`), killed on drop.
+///
+/// One at a time per test process: window tests trace on lavapipe, which takes every core, and
+/// with three windows at once one of them sometimes did not open within a minute. The guard is
+/// held until the display is dropped.
 pub struct VirtualDisplay {
     pub display: String,
     child: Child,
+    _turn: std::sync::MutexGuard<'static, ()>,
 }
+
+static DISPLAY_TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 impl VirtualDisplay {
     /// Starts Xvfb on a free display number. Errors (rather than skipping) when Xvfb is missing:
     /// scripts/test installs it.
     pub fn start() -> Result<VirtualDisplay> {
+        // A test that failed while holding the turn poisons it; the display is still free.
+        let turn = DISPLAY_TURN.lock().unwrap_or_else(|e| e.into_inner());
         // Tests in one process start displays at once: each takes its own numbers, so two
         // cannot both see a free number and then share the display the winner started.
         static TAKEN: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
@@ -228,6 +237,7 @@ impl VirtualDisplay {
                     return Ok(VirtualDisplay {
                         display: format!(":{number}"),
                         child,
+                        _turn: turn,
                     });
                 }
                 if child.try_wait()?.is_some() {
@@ -315,20 +325,45 @@ pub fn xdotool(display: &str, args: &[&str]) -> Result<String> {
     Ok(String::from_utf8_lossy(&out.stdout).trim().to_string())
 }
 
-/// Starts `brickcast` with `args` in the background (killed on drop).
+/// Starts `brickcast` with `args` in the background (killed on drop). Its stderr goes to a
+/// file that [`Background::describe`] reads, so a failing test can say why it died.
 pub fn spawn_brickcast(args: &[&str], env: &[(&str, &str)]) -> Result<Background> {
+    let log = tempfile::NamedTempFile::new().context("a file for the child's stderr")?;
     let child = brickcast_command(args, env)
         .stdout(Stdio::null())
-        .stderr(Stdio::null())
+        .stderr(log.reopen().context("reopening the stderr file")?)
         .spawn()
         .context("starting brickcast")?;
-    Ok(Background(child))
+    Ok(Background(child, Some(log)))
 }
 
-/// A child process that is killed when the test ends, pass or fail.
-pub struct Background(pub Child);
+/// A child process that is killed when the test ends, pass or fail, and where its stderr went.
+pub struct Background(pub Child, pub Option<tempfile::NamedTempFile>);
 
 impl Background {
+    /// Whether it is still running (or how it ended) and the end of what it wrote to stderr.
+    pub fn describe(&mut self) -> String {
+        let state = match self.0.try_wait() {
+            Ok(Some(status)) => format!("exited: {status}"),
+            Ok(None) => "still running".to_string(),
+            Err(e) => format!("unknown: {e}"),
+        };
+        let text = self
+            .1
+            .as_ref()
+            .and_then(|f| std::fs::read_to_string(f.path()).ok())
+            .unwrap_or_default();
+        let tail: String = text
+            .chars()
+            .rev()
+            .take(3000)
+            .collect::<Vec<_>>()
+            .into_iter()
+            .rev()
+            .collect();
+        format!("the viewer is {state}; its stderr ends:\n{tail}")
+    }
+
     /// Waits up to `timeout` for the process to exit by itself.
     pub fn wait_exit(&mut self, timeout: Duration) -> Result<Option<std::process::ExitStatus>> {
         let started = Instant::now();

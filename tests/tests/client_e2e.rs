@@ -311,7 +311,9 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
                 .to_string();
             !window.is_empty()
         }),
-        "the viewer never opened a window"
+        "the viewer never opened a window on {}: {}",
+        display.display,
+        viewer.describe()
     );
     let title = || x(&["getwindowname", &window]).unwrap_or_default();
     assert!(
