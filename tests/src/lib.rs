@@ -232,8 +232,11 @@ impl VirtualDisplay {
             let socket = PathBuf::from(format!("/tmp/.X11-unix/X{number}"));
             let started = Instant::now();
             while started.elapsed() < Duration::from_secs(10) {
-                // Ours only if our Xvfb is still running (a loser of a race exits).
-                if socket.exists() && child.try_wait()?.is_none() {
+                // Ours only if our Xvfb is still running (a loser of a race exits) and answers
+                // a client: the socket appears before the server is ready, and a server that
+                // fails after creating it leaves it behind.
+                if socket.exists() && child.try_wait()?.is_none() && answers(&format!(":{number}"))
+                {
                     return Ok(VirtualDisplay {
                         display: format!(":{number}"),
                         child,
@@ -250,6 +253,18 @@ impl VirtualDisplay {
         }
         bail!("could not start Xvfb on any display near :{base}")
     }
+}
+
+/// Whether an X client can connect to `display` (xdotool asks for the screen's size).
+fn answers(display: &str) -> bool {
+    Command::new("xdotool")
+        .arg("getdisplaygeometry")
+        .env("DISPLAY", display)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
 }
 
 impl Drop for VirtualDisplay {
@@ -353,15 +368,9 @@ impl Background {
             .as_ref()
             .and_then(|f| std::fs::read_to_string(f.path()).ok())
             .unwrap_or_default();
-        let tail: String = text
-            .chars()
-            .rev()
-            .take(3000)
-            .collect::<Vec<_>>()
-            .into_iter()
-            .rev()
-            .collect();
-        format!("the viewer is {state}; its stderr ends:\n{tail}")
+        // The error comes first, a backtrace (with RUST_BACKTRACE) after it.
+        let head: String = text.chars().take(2000).collect();
+        format!("the viewer is {state}; its stderr begins:\n{head}")
     }
 
     /// Waits up to `timeout` for the process to exit by itself.
