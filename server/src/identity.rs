@@ -25,20 +25,21 @@ pub struct Identity {
 
 const PINNED: u64 = 1 << 63;
 
-/// Distinct colours, one per user by id; no greens, which the terrain of most scenes is.
+/// Colours far apart from each other, one per user by id; no greens, which the terrain of
+/// most scenes is.
 const PALETTE: [(u8, u8, u8); 12] = [
-    (230, 57, 70),
-    (29, 120, 230),
-    (245, 160, 20),
-    (150, 70, 200),
-    (20, 190, 210),
-    (230, 90, 170),
-    (250, 220, 40),
-    (250, 110, 60),
-    (90, 100, 240),
+    (230, 40, 40),
+    (30, 110, 240),
+    (250, 230, 30),
+    (150, 60, 210),
+    (20, 200, 220),
+    (255, 130, 0),
+    (240, 70, 200),
     (255, 255, 255),
-    (190, 140, 80),
-    (255, 150, 200),
+    (130, 80, 40),
+    (255, 180, 200),
+    (0, 130, 130),
+    (20, 30, 110),
 ];
 
 fn mix(mut x: u64) -> u64 {
@@ -69,15 +70,34 @@ fn palette_colour(i: usize) -> Colour {
     Colour::from_rgb8(r, g, b)
 }
 
-/// The user's own colour, or, when another user present already shows it, the next palette
-/// colour nobody present shows: people in one scene can tell each other apart (up to twelve of
-/// them), and a user alone or among few keeps the same colour every time.
+/// The user's own colour, unless it looks like one another user present shows: then the
+/// palette colour farthest from every colour shown. People in one scene can tell each other
+/// apart (up to twelve of them), and a user among few keeps the same colour every time.
 pub fn colour_among(user: UserId, taken: &[Colour]) -> Colour {
-    let first = (mix(user) % PALETTE.len() as u64) as usize;
+    let distance = |a: Colour, b: Colour| -> i32 {
+        let (a, b) = (a.to_rgb8(), b.to_rgb8());
+        (0..3)
+            .map(|i| (i32::from(a[i]) - i32::from(b[i])).pow(2))
+            .sum()
+    };
+    let nearest = |c: Colour| {
+        taken
+            .iter()
+            .map(|&t| distance(c, t))
+            .min()
+            .unwrap_or(i32::MAX)
+    };
+    let own = colour_of(user);
+    // Closer than this (90 steps of RGB; every two palette colours are farther apart) two
+    // markers read as the same colour.
+    if nearest(own) >= 90 * 90 {
+        return own;
+    }
     (0..PALETTE.len())
-        .map(|k| palette_colour(first + k))
-        .find(|c| !taken.contains(c))
-        .unwrap_or_else(|| colour_of(user))
+        .map(palette_colour)
+        .max_by_key(|&c| nearest(c))
+        .filter(|&c| nearest(c) > nearest(own))
+        .unwrap_or(own)
 }
 
 /// A name fit to show: the client's if it is one, else its printable part, else `guest-N`.
@@ -169,5 +189,14 @@ mod tests {
         assert_eq!(colour_among(4, &[]), mine);
         let all: Vec<Colour> = (0..PALETTE.len()).map(palette_colour).collect();
         assert_eq!(colour_among(4, &all), mine, "twelve taken: keep one's own");
+        // Every pair of palette colours is told apart by the rule.
+        for (i, a) in all.iter().enumerate() {
+            for b in &all[i + 1..] {
+                let d: i32 = (0..3)
+                    .map(|k| (i32::from(a.to_rgb8()[k]) - i32::from(b.to_rgb8()[k])).pow(2))
+                    .sum();
+                assert!(d >= 90 * 90, "{a:?} and {b:?} look alike");
+            }
+        }
     }
 }

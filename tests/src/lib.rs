@@ -121,7 +121,10 @@ pub fn brickcast_bin() -> PathBuf {
 /// `brickcast args` with `env` added, no stdin, and lavapipe's harmless warning silenced.
 fn brickcast_command(args: &[&str], env: &[(&str, &str)]) -> Command {
     let mut cmd = Command::new(brickcast_bin());
+    // The viewer keeps its user id under the config directory: not the tester's own.
+    let config = std::env::temp_dir().join(format!("brickcast-tests-{}", std::process::id()));
     cmd.args(args)
+        .env("XDG_CONFIG_HOME", config)
         .env("NODEVICE_SELECT", "1")
         .envs(env.iter().copied())
         .stdin(Stdio::null());
