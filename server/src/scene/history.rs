@@ -103,11 +103,6 @@ impl Step {
         Step { bricks }
     }
 
-    /// Voxels the step changed.
-    pub fn voxel_count(&self) -> usize {
-        self.bricks.iter().map(|b| b.voxels.len()).sum()
-    }
-
     /// Stored form: a version byte, then bincode, zstd-compressed when that pays.
     pub fn encode(&self) -> Vec<u8> {
         self.encode_with(None)
