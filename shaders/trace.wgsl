@@ -12,7 +12,7 @@
 //   bug into a visible miss instead.
 //
 // Buffers mirror `BrickMap`'s arrays byte for byte (see `client/src/gpu/scene.rs`). The three pools
-// that can outgrow one storage binding (cells, masks, colours) are split into PAGES bindings of
+// that can outgrow one storage binding (cells, masks, colours) are split into two bindings of
 // 2^page_shift words each; `*_word(i)` picks the page.
 
 const BIG: f32 = 3.0e38;
@@ -47,19 +47,15 @@ struct Frame {
 @group(0) @binding(2) var<storage, read> colour_bases: array<u32>;
 @group(0) @binding(3) var<storage, read> cells0: array<u32>;
 @group(0) @binding(4) var<storage, read> cells1: array<u32>;
-@group(0) @binding(5) var<storage, read> cells2: array<u32>;
-@group(0) @binding(6) var<storage, read> cells3: array<u32>;
-@group(0) @binding(7) var<storage, read> masks0: array<u32>;
-@group(0) @binding(8) var<storage, read> masks1: array<u32>;
-@group(0) @binding(9) var<storage, read> masks2: array<u32>;
-@group(0) @binding(10) var<storage, read> masks3: array<u32>;
-@group(0) @binding(11) var<storage, read> colours0: array<u32>;
-@group(0) @binding(12) var<storage, read> colours1: array<u32>;
-@group(0) @binding(13) var<storage, read> colours2: array<u32>;
-@group(0) @binding(14) var<storage, read> colours3: array<u32>;
-@group(0) @binding(15) var out_image: texture_storage_2d<rgba8unorm, write>;
-// Per pixel: (x | y << 16, z) of the primary hit, or (MISS, MISS). For tests and picking.
-@group(0) @binding(16) var<storage, read_write> out_hits: array<vec2<u32>>;
+@group(0) @binding(5) var<storage, read> masks0: array<u32>;
+@group(0) @binding(6) var<storage, read> masks1: array<u32>;
+@group(0) @binding(7) var<storage, read> colours0: array<u32>;
+@group(0) @binding(8) var<storage, read> colours1: array<u32>;
+@group(0) @binding(9) var out_image: texture_storage_2d<rgba8unorm, write>;
+// Per pixel: (x | y << 16, z) of the primary hit, or (MISS, MISS). For tests and picking. A
+// storage texture rather than a buffer: WebGPU guarantees only 8 storage buffers per stage, and
+// the scene's eight take them all.
+@group(0) @binding(10) var out_hits: texture_storage_2d<rg32uint, write>;
 
 // ---- paged pools ---------------------------------------------------------------------------
 
@@ -74,9 +70,7 @@ fn cell_word(i: u32) -> u32 {
     let o = in_page(i);
     switch page_of(i) {
         case 0u: { return cells0[o]; }
-        case 1u: { return cells1[o]; }
-        case 2u: { return cells2[o]; }
-        default: { return cells3[o]; }
+        default: { return cells1[o]; }
     }
 }
 
@@ -84,9 +78,7 @@ fn mask_word(i: u32) -> u32 {
     let o = in_page(i);
     switch page_of(i) {
         case 0u: { return masks0[o]; }
-        case 1u: { return masks1[o]; }
-        case 2u: { return masks2[o]; }
-        default: { return masks3[o]; }
+        default: { return masks1[o]; }
     }
 }
 
@@ -94,9 +86,7 @@ fn colour_word(i: u32) -> u32 {
     let o = in_page(i);
     switch page_of(i) {
         case 0u: { return colours0[o]; }
-        case 1u: { return colours1[o]; }
-        case 2u: { return colours2[o]; }
-        default: { return colours3[o]; }
+        default: { return colours1[o]; }
     }
 }
 
@@ -495,5 +485,5 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         rgb = sky(dir);
     }
     textureStore(out_image, vec2<i32>(id.xy), vec4<f32>(clamp(rgb, vec3<f32>(0.0), vec3<f32>(1.0)), 1.0));
-    out_hits[id.y * width + id.x] = record;
+    textureStore(out_hits, vec2<i32>(id.xy), vec4<u32>(record, 0u, 0u));
 }

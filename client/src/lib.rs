@@ -2,13 +2,14 @@
 //! tracer, the two front ends (`brickcast view` and `brickcast render`), and the load generator
 //! (`brickcast load`).
 
-pub mod follow;
-pub mod gpu;
 pub mod headless;
 pub mod identity;
 pub mod link;
 pub mod live;
 pub mod load;
-pub mod overlay;
 pub mod replica;
 pub mod viewer;
+
+// The portable half (also compiled into the browser viewer), under the paths this crate has
+// always used.
+pub use brickcast_client_core::{Instant, camera, follow, gpu, overlay, present, session, tools};

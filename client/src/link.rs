@@ -6,8 +6,7 @@
 use std::time::Duration;
 
 use brickcast_protocol::wire::{
-    ClientMsg, ErrorCode, Limits, PROTOCOL_VERSION, Peer, Role, ServerMsg, UserId, WireError,
-    decode_server, encode_client,
+    ClientMsg, ErrorCode, Limits, ServerMsg, UserId, WireError, decode_server, encode_client,
 };
 use futures_util::{SinkExt, StreamExt};
 use tokio::net::TcpStream;
@@ -72,21 +71,8 @@ pub fn websocket_url(input: &str) -> Result<String, LinkError> {
     Ok(format!("ws://{host}/scenes/{name}/ws"))
 }
 
-/// What the server said about the scene and us.
-#[derive(Debug, Clone)]
-pub struct Welcome {
-    pub server: String,
-    pub scene: String,
-    pub size: [u32; 3],
-    pub seq: u64,
-    pub role: Role,
-    pub limits: Limits,
-    pub total_bricks: u32,
-    /// This connection as others see it.
-    pub you: Peer,
-    /// Everyone else present when we joined.
-    pub peers: Vec<Peer>,
-}
+pub use brickcast_client_core::session::Welcome;
+use brickcast_client_core::session::{HandshakeError, hello, welcome};
 
 type Socket = WebSocketStream<MaybeTlsStream<TcpStream>>;
 
@@ -119,13 +105,7 @@ impl Link {
                 url: url.to_string(),
                 reason: e.to_string(),
             })?;
-        let hello = ClientMsg::Hello {
-            protocol: PROTOCOL_VERSION,
-            name: name.to_string(),
-            token: token.map(String::from),
-            resume_from,
-            user,
-        };
+        let hello = hello(name, user, token, resume_from);
         let hello = encode_client(&hello)?;
         let bytes_out = hello.len() as u64;
         ws.send(Message::Binary(hello.into()))
@@ -135,38 +115,16 @@ impl Link {
         let first = tokio::time::timeout(WELCOME_TIMEOUT, read_msg(&mut ws, &mut bytes_in))
             .await
             .map_err(|_| LinkError::Timeout(WELCOME_TIMEOUT))??;
-        match first {
-            Some(ServerMsg::Welcome {
-                server,
-                scene,
-                size,
-                seq,
-                role,
-                limits,
-                total_bricks,
-                you,
-                peers,
-                ..
-            }) => Ok(Link {
-                ws,
-                welcome: Welcome {
-                    server,
-                    scene,
-                    size,
-                    seq,
-                    role,
-                    limits,
-                    total_bricks,
-                    you,
-                    peers,
-                },
-                bytes_in,
-                bytes_out,
-            }),
-            Some(ServerMsg::Error { code, message }) => Err(LinkError::Refused { code, message }),
-            Some(_) => Err(LinkError::Unexpected("another message")),
-            None => Err(LinkError::Closed),
-        }
+        let welcome = welcome(first.ok_or(LinkError::Closed)?).map_err(|e| match e {
+            HandshakeError::Refused { code, message } => LinkError::Refused { code, message },
+            HandshakeError::Unexpected(what) => LinkError::Unexpected(what),
+        })?;
+        Ok(Link {
+            ws,
+            welcome,
+            bytes_in,
+            bytes_out,
+        })
     }
 
     /// The next message from the server; `None` once it has closed the connection.

@@ -19,7 +19,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow};
-use brickcast_protocol::wire::{BrushMode, Cursor, EditOp, RayAction, Role, View};
+use brickcast_protocol::wire::{Cursor, Role, View};
 use brickcast_protocol::{Camera, Colour, Lighting, Projection};
 use winit::application::ApplicationHandler;
 use winit::event::{
@@ -29,13 +29,17 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, ModifiersState, PhysicalKey};
 use winit::window::{CursorGrabMode, Window, WindowId};
 
+pub use brickcast_client_core::camera::FlyCamera;
+use brickcast_client_core::camera::{PALETTE, movement};
+use brickcast_client_core::tools::{Button, ray_edit, step_radius};
+
 use crate::follow::Follow;
 use crate::gpu::{BackendChoice, GpuContext, GpuScene, Tracer, new_instance};
 use crate::link::websocket_url;
 use crate::live::{Live, Status};
 use crate::overlay::canvas::Canvas;
-use crate::overlay::gpu::OverlayPass;
 use crate::overlay::{OverlayInput, draw as draw_overlay};
+use crate::present::{Presenter, sync_scene};
 
 /// Options of `brickcast view` besides the address.
 #[derive(Debug, Clone, clap::Args)]
@@ -64,87 +68,6 @@ pub struct ViewArgs {
     pub follow: Option<String>,
 }
 
-/// The palette behind keys 1–8.
-const PALETTE: [(u8, u8, u8); 8] = [
-    (0xd9, 0x3b, 0x3b),
-    (0xf2, 0x9e, 0x38),
-    (0xf2, 0xd8, 0x4b),
-    (0x5f, 0xb0, 0x4a),
-    (0x3b, 0x8e, 0xd9),
-    (0x8a, 0x5c, 0xc7),
-    (0xf0, 0xf0, 0xf0),
-    (0x50, 0x48, 0x40),
-];
-
-/// A free-flying camera: position plus yaw/pitch, y up.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FlyCamera {
-    pub eye: [f32; 3],
-    pub yaw: f32,
-    pub pitch: f32,
-    pub fov_y: f32,
-    /// Voxels per second.
-    pub speed: f32,
-}
-
-impl FlyCamera {
-    /// Starts at `camera`, moving about an eighth of the scene per second.
-    pub fn from_camera(camera: &Camera, size: [u32; 3]) -> FlyCamera {
-        let d: [f32; 3] = std::array::from_fn(|i| camera.target[i] - camera.eye[i]);
-        let flat = (d[0] * d[0] + d[2] * d[2]).sqrt();
-        FlyCamera {
-            eye: camera.eye,
-            yaw: d[2].atan2(d[0]),
-            pitch: d[1].atan2(flat),
-            fov_y: camera.fov_y,
-            speed: size.iter().copied().max().unwrap_or(64) as f32 / 8.0,
-        }
-    }
-
-    pub fn forward(&self) -> [f32; 3] {
-        let (sy, cy) = self.yaw.sin_cos();
-        let (sp, cp) = self.pitch.sin_cos();
-        [cp * cy, sp, cp * sy]
-    }
-
-    pub fn camera(&self) -> Camera {
-        let f = self.forward();
-        Camera {
-            eye: self.eye,
-            target: std::array::from_fn(|i| self.eye[i] + f[i]),
-            fov_y: self.fov_y,
-        }
-    }
-
-    /// Moves by `dir` (forward, right, up) for `dt` seconds.
-    pub fn fly(&mut self, dir: [f32; 3], dt: f32) {
-        let f = self.forward();
-        let (sy, cy) = self.yaw.sin_cos();
-        let right = [-sy, 0.0, cy];
-        let step = self.speed * dt;
-        for i in 0..3 {
-            self.eye[i] += (f[i] * dir[0] + right[i] * dir[1] + [0.0, 1.0, 0.0][i] * dir[2]) * step;
-        }
-    }
-
-    /// Puts the camera at `view`'s eye, looking where it looks (following someone).
-    pub fn look_along(&mut self, view: View) {
-        let f = view.forward;
-        let flat = (f[0] * f[0] + f[2] * f[2]).sqrt();
-        if view.is_valid() {
-            self.eye = view.eye;
-            self.yaw = f[2].atan2(f[0]);
-            self.pitch = f[1].atan2(flat).clamp(-1.55, 1.55);
-        }
-    }
-
-    pub fn look(&mut self, dx: f32, dy: f32) {
-        const SENSITIVITY: f32 = 0.003;
-        self.yaw += dx * SENSITIVITY;
-        self.pitch = (self.pitch - dy * SENSITIVITY).clamp(-1.55, 1.55);
-    }
-}
-
 /// Everything that exists once the window does.
 struct Gpu {
     window: Arc<Window>,
@@ -152,10 +75,7 @@ struct Gpu {
     config: wgpu::SurfaceConfiguration,
     ctx: GpuContext,
     tracer: Tracer,
-    blit: wgpu::RenderPipeline,
-    blit_layout: wgpu::BindGroupLayout,
-    sampler: wgpu::Sampler,
-    overlay: OverlayPass,
+    presenter: Presenter,
     scene: Option<GpuScene>,
 }
 
@@ -308,25 +228,15 @@ impl App {
         }
         surface.configure(&ctx.device, &config);
         let tracer = Tracer::new(&ctx)?;
-        let (blit, blit_layout) = blit_pipeline(&ctx.device, config.format);
-        let sampler = ctx.device.create_sampler(&wgpu::SamplerDescriptor {
-            label: Some("nearest"),
-            mag_filter: wgpu::FilterMode::Nearest,
-            min_filter: wgpu::FilterMode::Nearest,
-            ..Default::default()
-        });
         tracing::info!("tracing on {}", ctx.adapter_name);
-        let overlay = OverlayPass::new(&ctx.device, config.format);
+        let presenter = Presenter::new(&ctx.device, config.format);
         self.gpu = Some(Gpu {
             window,
             surface,
             config,
             ctx,
             tracer,
-            blit,
-            blit_layout,
-            sampler,
-            overlay,
+            presenter,
             scene: None,
         });
         Ok(())
@@ -334,24 +244,7 @@ impl App {
 
     /// Movement keys held now, as (forward, right, up).
     fn movement(&self) -> [f32; 3] {
-        let axis = |plus: &[KeyCode], minus: &[KeyCode]| {
-            let held = |ks: &[KeyCode]| ks.iter().any(|k| self.keys.contains(k));
-            f32::from(u8::from(held(plus))) - f32::from(u8::from(held(minus)))
-        };
-        [
-            axis(
-                &[KeyCode::KeyW, KeyCode::ArrowUp],
-                &[KeyCode::KeyS, KeyCode::ArrowDown],
-            ),
-            axis(
-                &[KeyCode::KeyD, KeyCode::ArrowRight],
-                &[KeyCode::KeyA, KeyCode::ArrowLeft],
-            ),
-            axis(
-                &[KeyCode::Space, KeyCode::KeyE],
-                &[KeyCode::KeyQ, KeyCode::KeyC],
-            ),
-        ]
+        movement(|name| self.keys.iter().any(|k| format!("{k:?}") == name))
     }
 
     fn frame(&mut self, event_loop: &ActiveEventLoop) -> Result<()> {
@@ -363,38 +256,26 @@ impl App {
             return Ok(());
         };
         // Bring the GPU copy up to date with what the network thread applied.
-        let (status, role, synced, progress, rejected, others, undo) = {
+        let (status, status_line, role, synced, rejected, others, undo) = {
             let mut live = self.live.lock();
+            let status_line = live.status_text();
             let status = live.status.clone();
             let role = live.role;
             let rejected = live.last_rejection.clone();
             let others = live.roster.others.len();
             let undo = live.last_undo.clone();
-            match &mut live.replica {
+            let synced = match &mut live.replica {
                 Some(replica) => {
                     let size = replica.map.size();
                     if self.camera.is_none() {
                         self.camera = Some(FlyCamera::from_camera(&Camera::overview(size), size));
                     }
-                    let stale = gpu.scene.as_ref().is_none_or(|s| s.size() != size);
-                    if replica.take_reset() || stale {
-                        gpu.scene = Some(GpuScene::new(&gpu.ctx, &mut replica.map, None)?);
-                    } else if let Some(scene) = &mut gpu.scene {
-                        scene.update(&gpu.ctx, &mut replica.map)?;
-                    }
-                    let progress = (replica.sync_sent, replica.sync_total);
-                    (
-                        status,
-                        role,
-                        replica.synced,
-                        progress,
-                        rejected,
-                        others,
-                        undo,
-                    )
+                    sync_scene(&gpu.ctx, &mut gpu.scene, replica)?;
+                    replica.synced
                 }
-                None => (status, role, false, (0, 0), rejected, others, undo),
-            }
+                None => false,
+            };
+            (status, status_line, role, synced, rejected, others, undo)
         };
         if let Status::Failed(reason) = &status {
             return Err(anyhow!("{reason}"));
@@ -462,7 +343,7 @@ impl App {
             && let Some(projection) = camera.camera().project(gpu.config.width, gpu.config.height)
         {
             let live = self.live.lock();
-            let mut notes = vec![status_text(&status, progress)];
+            let mut notes = vec![status_line.clone()];
             if let Some(why) = &rejected {
                 notes.push(format!("last edit rejected: {why}"));
             }
@@ -487,57 +368,14 @@ impl App {
                 },
             );
             drop(live);
-            gpu.overlay
-                .upload(&gpu.ctx.device, &gpu.ctx.queue, &self.overlay);
+            gpu.presenter.upload_overlay(&gpu.ctx, &self.overlay);
         }
-        {
-            let group = match (traced, gpu.tracer.image_view()) {
-                (true, Some(view)) => Some(gpu.ctx.device.create_bind_group(
-                    &wgpu::BindGroupDescriptor {
-                        label: Some("blit"),
-                        layout: &gpu.blit_layout,
-                        entries: &[
-                            wgpu::BindGroupEntry {
-                                binding: 0,
-                                resource: wgpu::BindingResource::TextureView(view),
-                            },
-                            wgpu::BindGroupEntry {
-                                binding: 1,
-                                resource: wgpu::BindingResource::Sampler(&gpu.sampler),
-                            },
-                        ],
-                    },
-                )),
-                _ => None,
-            };
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("present"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &target,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color {
-                            r: 0.62,
-                            g: 0.74,
-                            b: 0.90,
-                            a: 1.0,
-                        }),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: None,
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
-            if let Some(group) = &group {
-                pass.set_pipeline(&gpu.blit);
-                pass.set_bind_group(0, group, &[]);
-                pass.draw(0..3, 0..1);
-            }
-            gpu.overlay.draw(&mut pass);
-        }
+        let image = if traced {
+            gpu.tracer.image_view()
+        } else {
+            None
+        };
+        gpu.presenter.draw(&gpu.ctx, &mut encoder, &target, image);
         if synced && traced {
             self.synced_frames += 1;
         }
@@ -568,7 +406,7 @@ impl App {
             self.fps = self.frames_since_title as f32 / since.as_secs_f32();
             self.frames_since_title = 0;
             self.title_at = now;
-            let state = status_text(&status, progress);
+            let state = status_line;
             let role = match role {
                 Some(Role::Editor) => "editor",
                 Some(Role::Viewer) => "viewer (read-only)",
@@ -606,31 +444,13 @@ impl App {
         let (r, g, b) = PALETTE[self.colour];
         let colour = Colour::from_rgb8(r, g, b);
         let paint = self.modifiers.control_key();
-        let action = match (button, self.radius > 0.0, paint) {
-            (MouseButton::Left, false, false) => RayAction::Remove,
-            (MouseButton::Left, false, true) => RayAction::Paint { colour },
-            (MouseButton::Right, false, _) => RayAction::Place { colour },
-            (MouseButton::Left, true, paint) => RayAction::Sphere {
-                mode: if paint {
-                    BrushMode::Paint
-                } else {
-                    BrushMode::Erase
-                },
-                radius: self.radius,
-                colour,
-            },
-            (MouseButton::Right, true, _) => RayAction::Sphere {
-                mode: BrushMode::Fill,
-                radius: self.radius,
-                colour,
-            },
+        let button = match button {
+            MouseButton::Left => Button::Primary,
+            MouseButton::Right => Button::Secondary,
             _ => return,
         };
-        self.live.edit(vec![EditOp::Ray {
-            origin: ray.origin,
-            dir: ray.dir,
-            action,
-        }]);
+        self.live
+            .edit(vec![ray_edit(button, &ray, self.radius, paint, colour)]);
     }
 
     /// The ray under the pointer (the crosshair at the centre while the cursor is captured).
@@ -749,10 +569,9 @@ impl ApplicationHandler for App {
                     KeyCode::Escape if self.captured => self.set_captured(false),
                     KeyCode::Escape => event_loop.exit(),
                     KeyCode::Tab => self.set_captured(!self.captured),
-                    KeyCode::BracketLeft => self.radius = (self.radius - 1.0).max(0.0),
-                    KeyCode::BracketRight => {
-                        let max = self.live.lock().max_radius.max(1.0);
-                        self.radius = (self.radius + 1.0).min(max);
+                    KeyCode::BracketLeft | KeyCode::BracketRight => {
+                        let max = self.live.lock().max_radius;
+                        self.radius = step_radius(self.radius, code == KeyCode::BracketRight, max);
                     }
                     _ => {
                         let digits = [
@@ -826,49 +645,6 @@ impl ApplicationHandler for App {
 }
 
 /// Where the connection stands, in words.
-fn status_text(status: &Status, progress: (u32, u32)) -> String {
-    match status {
-        Status::Connecting => "connecting".to_string(),
-        Status::Syncing => format!("syncing {}/{} bricks", progress.0, progress.1),
-        Status::Live => "live".to_string(),
-        Status::Reconnecting(why) => format!("reconnecting ({why})"),
-        Status::Failed(why) => format!("failed: {why}"),
-    }
-}
-
-fn blit_pipeline(
-    device: &wgpu::Device,
-    format: wgpu::TextureFormat,
-) -> (wgpu::RenderPipeline, wgpu::BindGroupLayout) {
-    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some("blit.wgsl"),
-        source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/blit.wgsl").into()),
-    });
-    let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-        label: Some("blit"),
-        entries: &[
-            wgpu::BindGroupLayoutEntry {
-                binding: 0,
-                visibility: wgpu::ShaderStages::FRAGMENT,
-                ty: wgpu::BindingType::Texture {
-                    sample_type: wgpu::TextureSampleType::Float { filterable: true },
-                    view_dimension: wgpu::TextureViewDimension::D2,
-                    multisampled: false,
-                },
-                count: None,
-            },
-            wgpu::BindGroupLayoutEntry {
-                binding: 1,
-                visibility: wgpu::ShaderStages::FRAGMENT,
-                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-                count: None,
-            },
-        ],
-    });
-    let pipeline = crate::gpu::fullscreen_pipeline(device, "blit", &module, &layout, format, None);
-    (pipeline, layout)
-}
-
 /// Where a screenshot is copied before presenting, and its row pitch.
 struct ScreenshotReadback {
     buffer: wgpu::Buffer,
@@ -931,7 +707,7 @@ fn save_screenshot(
             ctx.adapter_name
         ));
     };
-    let bytes = crate::gpu::tracer::map_read(ctx, &readback.buffer)?;
+    let bytes = pollster::block_on(crate::gpu::tracer::map_read(ctx, &readback.buffer))?;
     let bgra = matches!(
         config.format,
         wgpu::TextureFormat::Bgra8Unorm | wgpu::TextureFormat::Bgra8UnormSrgb

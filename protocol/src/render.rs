@@ -225,54 +225,29 @@ pub fn render(
     lighting: &Lighting,
     threads: usize,
 ) -> Frame {
-    let (w, h) = (projection.width, projection.height);
-    let threads = if threads == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        threads
-    }
-    .min(h as usize)
-    .max(1);
-    let next_row = AtomicU32::new(0);
-    let mut pixels = vec![[0u8; 4]; (w * h) as usize];
-    let mut hits = vec![MISS; (w * h) as usize];
-    let rows: Vec<(u32, Vec<[u8; 4]>, Vec<u32>)> = std::thread::scope(|scope| {
-        let workers: Vec<_> = (0..threads)
-            .map(|_| {
-                scope.spawn(|| {
-                    let mut done = Vec::new();
-                    loop {
-                        let y = next_row.fetch_add(1, Ordering::Relaxed);
-                        if y >= h {
-                            break done;
-                        }
-                        let (mut px, mut hx) = (
-                            Vec::with_capacity(w as usize),
-                            Vec::with_capacity(w as usize),
-                        );
-                        for x in 0..w {
-                            let (p, hit) = render_pixel(map, projection, lighting, x, y);
-                            px.push(p);
-                            hx.push(hit);
-                        }
-                        done.push((y, px, hx));
-                    }
-                })
-            })
-            .collect();
-        workers
-            .into_iter()
-            .flat_map(|w| w.join().unwrap_or_default())
-            .collect()
+    let w = projection.width;
+    let mut pixels = vec![[0u8; 4]; (w * projection.height) as usize];
+    let mut hits = vec![MISS; (w * projection.height) as usize];
+    let rows = by_rows(projection.height, threads, |y| {
+        let (mut px, mut hx) = (
+            Vec::with_capacity(w as usize),
+            Vec::with_capacity(w as usize),
+        );
+        for x in 0..w {
+            let (p, hit) = render_pixel(map, projection, lighting, x, y);
+            px.push(p);
+            hx.push(hit);
+        }
+        (px, hx)
     });
-    for (y, px, hx) in rows {
+    for (y, (px, hx)) in rows {
         let at = (y * w) as usize;
         pixels[at..at + w as usize].copy_from_slice(&px);
         hits[at..at + w as usize].copy_from_slice(&hx);
     }
     Frame {
         width: w,
-        height: h,
+        height: projection.height,
         pixels,
         hits,
     }
@@ -281,26 +256,52 @@ pub fn render(
 /// Traces just the primary rays of a frame on `threads` threads, without shading: the tracer's
 /// throughput figure. Returns the number of rays that hit.
 pub fn trace_frame(map: &BrickMap, projection: &Projection, threads: usize) -> u64 {
-    let h = projection.height;
+    by_rows(projection.height, threads.max(1), |y| {
+        (0..projection.width)
+            .map(|x| u64::from(trace(map, &projection.ray(x, y)).is_some()))
+            .sum::<u64>()
+    })
+    .into_iter()
+    .map(|(_, hits)| hits)
+    .sum()
+}
+
+/// `row(y)` for every row below `height`, on `threads` threads (0 = all cores) that take rows
+/// from a shared counter. One thread, and every wasm32 build (where `std::thread` cannot spawn),
+/// runs them inline on the caller's thread.
+fn by_rows<R: Send>(height: u32, threads: usize, row: impl Fn(u32) -> R + Sync) -> Vec<(u32, R)> {
+    let threads = if cfg!(target_arch = "wasm32") {
+        1
+    } else if threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        threads
+    }
+    .min(height as usize)
+    .max(1);
+    if threads == 1 {
+        return (0..height).map(|y| (y, row(y))).collect();
+    }
     let next_row = AtomicU32::new(0);
     std::thread::scope(|scope| {
-        let workers: Vec<_> = (0..threads.max(1))
+        let workers: Vec<_> = (0..threads)
             .map(|_| {
                 scope.spawn(|| {
-                    let mut hits = 0u64;
+                    let mut done = Vec::new();
                     loop {
                         let y = next_row.fetch_add(1, Ordering::Relaxed);
-                        if y >= h {
-                            break hits;
+                        if y >= height {
+                            break done;
                         }
-                        for x in 0..projection.width {
-                            hits += u64::from(trace(map, &projection.ray(x, y)).is_some());
-                        }
+                        done.push((y, row(y)));
                     }
                 })
             })
             .collect();
-        workers.into_iter().map(|w| w.join().unwrap_or(0)).sum()
+        workers
+            .into_iter()
+            .flat_map(|w| w.join().unwrap_or_default())
+            .collect()
     })
 }
 

@@ -25,6 +25,7 @@ pub mod session;
 #[cfg(test)]
 mod sim;
 pub mod store;
+pub mod web;
 
 use std::collections::BTreeMap;
 use std::future::Future;
@@ -105,6 +106,8 @@ pub struct App {
     pub stall_timeout: Duration,
     connections: Arc<Connections>,
     connection_limits: ConnectionLimits,
+    /// Scene thumbnails for the scene list (see `web`).
+    pub thumbnails: web::Thumbnails,
 }
 
 /// Decrements the live-session count when a session ends, so shutdown can wait for sockets to
@@ -274,6 +277,7 @@ impl Server {
             stall_timeout: config.stall_timeout,
             connections: Arc::default(),
             connection_limits: config.connections,
+            thumbnails: web::Thumbnails::default(),
         });
         for (name, scene) in loaded {
             app.add_scene(name, scene)?;
@@ -344,6 +348,7 @@ pub fn router(app: Arc<App>) -> Router {
         .route("/metrics", get(metrics_text))
         .route("/scenes", get(scene_list))
         .route("/scenes/{name}/ws", get(websocket))
+        .merge(web::routes())
         .with_state(app)
 }
 

@@ -248,7 +248,12 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
             config.auth = Auth::from_file(&path)?;
         }
         let server = Server::bind(config).await?;
-        tracing::info!("listening on http://{}", server.local_addr()?);
+        let addr = server.local_addr()?;
+        tracing::info!("listening on http://{addr}");
+        match brickcast_server::web::unbuilt_reason() {
+            None => tracing::info!("browser viewer: open http://{addr}/ in a WebGPU browser"),
+            Some(why) => tracing::warn!("no browser viewer in this build: {}", why.trim()),
+        }
         server.run(shutdown_signal()).await
     })
 }

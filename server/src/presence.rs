@@ -147,6 +147,15 @@ impl Hub {
         }
     }
 
+    /// Names of the peers present, in joining order (the scene list shows them).
+    pub fn names(&self) -> Vec<String> {
+        self.roster()
+            .members
+            .values()
+            .map(|m| m.peer.name.clone())
+            .collect()
+    }
+
     /// Peers present.
     pub fn len(&self) -> usize {
         self.roster().members.len()

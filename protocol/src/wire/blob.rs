@@ -15,6 +15,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::zstd_frame::{Compressor, Decompressor};
 use super::{MAX_BRICKS_PER_FRAME, WireError, bounded};
 use crate::brick::{BRICK_VOXELS, BrickData, Mask, mask_is_empty, popcount};
 use crate::colour::Colour;
@@ -135,7 +136,7 @@ fn check_count(len: usize, max: u32) -> Result<(), WireError> {
 ///
 /// [`raw_len`]: BlobEncoder::raw_len
 pub struct BlobEncoder {
-    compressor: zstd::bulk::Compressor<'static>,
+    compressor: Compressor,
     cells: Vec<u8>,
     masks: Vec<u8>,
     colours: Vec<u8>,
@@ -147,7 +148,7 @@ impl BlobEncoder {
     /// A new encoder compressing at zstd `level` (3 is zstd's default, negative is faster).
     pub fn new(level: i32) -> Result<Self, WireError> {
         Ok(BlobEncoder {
-            compressor: zstd::bulk::Compressor::new(level).map_err(WireError::Compress)?,
+            compressor: Compressor::new(level).map_err(WireError::Compress)?,
             cells: Vec::new(),
             masks: Vec::new(),
             colours: Vec::new(),
@@ -286,14 +287,14 @@ impl<'a> BrickRef<'a> {
 /// Decompresses blobs with one zstd context and one buffer kept between blobs; the client's
 /// counterpart of [`BlobEncoder`].
 pub struct BlobDecoder {
-    decompressor: zstd::bulk::Decompressor<'static>,
+    decompressor: Decompressor,
     raw: Vec<u8>,
 }
 
 impl BlobDecoder {
     pub fn new() -> Result<Self, WireError> {
         Ok(BlobDecoder {
-            decompressor: zstd::bulk::Decompressor::new().map_err(WireError::Decompress)?,
+            decompressor: Decompressor::new().map_err(WireError::Decompress)?,
             raw: Vec::new(),
         })
     }

@@ -30,6 +30,7 @@ mod edit;
 mod error;
 mod limits;
 mod message;
+mod zstd_frame;
 
 pub use blob::{BlobDecoder, BlobEncoder, BrickBlob, BrickRef};
 pub use codec::{

@@ -94,6 +94,13 @@ pub enum Command {
     Snapshot {
         done: oneshot::Sender<Result<(), String>>,
     },
+    /// Render a small picture of the committed scene with the CPU renderer, for the scene
+    /// list (`crate::web` caches it per sequence number).
+    Thumbnail {
+        width: u32,
+        height: u32,
+        done: oneshot::Sender<(u64, brickcast_protocol::Frame)>,
+    },
     /// Apply what is queued, commit, snapshot, and stop.
     Shutdown,
 }

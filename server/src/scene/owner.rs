@@ -184,6 +184,26 @@ impl Owner {
     }
 
     /// Every user's undo and redo stacks.
+    /// The committed scene from its overview camera, traced on this thread (one core, a few
+    /// milliseconds at thumbnail size; the scene list caches it per sequence number).
+    fn thumbnail(&self, width: u32, height: u32) -> brickcast_protocol::Frame {
+        let camera = brickcast_protocol::Camera::overview(self.map.size());
+        match camera.project(width.max(1), height.max(1)) {
+            Some(p) => brickcast_protocol::render::render(
+                &self.map,
+                &p,
+                &brickcast_protocol::Lighting::default(),
+                1,
+            ),
+            None => brickcast_protocol::Frame {
+                width: 0,
+                height: 0,
+                pixels: Vec::new(),
+                hits: Vec::new(),
+            },
+        }
+    }
+
     pub fn history(&self) -> &History {
         &self.history
     }
@@ -284,6 +304,15 @@ impl Owner {
                     }
                 }
                 Command::Snapshot { done } => snapshot_requests.push(done),
+                Command::Thumbnail {
+                    width,
+                    height,
+                    done,
+                } => {
+                    // Only what is committed is shown.
+                    self.publish(&mut log, &mut acks, clock)?;
+                    let _ = done.send((self.seq, self.thumbnail(width, height)));
+                }
                 Command::Shutdown => stop = true,
             }
         }

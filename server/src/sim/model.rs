@@ -101,7 +101,8 @@ impl Model {
                     self.subscribed.remove(session);
                     self.users.remove(session);
                 }
-                Command::Resume { .. } => self.commit_point(),
+                // Both publish what is queued before they are served.
+                Command::Resume { .. } | Command::Thumbnail { .. } => self.commit_point(),
                 Command::Undo {
                     session,
                     client_seq,

@@ -15,7 +15,9 @@ impl OverlayPass {
     pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat) -> OverlayPass {
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("overlay.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("../../../shaders/overlay.wgsl").into()),
+            source: wgpu::ShaderSource::Wgsl(
+                include_str!("../../../../shaders/overlay.wgsl").into(),
+            ),
         });
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("overlay"),

@@ -7,7 +7,7 @@ use super::scene::{GpuScene, PAGES};
 use super::{GpuContext, GpuError};
 
 /// The tracer's WGSL source.
-pub const TRACE_WGSL: &str = include_str!("../../../shaders/trace.wgsl");
+pub const TRACE_WGSL: &str = include_str!("../../../../shaders/trace.wgsl");
 
 const WORKGROUP: u32 = 8;
 
@@ -59,7 +59,8 @@ struct Target {
     height: u32,
     texture: wgpu::Texture,
     view: wgpu::TextureView,
-    hits: wgpu::Buffer,
+    hits: wgpu::Texture,
+    hits_view: wgpu::TextureView,
     generation: u64,
 }
 
@@ -100,12 +101,12 @@ pub struct Tracer {
     bind_group: Option<((u64, u64), wgpu::BindGroup)>,
 }
 
-fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+fn storage_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility: wgpu::ShaderStages::COMPUTE,
         ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only },
+            ty: wgpu::BufferBindingType::Storage { read_only: true },
             has_dynamic_offset: false,
             min_binding_size: None,
         },
@@ -134,7 +135,7 @@ impl Tracer {
             },
             count: None,
         }];
-        entries.extend((1..IMAGE_BINDING).map(|b| storage_entry(b, true)));
+        entries.extend((1..IMAGE_BINDING).map(storage_entry));
         entries.push(wgpu::BindGroupLayoutEntry {
             binding: IMAGE_BINDING,
             visibility: wgpu::ShaderStages::COMPUTE,
@@ -145,7 +146,16 @@ impl Tracer {
             },
             count: None,
         });
-        entries.push(storage_entry(HITS_BINDING, false));
+        entries.push(wgpu::BindGroupLayoutEntry {
+            binding: HITS_BINDING,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::StorageTexture {
+                access: wgpu::StorageTextureAccess::WriteOnly,
+                format: wgpu::TextureFormat::Rg32Uint,
+                view_dimension: wgpu::TextureViewDimension::D2,
+            },
+            count: None,
+        });
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tracer"),
             entries: &entries,
@@ -194,15 +204,6 @@ impl Tracer {
                 what: format!("a {width}×{height} image (largest texture side is {max})"),
             });
         }
-        let hit_bytes = u64::from(width) * u64::from(height) * 8;
-        if hit_bytes > ctx.max_binding_bytes() {
-            return Err(GpuError::TooBig {
-                adapter: ctx.adapter_name.clone(),
-                what: "per-pixel hits of the image",
-                bytes: hit_bytes,
-                max: ctx.max_binding_bytes(),
-            });
-        }
         let texture = ctx.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("traced image"),
             size: wgpu::Extent3d {
@@ -220,12 +221,21 @@ impl Tracer {
             view_formats: &[],
         });
         let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
-        let hits = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        let hits = ctx.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("hits"),
-            size: u64::from(width) * u64::from(height) * 8,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rg32Uint,
+            usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
         });
+        let hits_view = hits.create_view(&wgpu::TextureViewDescriptor::default());
         self.target_generation += 1;
         self.target = Some(Target {
             width,
@@ -233,6 +243,7 @@ impl Tracer {
             texture,
             view,
             hits,
+            hits_view,
             generation: self.target_generation,
         });
         Ok(())
@@ -281,7 +292,7 @@ impl Tracer {
             });
             entries.push(wgpu::BindGroupEntry {
                 binding: HITS_BINDING,
-                resource: target.hits.as_entire_binding(),
+                resource: wgpu::BindingResource::TextureView(&target.hits_view),
             });
             let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("tracer"),
@@ -325,69 +336,71 @@ impl Tracer {
         ctx.wait()
     }
 
-    /// Copies the last traced frame back to the CPU.
+    /// Copies the last traced frame back to the CPU, waiting for it (native only).
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn read_back(&self, ctx: &GpuContext) -> Result<GpuFrame, GpuError> {
+        pollster::block_on(self.read_back_async(ctx))
+    }
+
+    /// Copies the last traced frame back to the CPU; in a browser the future resolves once the
+    /// GPU is done, on native it has waited already.
+    pub async fn read_back_async(&self, ctx: &GpuContext) -> Result<GpuFrame, GpuError> {
+        self.start_read_back(ctx)?.finish(ctx).await
+    }
+
+    /// Records and submits the copies of the last traced frame; [`PendingFrame::finish`] reads
+    /// them. Split so a caller that holds the tracer only briefly (a browser callback) can let
+    /// go of it while the GPU works.
+    pub fn start_read_back(&self, ctx: &GpuContext) -> Result<PendingFrame, GpuError> {
         let Some(target) = &self.target else {
             return Err(GpuError::NothingTraced);
         };
-        let (w, h) = (target.width, target.height);
-        let row = (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
-            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-        let image = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("image readback"),
-            size: u64::from(row) * u64::from(h),
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let hits = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("hits readback"),
-            size: target.hits.size(),
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("readback"),
             });
-        encoder.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo {
-                texture: &target.texture,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::All,
-            },
-            wgpu::TexelCopyBufferInfo {
-                buffer: &image,
-                layout: wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(row),
-                    rows_per_image: Some(h),
-                },
-            },
-            wgpu::Extent3d {
-                width: w,
-                height: h,
-                depth_or_array_layers: 1,
-            },
-        );
-        encoder.copy_buffer_to_buffer(&target.hits, 0, &hits, 0, target.hits.size());
+        let (image, image_row) = copy_out(ctx, &mut encoder, &target.texture, 4);
+        let (hits, hits_row) = copy_out(ctx, &mut encoder, &target.hits, 8);
         ctx.queue.submit([encoder.finish()]);
-        let image_bytes = map_read(ctx, &image)?;
-        let hit_bytes = map_read(ctx, &hits)?;
+        Ok(PendingFrame {
+            width: target.width,
+            height: target.height,
+            image,
+            image_row,
+            hits,
+            hits_row,
+        })
+    }
+}
+
+/// A frame on its way back from the GPU.
+pub struct PendingFrame {
+    width: u32,
+    height: u32,
+    image: wgpu::Buffer,
+    image_row: u32,
+    hits: wgpu::Buffer,
+    hits_row: u32,
+}
+
+impl PendingFrame {
+    pub async fn finish(self, ctx: &GpuContext) -> Result<GpuFrame, GpuError> {
+        let (w, h) = (self.width, self.height);
+        let image_bytes = map_read(ctx, &self.image).await?;
+        let hit_bytes = map_read(ctx, &self.hits).await?;
         let mut pixels = Vec::with_capacity((w * h) as usize);
-        for y in 0..h as usize {
-            let line = &image_bytes[y * row as usize..][..w as usize * 4];
-            pixels.extend(line.chunks_exact(4).map(|p| [p[0], p[1], p[2], p[3]]));
-        }
+        let mut hits = Vec::with_capacity((w * h) as usize);
         let word = |b: &[u8]| u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-        let hits = hit_bytes
-            .chunks_exact(8)
-            .map(|p| {
+        for y in 0..h as usize {
+            let line = &image_bytes[y * self.image_row as usize..][..w as usize * 4];
+            pixels.extend(line.chunks_exact(4).map(|p| [p[0], p[1], p[2], p[3]]));
+            let line = &hit_bytes[y * self.hits_row as usize..][..w as usize * 8];
+            hits.extend(line.chunks_exact(8).map(|p| {
                 let (xy, z) = (word(&p[..4]), word(&p[4..]));
                 (xy != MISS).then_some([xy & 0xFFFF, xy >> 16, z])
-            })
-            .collect();
+            }));
+        }
         Ok(GpuFrame {
             width: w,
             height: h,
@@ -397,15 +410,56 @@ impl Tracer {
     }
 }
 
+/// Records a copy of `texture` (`texel_bytes` per texel) into a new mappable buffer; returns it
+/// with its row pitch.
+fn copy_out(
+    ctx: &GpuContext,
+    encoder: &mut wgpu::CommandEncoder,
+    texture: &wgpu::Texture,
+    texel_bytes: u32,
+) -> (wgpu::Buffer, u32) {
+    let (w, h) = (texture.width(), texture.height());
+    let row = (w * texel_bytes).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+        * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("readback"),
+        size: u64::from(row) * u64::from(h),
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    encoder.copy_texture_to_buffer(
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(row),
+                rows_per_image: Some(h),
+            },
+        },
+        wgpu::Extent3d {
+            width: w,
+            height: h,
+            depth_or_array_layers: 1,
+        },
+    );
+    (buffer, row)
+}
+
 /// Maps a `MAP_READ` buffer and copies its contents out.
-pub(crate) fn map_read(ctx: &GpuContext, buffer: &wgpu::Buffer) -> Result<Vec<u8>, GpuError> {
+pub async fn map_read(ctx: &GpuContext, buffer: &wgpu::Buffer) -> Result<Vec<u8>, GpuError> {
     let slice = buffer.slice(..);
-    let (tx, rx) = std::sync::mpsc::channel();
+    let (tx, rx) = futures_channel::oneshot::channel();
     slice.map_async(wgpu::MapMode::Read, move |r| {
         let _ = tx.send(r);
     });
     ctx.wait()?;
-    match rx.recv() {
+    match rx.await {
         Ok(Ok(())) => {}
         Ok(Err(e)) => return Err(GpuError::Readback(e.to_string())),
         Err(_) => return Err(GpuError::Readback("map callback never ran".into())),

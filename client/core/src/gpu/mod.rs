@@ -86,7 +86,7 @@ mod tests {
     #[test]
     fn shaders_validate_with_naga() {
         use wgpu::naga;
-        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../shaders");
+        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shaders");
         let mut checked = 0;
         for entry in std::fs::read_dir(dir).expect("shaders/ exists") {
             let path = entry.expect("readable dir").path();

@@ -6,8 +6,9 @@
 
 use super::GpuError;
 
-/// Storage buffers the tracer binds in its one compute stage (see `shaders/trace.wgsl`).
-pub const TRACER_STORAGE_BUFFERS: u32 = 15;
+/// Storage buffers the tracer binds in its one compute stage (see `shaders/trace.wgsl`): all
+/// that WebGPU guarantees, so one layout runs on every backend, browsers included.
+pub const TRACER_STORAGE_BUFFERS: u32 = 8;
 
 /// Which graphics APIs to look for adapters on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -30,7 +31,8 @@ pub struct GpuContext {
 }
 
 impl GpuContext {
-    /// A headless context.
+    /// A headless context (native only: the browser cannot block on the adapter).
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn headless(backends: BackendChoice) -> Result<GpuContext, GpuError> {
         let instance = new_instance(backends, None);
         pollster::block_on(Self::with_instance(instance, None))
@@ -93,7 +95,8 @@ impl GpuContext {
             .min(self.limits.max_buffer_size)
     }
 
-    /// Waits until all submitted work is done.
+    /// Waits until all submitted work is done (in a browser, where nothing can block, this only
+    /// hands the queue a poll; completion arrives through the event loop).
     pub fn wait(&self) -> Result<(), GpuError> {
         self.device
             .poll(wgpu::PollType::wait_indefinitely())

@@ -29,8 +29,9 @@ use brickcast_protocol::map::GpuChanges;
 
 use super::{GpuContext, GpuError};
 
-/// Bindings per paged pool; the shader declares this many.
-pub const PAGES: usize = 4;
+/// Bindings per paged pool; the shader declares this many. Two regions arrays plus three pools
+/// of two pages are the eight storage buffers WebGPU guarantees a stage.
+pub const PAGES: usize = 2;
 
 /// Smallest buffer ever created: bindings may not be empty.
 const MIN_WORDS: u64 = 64;
@@ -390,7 +391,7 @@ impl GpuScene {
         self.generation
     }
 
-    /// The buffers in the shader's binding order (1..=14).
+    /// The buffers in the shader's binding order (1..=8).
     pub fn bindings(&self) -> Vec<&wgpu::Buffer> {
         let mut out = Vec::with_capacity(2 + 3 * PAGES);
         for array in &self.arrays {

@@ -1,0 +1,105 @@
+//! The fly camera and the keys that move it, shared by the window and the browser page.
+//!
+//! Keys are named by their physical position as the W3C `KeyboardEvent.code` names them
+//! ("KeyW", "ArrowUp", "Space"): the browser hands these names out, and winit's `KeyCode`
+//! variants carry the same names, so one table serves both shells and a French keyboard flies
+//! with the keys where WASD would be.
+
+use brickcast_protocol::Camera;
+use brickcast_protocol::wire::View;
+
+/// Keys that fly forward/back, right/left, up/down: (positive, negative) per axis.
+pub const MOVE_KEYS: [(&[&str], &[&str]); 3] = [
+    (&["KeyW", "ArrowUp"], &["KeyS", "ArrowDown"]),
+    (&["KeyD", "ArrowRight"], &["KeyA", "ArrowLeft"]),
+    (&["Space", "KeyE"], &["KeyQ", "KeyC"]),
+];
+
+/// Movement asked for by the keys held now, as (forward, right, up), each -1, 0 or 1.
+pub fn movement(held: impl Fn(&str) -> bool) -> [f32; 3] {
+    MOVE_KEYS.map(|(plus, minus)| {
+        let any = |ks: &[&str]| ks.iter().any(|k| held(k));
+        f32::from(u8::from(any(plus))) - f32::from(u8::from(any(minus)))
+    })
+}
+
+/// The palette behind keys 1–8.
+pub const PALETTE: [(u8, u8, u8); 8] = [
+    (0xd9, 0x3b, 0x3b),
+    (0xf2, 0x9e, 0x38),
+    (0xf2, 0xd8, 0x4b),
+    (0x5f, 0xb0, 0x4a),
+    (0x3b, 0x8e, 0xd9),
+    (0x8a, 0x5c, 0xc7),
+    (0xf0, 0xf0, 0xf0),
+    (0x50, 0x48, 0x40),
+];
+
+/// A free-flying camera: position plus yaw/pitch, y up.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlyCamera {
+    pub eye: [f32; 3],
+    pub yaw: f32,
+    pub pitch: f32,
+    pub fov_y: f32,
+    /// Voxels per second.
+    pub speed: f32,
+}
+
+impl FlyCamera {
+    /// Starts at `camera`, moving about an eighth of the scene per second.
+    pub fn from_camera(camera: &Camera, size: [u32; 3]) -> FlyCamera {
+        let d: [f32; 3] = std::array::from_fn(|i| camera.target[i] - camera.eye[i]);
+        let flat = (d[0] * d[0] + d[2] * d[2]).sqrt();
+        FlyCamera {
+            eye: camera.eye,
+            yaw: d[2].atan2(d[0]),
+            pitch: d[1].atan2(flat),
+            fov_y: camera.fov_y,
+            speed: size.iter().copied().max().unwrap_or(64) as f32 / 8.0,
+        }
+    }
+
+    pub fn forward(&self) -> [f32; 3] {
+        let (sy, cy) = self.yaw.sin_cos();
+        let (sp, cp) = self.pitch.sin_cos();
+        [cp * cy, sp, cp * sy]
+    }
+
+    pub fn camera(&self) -> Camera {
+        let f = self.forward();
+        Camera {
+            eye: self.eye,
+            target: std::array::from_fn(|i| self.eye[i] + f[i]),
+            fov_y: self.fov_y,
+        }
+    }
+
+    /// Moves by `dir` (forward, right, up) for `dt` seconds.
+    pub fn fly(&mut self, dir: [f32; 3], dt: f32) {
+        let f = self.forward();
+        let (sy, cy) = self.yaw.sin_cos();
+        let right = [-sy, 0.0, cy];
+        let step = self.speed * dt;
+        for i in 0..3 {
+            self.eye[i] += (f[i] * dir[0] + right[i] * dir[1] + [0.0, 1.0, 0.0][i] * dir[2]) * step;
+        }
+    }
+
+    /// Puts the camera at `view`'s eye, looking where it looks (following someone).
+    pub fn look_along(&mut self, view: View) {
+        let f = view.forward;
+        let flat = (f[0] * f[0] + f[2] * f[2]).sqrt();
+        if view.is_valid() {
+            self.eye = view.eye;
+            self.yaw = f[2].atan2(f[0]);
+            self.pitch = f[1].atan2(flat).clamp(-1.55, 1.55);
+        }
+    }
+
+    pub fn look(&mut self, dx: f32, dy: f32) {
+        const SENSITIVITY: f32 = 0.003;
+        self.yaw += dx * SENSITIVITY;
+        self.pitch = (self.pitch - dy * SENSITIVITY).clamp(-1.55, 1.55);
+    }
+}

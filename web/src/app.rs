@@ -1,0 +1,770 @@
+//! The viewer's state and its frame: the shared session and GPU pieces, driven by the browser's
+//! animation-frame clock.
+//!
+//! One frame: copy what the socket applied into the GPU scene (`present::sync_scene`), move the
+//! camera, trace at the current resolution scale, blit and blend the overlay onto the canvas.
+//! A frame is traced only when the previous one has finished on the GPU, so a slow adapter
+//! never builds a queue; the scale adapts so interaction stays smooth (see [`Scale`]).
+
+use std::cell::RefCell;
+use std::collections::HashSet;
+use std::rc::Rc;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
+use brickcast_client_core::camera::{FlyCamera, PALETTE, movement};
+use brickcast_client_core::follow::Follow;
+use brickcast_client_core::gpu::tracer::PendingFrame;
+use brickcast_client_core::gpu::{
+    BackendChoice, GpuContext, GpuFrame, GpuScene, Tracer, new_instance,
+};
+use brickcast_client_core::overlay::canvas::Canvas;
+use brickcast_client_core::overlay::{OverlayInput, draw as draw_overlay};
+use brickcast_client_core::present::{Presenter, sync_scene};
+use brickcast_client_core::session::{ClientSeq, Session, Status};
+use brickcast_client_core::tools::{Button, ray_edit, step_radius};
+use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, UserId, View};
+use brickcast_protocol::{Camera, Colour, Lighting, Projection};
+use wasm_bindgen::JsCast;
+use wasm_bindgen::prelude::*;
+
+use crate::net::{self, Socket};
+use crate::page;
+
+/// Everything that exists once the GPU does.
+pub struct Gpu {
+    pub ctx: Rc<GpuContext>,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    tracer: Tracer,
+    /// A second tracer for exact-size frames asked for by the test hook, so they never resize
+    /// the view's own target.
+    probe: Option<Tracer>,
+    presenter: Presenter,
+    scene: Option<GpuScene>,
+}
+
+/// The trace resolution: the canvas divided by `divisor` on each axis. A slow adapter (software
+/// WebGPU traces about 0.3 Mrays/s) gets a coarser picture rather than a stuttering one.
+pub struct Scale {
+    pub divisor: u32,
+    /// GPU time of recent frames, smoothed (ms).
+    pub gpu_ms: f64,
+    changed_at: f64,
+}
+
+/// Frame time the scale aims for, and the band it keeps to before changing.
+const TARGET_MS: f64 = 33.0;
+const MAX_DIVISOR: u32 = 8;
+
+impl Scale {
+    fn observe(&mut self, gpu_ms: f64, now: f64) {
+        self.gpu_ms = if self.gpu_ms == 0.0 {
+            gpu_ms
+        } else {
+            self.gpu_ms * 0.8 + gpu_ms * 0.2
+        };
+        if now - self.changed_at < 500.0 {
+            return;
+        }
+        if self.gpu_ms > TARGET_MS * 1.5 && self.divisor < MAX_DIVISOR {
+            self.divisor += 1;
+        } else if self.gpu_ms < TARGET_MS * 0.4 && self.divisor > 1 {
+            self.divisor -= 1;
+        } else {
+            return;
+        }
+        self.changed_at = now;
+        self.gpu_ms = 0.0;
+    }
+}
+
+pub struct App {
+    pub scene: String,
+    pub token: Option<String>,
+    pub name: String,
+    pub user: UserId,
+    pub session: Session,
+    seq: ClientSeq,
+    pub socket: Option<Socket>,
+    pub backoff_ms: i32,
+    pub bytes_in: u64,
+    canvas: web_sys::HtmlCanvasElement,
+    gpu: Option<Gpu>,
+    gpu_error: Option<String>,
+    camera: Option<FlyCamera>,
+    keys: HashSet<String>,
+    pub ctrl: bool,
+    /// Looking around: pointer locked, or a drag in progress.
+    pub locked: bool,
+    /// Canvas position of the pointer (CSS pixels).
+    pub pointer: (f64, f64),
+    colour: usize,
+    radius: f32,
+    follow: Follow,
+    overlay: Canvas,
+    /// Projection of the last traced frame, for turning clicks into rays.
+    projection: Option<Projection>,
+    presence_sent: Option<(Option<View>, Option<Cursor>)>,
+    presence_at: f64,
+    my_cursor: Option<Cursor>,
+    pub scale: Scale,
+    /// When the frame on the GPU was submitted, and when it finished (set by the GPU's callback).
+    submitted_at: f64,
+    /// (Atomics only because wgpu asks for `Send` callbacks; a page has one thread.)
+    done_at: Arc<AtomicU64>,
+    in_flight: Arc<AtomicBool>,
+    last_frame: f64,
+    started_at: f64,
+    frames: u64,
+    fps: f64,
+    fps_frames: u32,
+    fps_at: f64,
+    /// Milliseconds from start to the first traced frame with bricks in it, and to a full sync.
+    first_picture_ms: Option<f64>,
+    synced_ms: Option<f64>,
+    /// The camera was sent to the server during this connection's sync (nearest bricks first).
+    camera_sent: bool,
+}
+
+/// A random user id kept in the browser's local storage, so undo history follows this browser
+/// across visits (never 0, top bit clear: ids with it set are the server's).
+fn browser_user_id() -> UserId {
+    let storage = web_sys::window().and_then(|w| w.local_storage().ok().flatten());
+    if let Some(s) = &storage
+        && let Ok(Some(text)) = s.get_item("brickcast.user")
+        && let Ok(id) = text.parse::<u64>()
+        && id != 0
+        && id >> 63 == 0
+    {
+        return id;
+    }
+    let half = || (js_sys::Math::random() * 4_294_967_296.0) as u64;
+    let id = (((half() << 32) | half()) >> 1).max(1);
+    if let Some(s) = &storage {
+        let _ = s.set_item("brickcast.user", &id.to_string());
+    }
+    id
+}
+
+impl App {
+    pub fn new(
+        scene: String,
+        token: Option<String>,
+        name: Option<String>,
+    ) -> Result<Rc<RefCell<App>>, JsValue> {
+        let canvas: web_sys::HtmlCanvasElement = page::document()
+            .and_then(|d| d.get_element_by_id("view"))
+            .ok_or("the page has no canvas with id \"view\"")?
+            .dyn_into()?;
+        let now = page::now_ms();
+        Ok(Rc::new(RefCell::new(App {
+            scene,
+            token: token.filter(|t| !t.is_empty()),
+            name: name
+                .filter(|n| !n.trim().is_empty())
+                .unwrap_or_else(|| "guest".to_string()),
+            user: browser_user_id(),
+            session: Session::default(),
+            seq: ClientSeq::default(),
+            socket: None,
+            backoff_ms: 250,
+            bytes_in: 0,
+            canvas,
+            gpu: None,
+            gpu_error: None,
+            camera: None,
+            keys: HashSet::new(),
+            ctrl: false,
+            locked: false,
+            pointer: (0.0, 0.0),
+            colour: 0,
+            radius: 0.0,
+            follow: Follow::default(),
+            overlay: Canvas::new(1, 1),
+            projection: None,
+            presence_sent: None,
+            presence_at: 0.0,
+            my_cursor: None,
+            scale: Scale {
+                divisor: 2,
+                gpu_ms: 0.0,
+                changed_at: now,
+            },
+            submitted_at: 0.0,
+            done_at: Arc::new(AtomicU64::new(0)),
+            in_flight: Arc::new(AtomicBool::new(false)),
+            last_frame: now,
+            started_at: now,
+            frames: 0,
+            fps: 0.0,
+            fps_frames: 0,
+            fps_at: now,
+            first_picture_ms: None,
+            synced_ms: None,
+            camera_sent: false,
+        })))
+    }
+
+    pub fn canvas(&self) -> &web_sys::HtmlCanvasElement {
+        &self.canvas
+    }
+
+    /// Gives up for good, telling the user why.
+    pub fn fail(&mut self, why: String) {
+        page::message(Some(&why));
+        self.session.status = Status::Failed(why);
+        if let Some(s) = self.socket.take() {
+            s.close();
+        }
+    }
+
+    /// The server refused the Hello.
+    pub fn refused(&mut self, code: ErrorCode, message: &str) {
+        if matches!(code, ErrorCode::ShuttingDown | ErrorCode::RateLimited) {
+            // Trying again later can help: let the close handler schedule it.
+            self.drop_connection(format!("refused for now: {message}"));
+            return;
+        }
+        net::show_refusal(code, message, &self.scene);
+        let (text, _) = net::refusal_text(code, message, &self.scene);
+        self.session.status = Status::Failed(text);
+        if let Some(s) = self.socket.take() {
+            s.close();
+        }
+    }
+
+    /// Closes the connection so that the close handler reconnects (and resumes).
+    pub fn drop_connection(&mut self, why: String) {
+        self.session.status = Status::Reconnecting(why);
+        if let Some(s) = &self.socket {
+            s.close();
+        }
+    }
+
+    /// A new connection was welcomed.
+    pub fn welcomed(&mut self) {
+        page::message(None);
+        page::show("token-form", false);
+        self.camera_sent = false;
+        if let Some(replica) = &self.session.replica {
+            let size = replica.map.size();
+            if self.camera.is_none() {
+                self.camera = Some(FlyCamera::from_camera(&Camera::overview(size), size));
+            }
+        }
+    }
+
+    fn send(&self, msg: &ClientMsg) -> bool {
+        self.socket.as_ref().is_some_and(|s| s.send(msg))
+    }
+
+    pub fn key_down(&mut self, code: &str, ctrl: bool, shift: bool) -> bool {
+        self.ctrl = ctrl;
+        let handled = match code {
+            "KeyZ" if ctrl => {
+                let msg = self.seq.undo(shift);
+                self.send(&msg);
+                true
+            }
+            "KeyY" if ctrl => {
+                let msg = self.seq.undo(true);
+                self.send(&msg);
+                true
+            }
+            "KeyF" => {
+                self.follow.cycle(&self.session.roster);
+                true
+            }
+            "BracketLeft" | "BracketRight" => {
+                let max = self.session.max_radius;
+                self.radius = step_radius(self.radius, code == "BracketRight", max);
+                true
+            }
+            _ => match code
+                .strip_prefix("Digit")
+                .and_then(|d| d.parse::<usize>().ok())
+            {
+                Some(d @ 1..=8) => {
+                    self.colour = d - 1;
+                    true
+                }
+                _ => false,
+            },
+        };
+        let moves = brickcast_client_core::camera::MOVE_KEYS
+            .iter()
+            .any(|(p, m)| p.contains(&code) || m.contains(&code));
+        if moves && !ctrl {
+            self.keys.insert(code.to_string());
+        }
+        handled || moves
+    }
+
+    pub fn key_up(&mut self, code: &str) {
+        self.keys.remove(code);
+    }
+
+    pub fn release_keys(&mut self) {
+        self.keys.clear();
+    }
+
+    pub fn look(&mut self, dx: f64, dy: f64) {
+        self.follow.stop();
+        if let Some(c) = &mut self.camera {
+            c.look(dx as f32, dy as f32);
+        }
+    }
+
+    /// Wheel: faster or slower flight.
+    pub fn wheel(&mut self, delta_y: f64) {
+        if let Some(c) = &mut self.camera {
+            let factor = if delta_y < 0.0 { 1.25 } else { 0.8 };
+            c.speed = (c.speed * factor).clamp(1.0, 4096.0);
+        }
+    }
+
+    /// Flies along (forward, right, up) for `dt` seconds (touch gestures).
+    pub fn fly(&mut self, dir: [f32; 3], dt: f32) {
+        self.follow.stop();
+        if let Some(c) = &mut self.camera {
+            c.fly(dir, dt);
+        }
+    }
+
+    pub fn set_camera(&mut self, eye: &[f32], target: &[f32]) -> Result<(), JsValue> {
+        let (Ok(eye), Ok(target)) = (<[f32; 3]>::try_from(eye), <[f32; 3]>::try_from(target))
+        else {
+            return Err("eye and target are three numbers each".into());
+        };
+        let size = self
+            .session
+            .replica
+            .as_ref()
+            .map_or([64; 3], |r| r.map.size());
+        let fov_y = self.camera.map_or(60.0, |c| c.fov_y);
+        self.follow.stop();
+        self.camera = Some(FlyCamera {
+            speed: self.camera.map_or(8.0, |c| c.speed),
+            ..FlyCamera::from_camera(&Camera { eye, target, fov_y }, size)
+        });
+        Ok(())
+    }
+
+    /// The ray under the pointer, or through the centre while the pointer is locked.
+    fn pointer_ray(&self, p: &Projection) -> brickcast_protocol::Ray {
+        let (cw, ch) = (
+            f64::from(self.canvas.client_width().max(1)),
+            f64::from(self.canvas.client_height().max(1)),
+        );
+        let (x, y) = if self.locked {
+            (p.width / 2, p.height / 2)
+        } else {
+            (
+                ((self.pointer.0 / cw * f64::from(p.width)) as u32).min(p.width - 1),
+                ((self.pointer.1 / ch * f64::from(p.height)) as u32).min(p.height - 1),
+            )
+        };
+        p.ray(x, y)
+    }
+
+    /// A click (or tap) of `button` at the pointer: the native viewer's tools.
+    pub fn click(&mut self, button: Button) {
+        if self.session.role != Some(Role::Editor) {
+            page::set_text("note", "this link only lets you watch; edits are ignored");
+            return;
+        }
+        let Some(p) = self.projection else { return };
+        let ray = self.pointer_ray(&p);
+        let (r, g, b) = PALETTE[self.colour];
+        let op = ray_edit(
+            button,
+            &ray,
+            self.radius,
+            self.ctrl,
+            Colour::from_rgb8(r, g, b),
+        );
+        let msg = self.seq.edit(vec![op]);
+        self.send(&msg);
+    }
+
+    /// Shares view and cursor at the server's presence rate, when they changed.
+    fn share_presence(&mut self, now: f64) {
+        let Some(camera) = self.camera else { return };
+        let view = Some(View {
+            eye: camera.eye,
+            forward: camera.forward(),
+        });
+        let cursor = match (&self.session.replica, &self.projection) {
+            (Some(replica), Some(p)) => {
+                brickcast_protocol::trace(&replica.map, &self.pointer_ray(p)).map(|hit| Cursor {
+                    voxel: hit.voxel,
+                    radius: self.radius,
+                })
+            }
+            _ => None,
+        };
+        self.my_cursor = cursor;
+        let syncing = self.session.replica.as_ref().is_some_and(|r| !r.synced);
+        if syncing && !self.camera_sent {
+            // Nearest bricks first: the server orders the rest of the sync by this camera.
+            self.camera_sent = self.send(&ClientMsg::Camera {
+                eye: camera.eye,
+                forward: camera.forward(),
+            });
+        }
+        if now < self.presence_at || self.session.status != Status::Live {
+            return;
+        }
+        let sharing = (view, cursor);
+        if self.presence_sent != Some(sharing) && self.send(&ClientMsg::Presence { view, cursor }) {
+            self.presence_sent = Some(sharing);
+            self.presence_at = now + 1000.0 / f64::from(self.session.presence_hz.max(1));
+        }
+    }
+
+    /// One animation frame.
+    fn frame(&mut self) {
+        let now = page::now_ms();
+        let dt = ((now - self.last_frame) / 1000.0).min(0.25) as f32;
+        self.last_frame = now;
+        let held = |k: &str| self.keys.contains(k);
+        let dir = movement(held);
+        if dir != [0.0; 3] {
+            self.follow.stop();
+        }
+        if let Some(view) = self.follow.view(&self.session.roster)
+            && let Some(c) = &mut self.camera
+        {
+            c.look_along(view);
+        } else if let Some(c) = &mut self.camera {
+            c.fly(dir, dt);
+        }
+        if let Err(e) = self.draw(now) {
+            self.gpu_error = Some(e.clone());
+            page::message(Some(&format!("The GPU failed: {e}")));
+            self.gpu = None;
+        }
+        self.share_presence(now);
+        self.fps_frames += 1;
+        if now - self.fps_at >= 500.0 {
+            self.fps = f64::from(self.fps_frames) * 1000.0 / (now - self.fps_at);
+            self.fps_frames = 0;
+            self.fps_at = now;
+            page::set_text("status", &self.status_line());
+        }
+    }
+
+    fn status_line(&self) -> String {
+        let role = match self.session.role {
+            Some(Role::Editor) => "editor",
+            Some(Role::Viewer) => "watching",
+            None => "",
+        };
+        let (r, g, b) = PALETTE[self.colour];
+        let mut line = format!(
+            "{} · {:.0} fps · 1/{} resolution · {role} · colour #{r:02x}{g:02x}{b:02x} · brush {}",
+            self.session.status_text(),
+            self.fps,
+            self.scale.divisor,
+            self.radius
+        );
+        let others = self.session.roster.others.len();
+        if others > 0 {
+            line.push_str(&format!(" · {others} others here"));
+        }
+        line
+    }
+
+    fn draw(&mut self, now: f64) -> Result<(), String> {
+        // The GPU finished the last frame: learn from its time.
+        if self.in_flight.load(Ordering::Relaxed) {
+            return Ok(());
+        }
+        if self.submitted_at > 0.0 {
+            let gpu_ms = f64::from_bits(self.done_at.load(Ordering::Relaxed)) - self.submitted_at;
+            self.scale.observe(gpu_ms, now);
+            self.submitted_at = 0.0;
+        }
+        let Some(gpu) = &mut self.gpu else {
+            return Ok(());
+        };
+        let ctx = gpu.ctx.clone();
+        let synced = match &mut self.session.replica {
+            Some(replica) => {
+                sync_scene(&ctx, &mut gpu.scene, replica).map_err(|e| e.to_string())?;
+                replica.synced
+            }
+            None => false,
+        };
+        // Follow the canvas's size on the page.
+        let (w, h) = (
+            self.canvas.client_width().max(1) as u32,
+            self.canvas.client_height().max(1) as u32,
+        );
+        if (w, h) != (gpu.config.width, gpu.config.height) {
+            self.canvas.set_width(w);
+            self.canvas.set_height(h);
+            gpu.config.width = w;
+            gpu.config.height = h;
+            gpu.surface.configure(&ctx.device, &gpu.config);
+        }
+        let frame = match gpu.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                gpu.surface.configure(&ctx.device, &gpu.config);
+                return Ok(());
+            }
+            _ => return Ok(()),
+        };
+        let target = frame
+            .texture
+            .create_view(&wgpu::TextureViewDescriptor::default());
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("frame"),
+            });
+        let d = self.scale.divisor;
+        let (tw, th) = (w.div_ceil(d).max(1), h.div_ceil(d).max(1));
+        let mut traced = false;
+        if let (Some(scene), Some(camera)) = (&gpu.scene, &self.camera)
+            && let Some(p) = camera.camera().project(tw, th)
+        {
+            gpu.tracer
+                .encode(&ctx, &mut encoder, scene, &p, &Lighting::default())
+                .map_err(|e| e.to_string())?;
+            self.projection = Some(p);
+            traced = true;
+        }
+        if let Some(camera) = &self.camera
+            && let Some(p) = camera.camera().project(w, h)
+        {
+            let mut notes = Vec::new();
+            if let Some(why) = &self.session.last_rejection {
+                notes.push(format!("last edit rejected: {why}"));
+            }
+            if let Some(undo) = &self.session.last_undo {
+                notes.push(undo.clone());
+            }
+            let (r, g, b) = PALETTE[self.colour];
+            draw_overlay(
+                &mut self.overlay,
+                &OverlayInput {
+                    projection: p,
+                    roster: &self.session.roster,
+                    cursor: self.my_cursor.map(|c| Cursor {
+                        radius: self.radius,
+                        ..c
+                    }),
+                    colour: Colour::from_rgb8(r, g, b),
+                    captured: self.locked,
+                    notes,
+                    following: self.follow.target,
+                },
+            );
+            gpu.presenter.upload_overlay(&ctx, &self.overlay);
+        }
+        let image = if traced {
+            gpu.tracer.image_view()
+        } else {
+            None
+        };
+        gpu.presenter.draw(&ctx, &mut encoder, &target, image);
+        ctx.queue.submit([encoder.finish()]);
+        ctx.queue.present(frame);
+        self.submitted_at = now;
+        self.in_flight.store(true, Ordering::Relaxed);
+        let (in_flight, done_at) = (self.in_flight.clone(), self.done_at.clone());
+        ctx.queue.on_submitted_work_done(move || {
+            done_at.store(page::now_ms().to_bits(), Ordering::Relaxed);
+            in_flight.store(false, Ordering::Relaxed);
+        });
+        self.frames += 1;
+        let has_bricks = self
+            .session
+            .replica
+            .as_ref()
+            .is_some_and(|r| r.map.brick_count() > 0);
+        if traced && has_bricks && self.first_picture_ms.is_none() {
+            self.first_picture_ms = Some(now - self.started_at);
+        }
+        if traced && synced && self.synced_ms.is_none() {
+            self.synced_ms = Some(now - self.started_at);
+        }
+        Ok(())
+    }
+
+    /// Traces one exact-size frame for the test hook and starts reading it back.
+    pub fn start_exact_trace(
+        &mut self,
+        width: u32,
+        height: u32,
+        eye: &[f32],
+        target: &[f32],
+        fov_y: f32,
+    ) -> Result<(Rc<GpuContext>, PendingFrame), JsValue> {
+        let (Ok(eye), Ok(target)) = (<[f32; 3]>::try_from(eye), <[f32; 3]>::try_from(target))
+        else {
+            return Err("eye and target are three numbers each".into());
+        };
+        let gpu = self.gpu.as_mut().ok_or("the GPU is not ready")?;
+        let ctx = gpu.ctx.clone();
+        if let Some(replica) = &mut self.session.replica {
+            sync_scene(&ctx, &mut gpu.scene, replica).map_err(|e| e.to_string())?;
+        }
+        let scene = gpu.scene.as_ref().ok_or("no scene yet")?;
+        let p = Camera { eye, target, fov_y }
+            .project(width, height)
+            .ok_or("that camera cannot be projected")?;
+        if gpu.probe.is_none() {
+            gpu.probe = Some(Tracer::new(&ctx).map_err(|e| e.to_string())?);
+        }
+        let probe = gpu.probe.as_mut().ok_or("no tracer")?;
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("exact"),
+            });
+        probe
+            .encode(&ctx, &mut encoder, scene, &p, &Lighting::default())
+            .map_err(|e| e.to_string())?;
+        ctx.queue.submit([encoder.finish()]);
+        let pending = probe.start_read_back(&ctx).map_err(|e| e.to_string())?;
+        Ok((ctx, pending))
+    }
+
+    pub fn state_json(&self) -> String {
+        let replica = self.session.replica.as_ref();
+        let value = serde_json::json!({
+            "status": match &self.session.status {
+                Status::Connecting => "connecting",
+                Status::Syncing => "syncing",
+                Status::Live => "live",
+                Status::Reconnecting(_) => "reconnecting",
+                Status::Failed(_) => "failed",
+            },
+            "status_text": self.session.status_text(),
+            "synced": replica.is_some_and(|r| r.synced),
+            "seq": replica.map(|r| r.seq),
+            "bricks": replica.map_or(0, |r| r.map.brick_count()),
+            "size": replica.map(|r| r.map.size()),
+            "connects": self.session.connects,
+            "frames": self.frames,
+            "fps": self.fps,
+            "divisor": self.scale.divisor,
+            "gpu_ms": self.scale.gpu_ms,
+            "adapter": self.gpu.as_ref().map(|g| g.ctx.adapter_name.clone()),
+            "gpu_error": self.gpu_error,
+            "first_picture_ms": self.first_picture_ms,
+            "synced_ms": self.synced_ms,
+            "role": self.session.role.map(|r| format!("{r:?}")),
+            "rejected": self.session.rejected,
+            "last_undo": self.session.last_undo,
+            "others": self.session.roster.others.values().map(|o| o.peer.name.clone()).collect::<Vec<_>>(),
+            "bytes_in": self.bytes_in,
+            "camera": self.camera.map(|c| c.eye),
+        });
+        value.to_string()
+    }
+}
+
+/// Creates the GPU context on the canvas (asynchronously: adapters are promises in a browser).
+pub fn start_gpu(app: &Rc<RefCell<App>>) {
+    let app = app.clone();
+    wasm_bindgen_futures::spawn_local(async move {
+        let canvas = app.borrow().canvas.clone();
+        let instance = new_instance(BackendChoice::Primary, None);
+        let surface = match instance.create_surface(wgpu::SurfaceTarget::Canvas(canvas.clone())) {
+            Ok(s) => s,
+            Err(e) => return no_gpu(&app, &format!("cannot draw on the canvas: {e}")),
+        };
+        let ctx = match GpuContext::with_instance(instance, Some(&surface)).await {
+            Ok(ctx) => ctx,
+            Err(e) => return no_gpu(&app, &e.to_string()),
+        };
+        let (w, h) = (
+            canvas.client_width().max(1) as u32,
+            canvas.client_height().max(1) as u32,
+        );
+        let Some(mut config) = surface.get_default_config(&ctx.adapter, w, h) else {
+            return no_gpu(
+                &app,
+                &format!("{} cannot draw on this canvas", ctx.adapter_name),
+            );
+        };
+        // The traced bytes are already display values: no sRGB conversion on the way out.
+        let caps = surface.get_capabilities(&ctx.adapter);
+        if let Some(f) = caps.formats.iter().find(|f| !f.is_srgb()) {
+            config.format = *f;
+        }
+        canvas.set_width(w);
+        canvas.set_height(h);
+        surface.configure(&ctx.device, &config);
+        let tracer = match Tracer::new(&ctx) {
+            Ok(t) => t,
+            Err(e) => return no_gpu(&app, &e.to_string()),
+        };
+        let presenter = Presenter::new(&ctx.device, config.format);
+        app.borrow_mut().gpu = Some(Gpu {
+            ctx: Rc::new(ctx),
+            surface,
+            config,
+            tracer,
+            probe: None,
+            presenter,
+            scene: None,
+        });
+    });
+}
+
+fn no_gpu(app: &Rc<RefCell<App>>, why: &str) {
+    let text = format!(
+        "This browser cannot run the viewer: WebGPU is not available ({why}). Try a current Chrome, Edge or Firefox with WebGPU enabled."
+    );
+    page::message(Some(&text));
+    app.borrow_mut().gpu_error = Some(why.to_string());
+}
+
+/// Runs [`App::frame`] on every animation frame from now on.
+pub fn schedule_frame(app: &Rc<RefCell<App>>) {
+    // The callback re-arms itself, so it holds a handle to its own slot.
+    type Slot = Rc<RefCell<Option<Closure<dyn FnMut()>>>>;
+    let slot: Slot = Rc::new(RefCell::new(None));
+    let again = slot.clone();
+    let app = app.clone();
+    *slot.borrow_mut() = Some(Closure::new(move || {
+        app.borrow_mut().frame();
+        if let (Some(window), Some(cb)) = (web_sys::window(), again.borrow().as_ref()) {
+            let _ = window.request_animation_frame(cb.as_ref().unchecked_ref());
+        }
+    }));
+    if let (Some(window), Some(cb)) = (web_sys::window(), slot.borrow().as_ref()) {
+        let _ = window.request_animation_frame(cb.as_ref().unchecked_ref());
+    }
+}
+
+/// A traced frame as the test hook returns it.
+pub fn frame_to_js(frame: &GpuFrame) -> Result<js_sys::Object, JsValue> {
+    let out = js_sys::Object::new();
+    let pixels: Vec<u8> = frame.pixels.iter().flatten().copied().collect();
+    let hits: Vec<u32> = frame
+        .hits
+        .iter()
+        .flat_map(|h| h.unwrap_or([u32::MAX; 3]))
+        .collect();
+    js_sys::Reflect::set(&out, &"width".into(), &frame.width.into())?;
+    js_sys::Reflect::set(&out, &"height".into(), &frame.height.into())?;
+    js_sys::Reflect::set(
+        &out,
+        &"pixels".into(),
+        &js_sys::Uint8Array::from(pixels.as_slice()),
+    )?;
+    js_sys::Reflect::set(
+        &out,
+        &"hits".into(),
+        &js_sys::Uint32Array::from(hits.as_slice()),
+    )?;
+    Ok(out)
+}

@@ -1,0 +1,102 @@
+//! The brickcast browser viewer: `http://HOST:7878/scenes/NAME` in any WebGPU browser.
+//!
+//! This crate is only a shell. The wire format, the replica, the GPU copy of the scene, the
+//! tracer (`shaders/trace.wgsl`), the overlay, the camera and the editing tools all come from
+//! `brickcast-protocol` and `brickcast-client-core`, the same code the native `brickcast view`
+//! runs. What is here is what only a browser has: a canvas, a `WebSocket`, DOM events, the
+//! animation-frame clock, and a handle the page (and the browser tests) can call.
+//!
+//! The server's build script compiles this crate for `wasm32-unknown-unknown`, generates the
+//! JavaScript bindings and embeds both in the server binary; on other targets it is empty.
+#![cfg(target_arch = "wasm32")]
+
+mod app;
+mod input;
+mod net;
+mod page;
+
+use std::cell::RefCell;
+use std::rc::Rc;
+
+use wasm_bindgen::prelude::*;
+
+use app::App;
+
+/// The running viewer, as the page holds it (`window.brickcast` in the page, for tests).
+#[wasm_bindgen]
+pub struct Viewer {
+    app: Rc<RefCell<App>>,
+}
+
+/// Starts the viewer on the page's canvas for scene `scene`, with `token` (from the URL
+/// fragment or the token form) and display name `name`.
+#[wasm_bindgen]
+pub fn start(
+    scene: String,
+    token: Option<String>,
+    name: Option<String>,
+) -> Result<Viewer, JsValue> {
+    let app = App::new(scene, token, name)?;
+    input::listen(&app)?;
+    net::connect(&app);
+    app::start_gpu(&app);
+    app::schedule_frame(&app);
+    Ok(Viewer { app })
+}
+
+#[wasm_bindgen]
+impl Viewer {
+    /// What the page shows, as JSON: status, sync progress, frame counts, timings, GPU.
+    pub fn state(&self) -> String {
+        self.app.borrow().state_json()
+    }
+
+    /// Presses a key by its `KeyboardEvent.code` name, with Ctrl held or not (the page's
+    /// toolbar, for touch screens).
+    pub fn press(&self, code: &str, ctrl: bool) {
+        let mut app = self.app.borrow_mut();
+        app.key_down(code, ctrl, false);
+        app.key_up(code);
+        app.ctrl = false;
+    }
+
+    /// Puts the camera at `eye` looking at `target` (voxel coordinates).
+    pub fn set_camera(&self, eye: Vec<f32>, target: Vec<f32>) -> Result<(), JsValue> {
+        self.app.borrow_mut().set_camera(&eye, &target)
+    }
+
+    /// Traces the scene as it is now at exactly `width`×`height` from `eye` towards `target`,
+    /// and resolves to `{width, height, pixels: Uint8Array (RGBA), hits: Uint32Array (x, y, z
+    /// per pixel, 0xFFFFFFFF for a miss)}`: the test hook that compares the GPU frame with the
+    /// CPU renderer.
+    pub fn trace_exact(
+        &self,
+        width: u32,
+        height: u32,
+        eye: Vec<f32>,
+        target: Vec<f32>,
+        fov_y: f32,
+    ) -> js_sys::Promise {
+        let app = self.app.clone();
+        wasm_bindgen_futures::future_to_promise(async move {
+            let pending = app
+                .borrow_mut()
+                .start_exact_trace(width, height, &eye, &target, fov_y)?;
+            let (ctx, pending) = pending;
+            let frame = pending
+                .finish(&ctx)
+                .await
+                .map_err(|e| JsValue::from_str(&e.to_string()))?;
+            Ok(app::frame_to_js(&frame)?.into())
+        })
+    }
+
+    /// Bytes of linear memory the wasm module holds (the page's own heap).
+    pub fn wasm_memory_bytes(&self) -> f64 {
+        let memory: js_sys::WebAssembly::Memory = wasm_bindgen::memory().unchecked_into();
+        memory
+            .buffer()
+            .unchecked_into::<js_sys::ArrayBuffer>()
+            .byte_length() as f64
+    }
+}

@@ -1,0 +1,46 @@
+//! The few page elements the viewer writes to (ids fixed by the page the server serves).
+
+use wasm_bindgen::JsCast;
+use web_sys::{Document, HtmlElement};
+
+pub fn document() -> Option<Document> {
+    web_sys::window()?.document()
+}
+
+fn element(id: &str) -> Option<HtmlElement> {
+    document()?.get_element_by_id(id)?.dyn_into().ok()
+}
+
+/// Sets the text of element `id`, when the page has it.
+pub fn set_text(id: &str, text: &str) {
+    if let Some(e) = element(id)
+        && e.text_content().as_deref() != Some(text)
+    {
+        e.set_text_content(Some(text));
+    }
+}
+
+/// Shows or hides element `id`.
+pub fn show(id: &str, visible: bool) {
+    if let Some(e) = element(id) {
+        e.set_hidden(!visible);
+    }
+}
+
+/// Shows `text` in the page's message box (errors a user must read), or hides it.
+pub fn message(text: Option<&str>) {
+    match text {
+        Some(t) => {
+            set_text("message", t);
+            show("message", true);
+        }
+        None => show("message", false),
+    }
+}
+
+/// Milliseconds since the page started (the animation-frame clock).
+pub fn now_ms() -> f64 {
+    web_sys::window()
+        .and_then(|w| w.performance())
+        .map_or(0.0, |p| p.now())
+}
