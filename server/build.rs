@@ -17,6 +17,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 const WASM_TARGET: &str = "wasm32-unknown-unknown";
+/// How an error that must fail the build starts (the others leave the server without a viewer).
+const FAILED: &str = "the browser viewer failed to build";
 
 fn main() {
     let manifest = PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("set by cargo"));
@@ -40,6 +42,11 @@ fn main() {
     println!("cargo:rerun-if-env-changed=BRICKCAST_WEB");
     let status = match build(&root, &out) {
         Ok(()) => String::new(),
+        // A bug in the viewer is the build's failure, not a missing viewer.
+        Err(why) if why.starts_with(FAILED) => {
+            eprintln!("{why}");
+            std::process::exit(1);
+        }
         Err(why) => {
             println!("cargo:warning=the browser viewer was not built: {why}");
             for file in ["brickcast_web.js", "brickcast_web_bg.wasm"] {
@@ -109,7 +116,7 @@ fn build(root: &Path, out: &Path) -> Result<(), String> {
         let stderr = String::from_utf8_lossy(&output.stderr);
         let tail: Vec<&str> = stderr.lines().rev().take(30).collect();
         let tail: Vec<&str> = tail.into_iter().rev().collect();
-        return Err(format!("the wasm build failed:\n{}", tail.join("\n")));
+        return Err(format!("{FAILED}:\n{}", tail.join("\n")));
     }
     let wasm = target_dir
         .join(WASM_TARGET)
@@ -118,10 +125,10 @@ fn build(root: &Path, out: &Path) -> Result<(), String> {
     wasm_bindgen_cli_support::Bindgen::new()
         .input_path(&wasm)
         .web(true)
-        .map_err(|e| format!("wasm-bindgen: {e}"))?
+        .map_err(|e| format!("{FAILED}: wasm-bindgen: {e}"))?
         .typescript(false)
         .generate(out)
-        .map_err(|e| format!("wasm-bindgen: {e:#}"))?;
+        .map_err(|e| format!("{FAILED}: wasm-bindgen: {e:#}"))?;
     for file in ["brickcast_web.js", "brickcast_web_bg.wasm"] {
         let bytes = std::fs::read(out.join(file)).map_err(|e| format!("{file}: {e}"))?;
         let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());

@@ -80,6 +80,8 @@ pub fn routes() -> Router<Arc<App>> {
         .route("/scenes/{name}", get(viewer))
         .route("/scenes/{name}/thumb.png", get(thumbnail))
         .route("/assets/{file}", get(asset))
+        // Browsers ask for it on every page; a 404 would fill their consoles.
+        .route("/favicon.ico", get(|| async { StatusCode::NO_CONTENT }))
 }
 
 /// `&`, `<`, `>`, `"` and `'` as HTML entities.

@@ -25,7 +25,8 @@ const browser = await chromium.launch({
   args,
 });
 const page = await browser.newPage({ viewport: options.viewport || { width: 320, height: 180 } });
-page.on('console', (m) => process.stderr.write(`[page ${m.type()}] ${m.text()}\n`));
+// Errors only: shader compilers log warnings on every page load.
+page.on('console', (m) => { if (m.type() === 'error') process.stderr.write(`[page ${m.type()}] ${m.text()}\n`); });
 page.on('pageerror', (e) => process.stderr.write(`[page error] ${e}\n`));
 
 async function run(cmd) {

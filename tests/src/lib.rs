@@ -5,6 +5,8 @@
 //! client binary, the viewer's network thread) without starving it, and can stop and restart it
 //! on the same port and data directory as an operator would.
 
+pub mod browser;
+
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

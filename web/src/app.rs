@@ -16,7 +16,7 @@ use brickcast_client_core::camera::{FlyCamera, PALETTE, movement};
 use brickcast_client_core::follow::Follow;
 use brickcast_client_core::gpu::tracer::PendingFrame;
 use brickcast_client_core::gpu::{
-    BackendChoice, GpuContext, GpuFrame, GpuScene, Tracer, new_instance,
+    BackendChoice, GpuContext, GpuError, GpuFrame, GpuScene, Tracer, new_instance,
 };
 use brickcast_client_core::overlay::canvas::Canvas;
 use brickcast_client_core::overlay::{OverlayInput, draw as draw_overlay};
@@ -87,6 +87,8 @@ pub struct App {
     pub session: Session,
     seq: ClientSeq,
     pub socket: Option<Socket>,
+    /// Sockets closed from inside one of their own callbacks, dropped at the next connect.
+    pub retired: Vec<Socket>,
     pub backoff_ms: i32,
     pub bytes_in: u64,
     canvas: web_sys::HtmlCanvasElement,
@@ -168,6 +170,7 @@ impl App {
             session: Session::default(),
             seq: ClientSeq::default(),
             socket: None,
+            retired: Vec::new(),
             backoff_ms: 250,
             bytes_in: 0,
             canvas,
@@ -214,9 +217,7 @@ impl App {
     pub fn fail(&mut self, why: String) {
         page::message(Some(&why));
         self.session.status = Status::Failed(why);
-        if let Some(s) = self.socket.take() {
-            s.close();
-        }
+        self.retire_socket();
     }
 
     /// The server refused the Hello.
@@ -229,8 +230,14 @@ impl App {
         net::show_refusal(code, message, &self.scene);
         let (text, _) = net::refusal_text(code, message, &self.scene);
         self.session.status = Status::Failed(text);
+        self.retire_socket();
+    }
+
+    /// Closes the socket for good (no reconnect).
+    fn retire_socket(&mut self) {
         if let Some(s) = self.socket.take() {
-            s.close();
+            s.close_quietly();
+            self.retired.push(s);
         }
     }
 
@@ -244,7 +251,9 @@ impl App {
 
     /// A new connection was welcomed.
     pub fn welcomed(&mut self) {
-        page::message(None);
+        if self.gpu_error.is_none() {
+            page::message(None);
+        }
         page::show("token-form", false);
         self.camera_sent = false;
         if let Some(replica) = &self.session.replica {
@@ -682,6 +691,12 @@ pub fn start_gpu(app: &Rc<RefCell<App>>) {
         };
         let ctx = match GpuContext::with_instance(instance, Some(&surface)).await {
             Ok(ctx) => ctx,
+            Err(GpuError::NoAdapter(_)) => {
+                return no_gpu(
+                    &app,
+                    "the browser offers WebGPU but no adapter: it may be switched off, or the GPU blocklisted",
+                );
+            }
             Err(e) => return no_gpu(&app, &e.to_string()),
         };
         let (w, h) = (
@@ -721,9 +736,12 @@ pub fn start_gpu(app: &Rc<RefCell<App>>) {
 
 fn no_gpu(app: &Rc<RefCell<App>>, why: &str) {
     let text = format!(
-        "This browser cannot run the viewer: WebGPU is not available ({why}). Try a current Chrome, Edge or Firefox with WebGPU enabled."
+        "This browser cannot show the scene: no WebGPU ({why}). Try a current Chrome, Edge or Safari, or Firefox with WebGPU enabled."
     );
     page::message(Some(&text));
+    if let Some(window) = web_sys::window() {
+        let _ = js_sys::Reflect::set(&window, &"brickcastFailed".into(), &"no-webgpu".into());
+    }
     app.borrow_mut().gpu_error = Some(why.to_string());
 }
 

@@ -43,7 +43,16 @@ impl Socket {
         }
     }
 
+    /// Closes the socket; the close handler will reconnect.
     pub fn close(&self) {
+        let _ = self.ws.close();
+    }
+
+    /// Closes the socket without reconnecting: its handlers are detached first.
+    pub fn close_quietly(&self) {
+        self.ws.set_onopen(None);
+        self.ws.set_onmessage(None);
+        self.ws.set_onclose(None);
         let _ = self.ws.close();
     }
 }
@@ -115,8 +124,11 @@ pub fn connect(app: &Rc<RefCell<App>>) {
     ws.set_onmessage(Some(on_message.as_ref().unchecked_ref()));
     ws.set_onclose(Some(on_close.as_ref().unchecked_ref()));
     let mut a = app.borrow_mut();
+    // Sockets are never dropped inside their own callbacks (wasm-bindgen forbids freeing a
+    // running closure): they are retired there and dropped here, from a timer or at start.
+    a.retired.clear();
     if let Some(old) = a.socket.take() {
-        old.close();
+        old.close_quietly();
     }
     a.socket = Some(Socket {
         ws,
@@ -167,7 +179,9 @@ fn received(app: &Rc<RefCell<App>>, bytes: &[u8]) {
 fn closed(app: &Rc<RefCell<App>>, event: &CloseEvent) {
     let delay = {
         let mut a = app.borrow_mut();
-        a.socket = None;
+        if let Some(s) = a.socket.take() {
+            a.retired.push(s);
+        }
         if matches!(a.session.status, Status::Failed(_)) {
             return;
         }

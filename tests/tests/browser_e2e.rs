@@ -1,0 +1,283 @@
+//! The browser viewer in a real browser (chromium, software WebGPU) against a real server on
+//! loopback: the page's traced frame against the CPU renderer, edits both ways between the page
+//! and a native client, the messages a user gets when something is wrong, and a server restart.
+
+use std::net::SocketAddr;
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+use brickcast_client::link::Link;
+use brickcast_protocol::render::{MISS, colour_distance, render, voxel_index};
+use brickcast_protocol::wire::{ClientMsg, EditOp, ServerMsg};
+use brickcast_protocol::{Camera, Colour, Lighting};
+use brickcast_tests::browser::Browser;
+use brickcast_tests::{TEST_SCENE, TestServer, fetch, http_get, wait_until};
+
+fn local() -> SocketAddr {
+    "127.0.0.1:0".parse().expect("address")
+}
+
+/// Same rule as the native twin test: colours within 2 steps where the voxel agrees, and a
+/// handful of edge pixels where float rounding on another GPU tips a ray past a voxel corner.
+const COLOUR_TOLERANCE: u32 = 2;
+
+fn viewer_url(server: &TestServer, scene: &str) -> String {
+    format!("http://{}/scenes/{scene}", server.addr)
+}
+
+/// Sends one edit from a native client and waits for its ack.
+fn native_edit(server: &TestServer, ops: Vec<EditOp>) -> Result<u64> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        let url = format!("ws://{}/scenes/demo/ws", server.addr);
+        let mut link = Link::connect(&url, "native", 0, None, None).await?;
+        link.send(&ClientMsg::Edit { client_seq: 1, ops }).await?;
+        loop {
+            match tokio::time::timeout(Duration::from_secs(20), link.next()).await?? {
+                Some(ServerMsg::Ack {
+                    seq: Some(seq),
+                    applied,
+                    ..
+                }) if applied > 0 => {
+                    link.close().await;
+                    return Ok(seq);
+                }
+                Some(ServerMsg::Ack { rejected, .. }) => bail!("edit rejected: {rejected:?}"),
+                Some(_) => continue,
+                None => bail!("the server closed the connection"),
+            }
+        }
+    })
+}
+
+/// The page's exact-size frame of the scene equals the CPU renderer's: same voxel (or miss) at
+/// every pixel, colours within tolerance; and the first picture and the sync were timed.
+#[test]
+fn page_frame_matches_the_cpu_renderer() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let server = TestServer::start(dir.path(), local())?;
+    let mut browser = Browser::start(320, 180)?;
+    browser.goto(&viewer_url(&server, "demo"))?;
+    let state = browser.wait_state("s.synced && s.frames > 0", 60_000)?;
+    println!("page state after sync: {state}");
+    assert!(state["first_picture_ms"].as_f64().is_some(), "{state}");
+    assert!(
+        state["adapter"]
+            .as_str()
+            .is_some_and(|a| a.contains("WebGpu")),
+        "the page traces through WebGPU: {state}"
+    );
+
+    let map = fetch(&server.url("demo"))?.map;
+    let size = map.size();
+    let cameras = [
+        Camera::overview(size),
+        Camera {
+            eye: [-20.0, 40.0, 64.0],
+            target: [64.0, 10.0, 64.0],
+            fov_y: 70.0,
+        },
+    ];
+    for camera in cameras {
+        let (w, h) = (96, 54);
+        let (pixels, hits) = browser.trace(w, h, camera.eye, camera.target, camera.fov_y)?;
+        let cpu = render(
+            &map,
+            &camera.project(w, h).context("camera")?,
+            &Lighting::default(),
+            0,
+        );
+        let mut hit_mismatches = Vec::new();
+        let mut colour_mismatches = Vec::new();
+        let mut hit_pixels = 0;
+        for i in 0..(w * h) as usize {
+            let page_hit = hits[i].map_or(MISS, |v| voxel_index(size, v));
+            if cpu.hits[i] != MISS {
+                hit_pixels += 1;
+            }
+            if page_hit != cpu.hits[i] {
+                hit_mismatches.push((i as u32 % w, i as u32 / w, cpu.hits[i], page_hit));
+            } else if colour_distance(cpu.pixels[i], pixels[i]) > COLOUR_TOLERANCE {
+                colour_mismatches.push((i as u32 % w, i as u32 / w, cpu.pixels[i], pixels[i]));
+            }
+        }
+        let allowance = 3 + (w * h) as usize / 2000;
+        assert!(
+            hit_pixels > 500,
+            "the camera {camera:?} sees the scene ({hit_pixels} hits)"
+        );
+        assert!(
+            hit_mismatches.len() <= allowance,
+            "{} of {} pixels hit another voxel in the page than on the CPU (first: {:?})",
+            hit_mismatches.len(),
+            w * h,
+            &hit_mismatches[..hit_mismatches.len().min(5)]
+        );
+        assert!(
+            colour_mismatches.is_empty(),
+            "colours differ by more than {COLOUR_TOLERANCE} at {} pixels (first: {:?})",
+            colour_mismatches.len(),
+            &colour_mismatches[..colour_mismatches.len().min(5)]
+        );
+    }
+
+    // The scene list names the scene and its thumbnail is a PNG of the scene.
+    let list = http_get(server.addr, "/")?;
+    assert!(list.contains("href=\"/scenes/demo\""), "{list}");
+    assert!(list.contains(&format!(
+        "{}×{}×{}",
+        TEST_SCENE[0], TEST_SCENE[1], TEST_SCENE[2]
+    )));
+    let thumb = browser.eval(&format!(
+        "fetch('http://{}/scenes/demo/thumb.png').then(r => r.blob()).then(b => createImageBitmap(b)).then(i => [i.width, i.height])",
+        server.addr
+    ))?;
+    assert_eq!(thumb, serde_json::json!([320, 180]));
+    server.stop()
+}
+
+/// An edit made with the mouse in the page reaches a native client, and a native edit shows
+/// in the page's next frame.
+#[test]
+fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let server = TestServer::start(dir.path(), local())?;
+    let mut browser = Browser::start(320, 180)?;
+    browser.goto(&viewer_url(&server, "demo"))?;
+    browser.wait_state("s.synced && s.frames > 0", 60_000)?;
+
+    // Look straight down at the middle of the scene and place a voxel with a right click at
+    // the centre of the canvas.
+    let before = fetch(&server.url("demo"))?.map;
+    let (cx, cz) = (
+        TEST_SCENE[0] as f32 / 2.0 + 0.5,
+        TEST_SCENE[2] as f32 / 2.0 + 0.5,
+    );
+    browser.eval(&format!(
+        "window.brickcast.set_camera(new Float32Array([{cx}, 60.5, {cz}]), new Float32Array([{cx}, 0, {}]))",
+        cz + 0.01
+    ))?;
+    // The click turns into a ray through the last traced frame: wait for one from there.
+    browser.wait_state("s.frames > 3", 10_000)?;
+    let frames = browser.state()?.context("state")?["frames"]
+        .as_u64()
+        .unwrap_or(0);
+    browser.wait_state(&format!("s.frames > {}", frames + 2), 10_000)?;
+    browser.click(160.0, 90.0, "right")?;
+    let mut after = before.clone();
+    let placed = wait_until(Duration::from_secs(20), || {
+        after = fetch(&server.url("demo"))
+            .map(|r| r.map)
+            .unwrap_or_else(|_| before.clone());
+        after.solid_voxels() == before.solid_voxels() + 1
+    });
+    assert!(
+        placed,
+        "the page's right click placed one voxel ({} → {})",
+        before.solid_voxels(),
+        after.solid_voxels()
+    );
+
+    // A native client puts a red voxel in the page's view, right under the camera.
+    let pos = [cx as u32, 50, cz as u32];
+    let red = Colour::from_rgb8(255, 0, 0);
+    native_edit(&server, vec![EditOp::Set { pos, colour: red }])?;
+    let mut seen = None;
+    let shown = wait_until(Duration::from_secs(20), || {
+        let frame = browser.trace(9, 9, [cx, 60.5, cz], [cx, 0.0, cz + 0.01], 60.0);
+        seen = frame.ok().map(|(_, hits)| hits[4 * 9 + 4]);
+        seen == Some(Some(pos))
+    });
+    assert!(
+        shown,
+        "the page's centre pixel hits the natively placed voxel {pos:?}: {seen:?}"
+    );
+    server.stop()
+}
+
+/// A bad token, an unknown scene and a browser without WebGPU each tell the user what is wrong.
+#[test]
+fn the_page_explains_what_is_wrong() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let server = TestServer::start_with(dir.path(), local(), |c| {
+        c.auth = brickcast_server::auth::Auth::parse("ed-token editor alice\n").expect("auth");
+    })?;
+    let mut browser = Browser::start(320, 180)?;
+
+    browser.goto(&format!("{}#token=wrong", viewer_url(&server, "demo")))?;
+    let message = browser.wait(
+        "(() => { const m = document.getElementById('message'); return !m.hidden && m.textContent; })()",
+        30_000,
+    )?;
+    assert!(
+        message
+            .as_str()
+            .is_some_and(|m| m.contains("needs an access token")),
+        "{message}"
+    );
+    let form = browser.eval("!document.getElementById('token-form').hidden")?;
+    assert_eq!(form, serde_json::json!(true), "the token form is offered");
+
+    // The right token, typed into the form, makes an editor.
+    browser.eval(
+        "document.getElementById('token').value = 'ed-token'; document.getElementById('token-form').requestSubmit()",
+    )?;
+    let state = browser.wait_state("s.status === 'live'", 60_000)?;
+    assert_eq!(state["role"], "Editor", "{state}");
+
+    browser.goto(&viewer_url(&server, "nowhere"))?;
+    let text = browser.eval("document.getElementById('message').textContent")?;
+    assert!(
+        text.as_str().is_some_and(|t| t.contains("no scene called")),
+        "{text}"
+    );
+    drop(browser);
+
+    let mut plain = Browser::without_webgpu()?;
+    plain.goto(&viewer_url(&server, "demo"))?;
+    let failed = plain.wait("window.brickcastFailed", 10_000)?;
+    assert_eq!(failed, "no-webgpu");
+    let text = plain.eval("document.getElementById('message').textContent")?;
+    assert!(
+        text.as_str().is_some_and(|t| t.contains("no WebGPU")),
+        "{text}"
+    );
+    server.stop()
+}
+
+/// The page keeps working across a server restart: it reconnects, resumes, and shows edits
+/// made after the restart.
+#[test]
+fn the_page_reconnects_and_resumes_across_a_restart() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let server = TestServer::start(dir.path(), local())?;
+    let addr = server.addr;
+    let mut browser = Browser::start(320, 180)?;
+    browser.goto(&viewer_url(&server, "demo"))?;
+    browser.wait_state("s.synced && s.connects === 1", 60_000)?;
+    server.stop()?;
+    browser.wait_state("s.status === 'reconnecting'", 10_000)?;
+    let server = TestServer::start(dir.path(), addr)?;
+    let state = browser.wait_state("s.status === 'live' && s.connects >= 2", 30_000)?;
+    println!("after the restart: {state}");
+    let pos = [3, 60, 3];
+    let seq = native_edit(
+        &server,
+        vec![EditOp::Set {
+            pos,
+            colour: Colour::from_rgb8(0, 0, 255),
+        }],
+    )?;
+    browser.wait_state(&format!("s.seq >= {seq}"), 20_000)?;
+    let page_state = browser.state()?.context("state")?;
+    assert_eq!(page_state["status"], "live", "{page_state}");
+    let (_, hits) = browser.trace(5, 5, [3.5, 63.5, 3.5], [3.5, 0.0, 3.51], 30.0)?;
+    assert_eq!(
+        hits[12],
+        Some(pos),
+        "the page shows the edit made after the restart"
+    );
+    server.stop()
+}
