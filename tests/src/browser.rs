@@ -16,6 +16,12 @@ fn driver_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("browser")
 }
 
+/// A frame traced by the page: RGBA pixels and the voxel each pixel hit.
+pub struct PageFrame {
+    pub pixels: Vec<[u8; 4]>,
+    pub hits: Vec<Option<[u32; 3]>>,
+}
+
 /// One browser with one page.
 pub struct Browser {
     child: Child,
@@ -130,7 +136,7 @@ impl Browser {
         eye: [f32; 3],
         target: [f32; 3],
         fov_y: f32,
-    ) -> Result<(Vec<[u8; 4]>, Vec<Option<[u32; 3]>>)> {
+    ) -> Result<PageFrame> {
         let js = format!(
             "window.brickcast.trace_exact({width}, {height}, new Float32Array({eye:?}), new Float32Array({target:?}), {fov_y}).then(f => ({{pixels: Array.from(f.pixels), hits: Array.from(f.hits)}}))"
         );
@@ -163,7 +169,7 @@ impl Browser {
             .chunks_exact(3)
             .map(|h| (h[0] != u32::MAX).then_some([h[0], h[1], h[2]]))
             .collect();
-        Ok((pixels, hits))
+        Ok(PageFrame { pixels, hits })
     }
 
     pub fn click(&mut self, x: f64, y: f64, button: &str) -> Result<()> {

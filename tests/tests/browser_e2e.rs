@@ -82,7 +82,8 @@ fn page_frame_matches_the_cpu_renderer() -> Result<()> {
     ];
     for camera in cameras {
         let (w, h) = (96, 54);
-        let (pixels, hits) = browser.trace(w, h, camera.eye, camera.target, camera.fov_y)?;
+        let frame = browser.trace(w, h, camera.eye, camera.target, camera.fov_y)?;
+        let (pixels, hits) = (frame.pixels, frame.hits);
         let cpu = render(
             &map,
             &camera.project(w, h).context("camera")?,
@@ -187,7 +188,7 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
     let mut seen = None;
     let shown = wait_until(Duration::from_secs(20), || {
         let frame = browser.trace(9, 9, [cx, 60.5, cz], [cx, 0.0, cz + 0.01], 60.0);
-        seen = frame.ok().map(|(_, hits)| hits[4 * 9 + 4]);
+        seen = frame.ok().map(|f| f.hits[4 * 9 + 4]);
         seen == Some(Some(pos))
     });
     assert!(
@@ -273,9 +274,9 @@ fn the_page_reconnects_and_resumes_across_a_restart() -> Result<()> {
     browser.wait_state(&format!("s.seq >= {seq}"), 20_000)?;
     let page_state = browser.state()?.context("state")?;
     assert_eq!(page_state["status"], "live", "{page_state}");
-    let (_, hits) = browser.trace(5, 5, [3.5, 63.5, 3.5], [3.5, 0.0, 3.51], 30.0)?;
+    let frame = browser.trace(5, 5, [3.5, 63.5, 3.5], [3.5, 0.0, 3.51], 30.0)?;
     assert_eq!(
-        hits[12],
+        frame.hits[12],
         Some(pos),
         "the page shows the edit made after the restart"
     );

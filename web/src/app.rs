@@ -48,6 +48,8 @@ pub struct Gpu {
 /// WebGPU traces about 0.3 Mrays/s) gets a coarser picture rather than a stuttering one.
 pub struct Scale {
     pub divisor: u32,
+    /// Set by the page (`?scale=N`) or a test: the divisor stays put.
+    pinned: bool,
     /// GPU time of recent frames, smoothed (ms).
     pub gpu_ms: f64,
     changed_at: f64,
@@ -58,13 +60,22 @@ const TARGET_MS: f64 = 33.0;
 const MAX_DIVISOR: u32 = 8;
 
 impl Scale {
+    /// Fixes the divisor (1 to 8), or with 0 lets it adapt again.
+    pub fn pin(&mut self, divisor: u32) {
+        self.pinned = divisor > 0;
+        if self.pinned {
+            self.divisor = divisor.min(MAX_DIVISOR);
+        }
+        self.gpu_ms = 0.0;
+    }
+
     fn observe(&mut self, gpu_ms: f64, now: f64) {
         self.gpu_ms = if self.gpu_ms == 0.0 {
             gpu_ms
         } else {
             self.gpu_ms * 0.8 + gpu_ms * 0.2
         };
-        if now - self.changed_at < 500.0 {
+        if self.pinned || now - self.changed_at < 500.0 {
             return;
         }
         if self.gpu_ms > TARGET_MS * 1.5 && self.divisor < MAX_DIVISOR {
@@ -117,12 +128,12 @@ pub struct App {
     done_at: Arc<AtomicU64>,
     in_flight: Arc<AtomicBool>,
     last_frame: f64,
-    started_at: f64,
     frames: u64,
     fps: f64,
     fps_frames: u32,
     fps_at: f64,
-    /// Milliseconds from start to the first traced frame with bricks in it, and to a full sync.
+    /// When (ms since the page started loading) the first frame with bricks in it was traced,
+    /// and the first after a full sync.
     first_picture_ms: Option<f64>,
     synced_ms: Option<f64>,
     /// The camera was sent to the server during this connection's sync (nearest bricks first).
@@ -191,6 +202,7 @@ impl App {
             my_cursor: None,
             scale: Scale {
                 divisor: 2,
+                pinned: false,
                 gpu_ms: 0.0,
                 changed_at: now,
             },
@@ -198,7 +210,6 @@ impl App {
             done_at: Arc::new(AtomicU64::new(0)),
             in_flight: Arc::new(AtomicBool::new(false)),
             last_frame: now,
-            started_at: now,
             frames: 0,
             fps: 0.0,
             fps_frames: 0,
@@ -597,10 +608,10 @@ impl App {
             .as_ref()
             .is_some_and(|r| r.map.brick_count() > 0);
         if traced && has_bricks && self.first_picture_ms.is_none() {
-            self.first_picture_ms = Some(now - self.started_at);
+            self.first_picture_ms = Some(now);
         }
         if traced && synced && self.synced_ms.is_none() {
-            self.synced_ms = Some(now - self.started_at);
+            self.synced_ms = Some(now);
         }
         Ok(())
     }

@@ -60,6 +60,11 @@ impl Viewer {
         app.ctrl = false;
     }
 
+    /// Traces at 1/`divisor` of the canvas's resolution from now on; 0 lets it adapt again.
+    pub fn set_scale(&self, divisor: u32) {
+        self.app.borrow_mut().scale.pin(divisor);
+    }
+
     /// Puts the camera at `eye` looking at `target` (voxel coordinates).
     pub fn set_camera(&self, eye: Vec<f32>, target: Vec<f32>) -> Result<(), JsValue> {
         self.app.borrow_mut().set_camera(&eye, &target)
