@@ -60,7 +60,10 @@ fn page_frame_matches_the_cpu_renderer() -> Result<()> {
     let server = TestServer::start(dir.path(), local())?;
     let mut browser = Browser::start(320, 180)?;
     browser.goto(&viewer_url(&server, "demo"))?;
-    let state = browser.wait_state("s.synced && s.frames > 0", 60_000)?;
+    let state = browser.wait_state(
+        "s.synced_ms !== null && s.first_picture_ms !== null",
+        60_000,
+    )?;
     println!("page state after sync: {state}");
     assert!(state["first_picture_ms"].as_f64().is_some(), "{state}");
     assert!(
@@ -147,7 +150,10 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
     let server = TestServer::start(dir.path(), local())?;
     let mut browser = Browser::start(320, 180)?;
     browser.goto(&viewer_url(&server, "demo"))?;
-    browser.wait_state("s.synced && s.frames > 0", 60_000)?;
+    browser.wait_state(
+        "s.synced_ms !== null && s.first_picture_ms !== null",
+        60_000,
+    )?;
 
     // Look straight down at the middle of the scene and place a voxel with a right click at
     // the centre of the canvas.
@@ -259,7 +265,7 @@ fn the_page_reconnects_and_resumes_across_a_restart() -> Result<()> {
     browser.goto(&viewer_url(&server, "demo"))?;
     browser.wait_state("s.synced && s.connects === 1", 60_000)?;
     server.stop()?;
-    browser.wait_state("s.status === 'reconnecting'", 10_000)?;
+    browser.wait_state("s.status === 'reconnecting'", 30_000)?;
     let server = TestServer::start(dir.path(), addr)?;
     let state = browser.wait_state("s.status === 'live' && s.connects >= 2", 30_000)?;
     println!("after the restart: {state}");
@@ -271,7 +277,7 @@ fn the_page_reconnects_and_resumes_across_a_restart() -> Result<()> {
             colour: Colour::from_rgb8(0, 0, 255),
         }],
     )?;
-    browser.wait_state(&format!("s.seq >= {seq}"), 20_000)?;
+    browser.wait_state(&format!("s.seq >= {seq}"), 30_000)?;
     let page_state = browser.state()?.context("state")?;
     assert_eq!(page_state["status"], "live", "{page_state}");
     let frame = browser.trace(5, 5, [3.5, 63.5, 3.5], [3.5, 0.0, 3.51], 30.0)?;

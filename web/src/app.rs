@@ -48,6 +48,9 @@ pub struct Gpu {
 /// WebGPU traces about 0.3 Mrays/s) gets a coarser picture rather than a stuttering one.
 pub struct Scale {
     pub divisor: u32,
+    /// GPU time of the last finished frame (ms), and how many frames have finished.
+    pub last_ms: f64,
+    pub frames: u64,
     /// Set by the page (`?scale=N`) or a test: the divisor stays put.
     pinned: bool,
     /// GPU time of recent frames, smoothed (ms).
@@ -70,6 +73,8 @@ impl Scale {
     }
 
     fn observe(&mut self, gpu_ms: f64, now: f64) {
+        self.last_ms = gpu_ms;
+        self.frames += 1;
         self.gpu_ms = if self.gpu_ms == 0.0 {
             gpu_ms
         } else {
@@ -132,10 +137,13 @@ pub struct App {
     fps: f64,
     fps_frames: u32,
     fps_at: f64,
-    /// When (ms since the page started loading) the first frame with bricks in it was traced,
-    /// and the first after a full sync.
+    /// When (ms since the page started loading) the GPU finished the first frame with bricks in
+    /// it, and the first of the whole synced scene.
     first_picture_ms: Option<f64>,
     synced_ms: Option<f64>,
+    /// The frame on the GPU shows bricks / the whole synced scene.
+    pending_picture: bool,
+    pending_synced: bool,
     /// The camera was sent to the server during this connection's sync (nearest bricks first).
     camera_sent: bool,
 }
@@ -200,8 +208,11 @@ impl App {
             presence_sent: None,
             presence_at: 0.0,
             my_cursor: None,
+            // Coarse at first, so the first picture comes fast on any adapter; it refines.
             scale: Scale {
-                divisor: 2,
+                divisor: 4,
+                last_ms: 0.0,
+                frames: 0,
                 pinned: false,
                 gpu_ms: 0.0,
                 changed_at: now,
@@ -216,6 +227,8 @@ impl App {
             fps_at: now,
             first_picture_ms: None,
             synced_ms: None,
+            pending_picture: false,
+            pending_synced: false,
             camera_sent: false,
         })))
     }
@@ -502,9 +515,16 @@ impl App {
             return Ok(());
         }
         if self.submitted_at > 0.0 {
-            let gpu_ms = f64::from_bits(self.done_at.load(Ordering::Relaxed)) - self.submitted_at;
-            self.scale.observe(gpu_ms, now);
+            let done = f64::from_bits(self.done_at.load(Ordering::Relaxed));
+            self.scale.observe(done - self.submitted_at, now);
             self.submitted_at = 0.0;
+            // The picture is there once the GPU has finished it.
+            if self.pending_picture && self.first_picture_ms.is_none() {
+                self.first_picture_ms = Some(done);
+            }
+            if self.pending_synced && self.synced_ms.is_none() {
+                self.synced_ms = Some(done);
+            }
         }
         let Some(gpu) = &mut self.gpu else {
             return Ok(());
@@ -607,12 +627,8 @@ impl App {
             .replica
             .as_ref()
             .is_some_and(|r| r.map.brick_count() > 0);
-        if traced && has_bricks && self.first_picture_ms.is_none() {
-            self.first_picture_ms = Some(now);
-        }
-        if traced && synced && self.synced_ms.is_none() {
-            self.synced_ms = Some(now);
-        }
+        self.pending_picture = traced && has_bricks;
+        self.pending_synced = traced && synced;
         Ok(())
     }
 
@@ -675,6 +691,8 @@ impl App {
             "fps": self.fps,
             "divisor": self.scale.divisor,
             "gpu_ms": self.scale.gpu_ms,
+            "gpu_last_ms": self.scale.last_ms,
+            "gpu_frames": self.scale.frames,
             "adapter": self.gpu.as_ref().map(|g| g.ctx.adapter_name.clone()),
             "gpu_error": self.gpu_error,
             "first_picture_ms": self.first_picture_ms,
