@@ -644,7 +644,6 @@ impl ApplicationHandler for App {
     }
 }
 
-/// Where the connection stands, in words.
 /// Where a screenshot is copied before presenting, and its row pitch.
 struct ScreenshotReadback {
     buffer: wgpu::Buffer,
@@ -663,35 +662,7 @@ fn screenshot_buffer(
         tracing::warn!("this surface cannot be read back; no screenshot");
         return None;
     }
-    let row = (config.width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
-        * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-    let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("screenshot"),
-        size: u64::from(row) * u64::from(config.height),
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    encoder.copy_texture_to_buffer(
-        wgpu::TexelCopyTextureInfo {
-            texture,
-            mip_level: 0,
-            origin: wgpu::Origin3d::ZERO,
-            aspect: wgpu::TextureAspect::All,
-        },
-        wgpu::TexelCopyBufferInfo {
-            buffer: &buffer,
-            layout: wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(row),
-                rows_per_image: Some(config.height),
-            },
-        },
-        wgpu::Extent3d {
-            width: config.width,
-            height: config.height,
-            depth_or_array_layers: 1,
-        },
-    );
+    let (buffer, row) = crate::gpu::tracer::copy_out(ctx, encoder, texture, 4);
     Some(ScreenshotReadback { buffer, row })
 }
 

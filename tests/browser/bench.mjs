@@ -31,7 +31,7 @@ await page.goto(url);
 await page.waitForFunction(() => window.brickcast && JSON.parse(window.brickcast.state()).first_picture_ms !== null, null, { timeout: 120000, polling: 50 });
 await page.waitForFunction(() => JSON.parse(window.brickcast.state()).synced_ms !== null, null, { timeout: 600000, polling: 100 });
 let s = await state();
-Object.assign(out, { first_picture_ms: s.first_picture_ms, synced_ms: s.synced_ms, bricks: s.bricks, adapter: s.adapter, bytes_in: s.bytes_in });
+Object.assign(out, { started_ms: s.started_ms, gpu_ready_ms: s.gpu_ready_ms, welcome_ms: s.welcome_ms, first_picture_ms: s.first_picture_ms, synced_ms: s.synced_ms, bricks: s.bricks, adapter: s.adapter, bytes_in: s.bytes_in });
 if (camera) {
   const c = camera.split(',').map(Number);
   await page.evaluate((c) => window.brickcast.set_camera(new Float32Array(c.slice(0, 3)), new Float32Array(c.slice(3))), c);
@@ -79,11 +79,11 @@ if (soak > 0) {
   const start = Date.now();
   while (Date.now() - start < soak * 1000) {
     const m = await memory();
-    out.soak.push({ t_s: Math.round((Date.now() - start) / 1000), wasm_bytes: m.wasm_bytes, js_heap_bytes: m.js_heap_bytes, seq: m.state.seq, bricks: m.state.bricks, status: m.state.status });
+    out.soak.push({ t_s: Math.round((Date.now() - start) / 1000), wasm_bytes: m.wasm_bytes, js_heap_bytes: m.js_heap_bytes, seq: m.state.seq, bricks: m.state.bricks, scene_bytes: m.state.scene_bytes, status: m.state.status });
     await sleep(Math.min(30000, soak * 1000 / 10));
   }
   const m = await memory();
-  out.soak.push({ t_s: soak, wasm_bytes: m.wasm_bytes, js_heap_bytes: m.js_heap_bytes, seq: m.state.seq, bricks: m.state.bricks, status: m.state.status });
+  out.soak.push({ t_s: soak, wasm_bytes: m.wasm_bytes, js_heap_bytes: m.js_heap_bytes, seq: m.state.seq, bricks: m.state.bricks, scene_bytes: m.state.scene_bytes, status: m.state.status });
 }
 console.log(JSON.stringify(out, null, 1));
 await browser.close();

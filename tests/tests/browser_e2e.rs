@@ -8,7 +8,7 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail};
 use brickcast_client::link::Link;
 use brickcast_protocol::render::{MISS, colour_distance, render, voxel_index};
-use brickcast_protocol::wire::{ClientMsg, EditOp, ServerMsg};
+use brickcast_protocol::wire::{ClientMsg, EditOp, ServerMsg, View};
 use brickcast_protocol::{Camera, Colour, Lighting};
 use brickcast_tests::browser::Browser;
 use brickcast_tests::{TEST_SCENE, TestServer, fetch, http_get, wait_until};
@@ -186,6 +186,42 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
         before.solid_voxels(),
         after.solid_voxels()
     );
+
+    // Ctrl+Z in the page takes it back (the page's own undo history).
+    browser.call(serde_json::json!({"op": "key", "key": "Control+z"}))?;
+    let undone = wait_until(Duration::from_secs(20), || {
+        fetch(&server.url("demo")).is_ok_and(|r| r.map.solid_voxels() == before.solid_voxels())
+    });
+    assert!(undone, "Ctrl+Z in the page undid its voxel");
+
+    // A native user present with a view shows in the page's roster, and F follows its camera.
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    let url = format!("ws://{}/scenes/demo/ws", server.addr);
+    let mut native = runtime.block_on(Link::connect(&url, "native", 0, None, None))?;
+    let eye = [10.5, 50.5, 20.5];
+    runtime.block_on(native.send(&ClientMsg::Presence {
+        view: Some(View {
+            eye,
+            forward: [1.0, -0.2, 0.0],
+        }),
+        cursor: None,
+    }))?;
+    browser.wait_state("s.others.includes('native')", 20_000)?;
+    browser.call(serde_json::json!({"op": "key", "key": "f"}))?;
+    let followed = browser.wait_state(
+        &format!(
+            "s.camera && Math.abs(s.camera[0] - {}) < 0.01 && Math.abs(s.camera[1] - {}) < 0.01 && Math.abs(s.camera[2] - {}) < 0.01",
+            eye[0], eye[1], eye[2]
+        ),
+        20_000,
+    );
+    assert!(
+        followed.is_ok(),
+        "F in the page rides along with the native user's camera"
+    );
+    runtime.block_on(native.close());
 
     // A native client puts a red voxel in the page's view, right under the camera.
     let pos = [cx as u32, 50, cz as u32];

@@ -141,6 +141,11 @@ pub struct App {
     /// it, and the first of the whole synced scene.
     first_picture_ms: Option<f64>,
     synced_ms: Option<f64>,
+    /// When (ms since the page started loading) the viewer started, its GPU device was ready,
+    /// and the first Welcome arrived: where the time to the first picture goes.
+    started_ms: f64,
+    gpu_ready_ms: Option<f64>,
+    welcome_ms: Option<f64>,
     /// The frame on the GPU shows bricks / the whole synced scene.
     pending_picture: bool,
     pending_synced: bool,
@@ -227,6 +232,9 @@ impl App {
             fps_at: now,
             first_picture_ms: None,
             synced_ms: None,
+            started_ms: now,
+            gpu_ready_ms: None,
+            welcome_ms: None,
             pending_picture: false,
             pending_synced: false,
             camera_sent: false,
@@ -279,6 +287,7 @@ impl App {
             page::message(None);
         }
         page::show("token-form", false);
+        self.welcome_ms.get_or_insert_with(page::now_ms);
         self.camera_sent = false;
         if let Some(replica) = &self.session.replica {
             let size = replica.map.size();
@@ -685,6 +694,7 @@ impl App {
             "synced": replica.is_some_and(|r| r.synced),
             "seq": replica.map(|r| r.seq),
             "bricks": replica.map_or(0, |r| r.map.brick_count()),
+            "scene_bytes": replica.map_or(0, |r| r.map.memory().total_bytes),
             "size": replica.map(|r| r.map.size()),
             "connects": self.session.connects,
             "frames": self.frames,
@@ -695,6 +705,9 @@ impl App {
             "gpu_frames": self.scale.frames,
             "adapter": self.gpu.as_ref().map(|g| g.ctx.adapter_name.clone()),
             "gpu_error": self.gpu_error,
+            "started_ms": self.started_ms,
+            "gpu_ready_ms": self.gpu_ready_ms,
+            "welcome_ms": self.welcome_ms,
             "first_picture_ms": self.first_picture_ms,
             "synced_ms": self.synced_ms,
             "role": self.session.role.map(|r| format!("{r:?}")),
@@ -751,7 +764,9 @@ pub fn start_gpu(app: &Rc<RefCell<App>>) {
             Err(e) => return no_gpu(&app, &e.to_string()),
         };
         let presenter = Presenter::new(&ctx.device, config.format);
-        app.borrow_mut().gpu = Some(Gpu {
+        let mut a = app.borrow_mut();
+        a.gpu_ready_ms = Some(page::now_ms());
+        a.gpu = Some(Gpu {
             ctx: Rc::new(ctx),
             surface,
             config,

@@ -204,37 +204,21 @@ impl Tracer {
                 what: format!("a {width}×{height} image (largest texture side is {max})"),
             });
         }
-        let texture = ctx.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("traced image"),
-            size: wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba8Unorm,
-            usage: wgpu::TextureUsages::STORAGE_BINDING
-                | wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
+        let texture = target_texture(
+            ctx,
+            "traced image",
+            (width, height),
+            wgpu::TextureFormat::Rgba8Unorm,
+            wgpu::TextureUsages::TEXTURE_BINDING,
+        );
         let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
-        let hits = ctx.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("hits"),
-            size: wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rg32Uint,
-            usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
+        let hits = target_texture(
+            ctx,
+            "hits",
+            (width, height),
+            wgpu::TextureFormat::Rg32Uint,
+            wgpu::TextureUsages::empty(),
+        );
         let hits_view = hits.create_view(&wgpu::TextureViewDescriptor::default());
         self.target_generation += 1;
         self.target = Some(Target {
@@ -410,9 +394,34 @@ impl PendingFrame {
     }
 }
 
+/// A 2D texture the tracer writes (storage) and that can be read back (copy source), with
+/// `usage` added.
+fn target_texture(
+    ctx: &GpuContext,
+    label: &str,
+    (width, height): (u32, u32),
+    format: wgpu::TextureFormat,
+    usage: wgpu::TextureUsages,
+) -> wgpu::Texture {
+    ctx.device.create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::COPY_SRC | usage,
+        view_formats: &[],
+    })
+}
+
 /// Records a copy of `texture` (`texel_bytes` per texel) into a new mappable buffer; returns it
 /// with its row pitch.
-fn copy_out(
+pub fn copy_out(
     ctx: &GpuContext,
     encoder: &mut wgpu::CommandEncoder,
     texture: &wgpu::Texture,
