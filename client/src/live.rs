@@ -6,10 +6,9 @@
 //! the render side only while copying changes into GPU upload buffers.
 
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::Duration;
 
 pub use brickcast_client_core::session::Status;
-use brickcast_client_core::session::{ClientSeq, Session};
+use brickcast_client_core::session::{BACKOFF_MAX, BACKOFF_START, ClientSeq, Session};
 use brickcast_protocol::wire::{ClientMsg, Cursor, EditOp, UserId, View};
 use tokio::sync::mpsc;
 
@@ -24,9 +23,6 @@ pub struct Live {
     outbox: mpsc::UnboundedSender<ClientMsg>,
     client_seq: ClientSeq,
 }
-
-const BACKOFF_START: Duration = Duration::from_millis(250);
-const BACKOFF_MAX: Duration = Duration::from_secs(5);
 
 impl Live {
     /// Starts connecting to the websocket address `url` in a background thread.

@@ -39,7 +39,7 @@ use crate::link::websocket_url;
 use crate::live::{Live, Status};
 use crate::overlay::canvas::Canvas;
 use crate::overlay::{OverlayInput, draw as draw_overlay};
-use crate::present::{Presenter, sync_scene};
+use crate::present::{Presenter, acquire, sync_scene};
 
 /// Options of `brickcast view` besides the address.
 #[derive(Debug, Clone, clap::Args)]
@@ -297,15 +297,8 @@ impl App {
         let Some(gpu) = &mut self.gpu else {
             return Ok(());
         };
-        let frame = match gpu.surface.get_current_texture() {
-            wgpu::CurrentSurfaceTexture::Success(t)
-            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
-            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
-                gpu.surface.configure(&gpu.ctx.device, &gpu.config);
-                return Ok(());
-            }
-            // Minimised or covered: nothing to draw.
-            _ => return Ok(()),
+        let Some(frame) = acquire(&gpu.ctx, &gpu.surface, &gpu.config) else {
+            return Ok(());
         };
         let target = frame
             .texture

@@ -20,7 +20,7 @@ use brickcast_client_core::gpu::{
 };
 use brickcast_client_core::overlay::canvas::Canvas;
 use brickcast_client_core::overlay::{OverlayInput, draw as draw_overlay};
-use brickcast_client_core::present::{Presenter, sync_scene};
+use brickcast_client_core::present::{Presenter, acquire, sync_scene};
 use brickcast_client_core::session::{ClientSeq, Session, Status};
 use brickcast_client_core::tools::{Button, ray_edit, step_radius};
 use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, UserId, View};
@@ -195,7 +195,7 @@ impl App {
             seq: ClientSeq::default(),
             socket: None,
             retired: Vec::new(),
-            backoff_ms: 250,
+            backoff_ms: net::BACKOFF_START_MS,
             bytes_in: 0,
             canvas,
             gpu: None,
@@ -558,14 +558,8 @@ impl App {
             gpu.config.height = h;
             gpu.surface.configure(&ctx.device, &gpu.config);
         }
-        let frame = match gpu.surface.get_current_texture() {
-            wgpu::CurrentSurfaceTexture::Success(t)
-            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
-            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
-                gpu.surface.configure(&ctx.device, &gpu.config);
-                return Ok(());
-            }
-            _ => return Ok(()),
+        let Some(frame) = acquire(&ctx, &gpu.surface, &gpu.config) else {
+            return Ok(());
         };
         let target = frame
             .texture

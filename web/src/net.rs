@@ -8,7 +8,7 @@
 use std::cell::RefCell;
 use std::rc::Rc;
 
-use brickcast_client_core::session::{HandshakeError, Status, hello, welcome};
+use brickcast_client_core::session::{self, HandshakeError, Status, hello, welcome};
 use brickcast_protocol::wire::{ClientMsg, ErrorCode, Limits, decode_server, encode_client};
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
@@ -17,8 +17,9 @@ use web_sys::{BinaryType, CloseEvent, MessageEvent, WebSocket};
 use crate::app::App;
 use crate::page;
 
-const BACKOFF_START_MS: i32 = 250;
-const BACKOFF_MAX_MS: i32 = 5000;
+/// The shared backoff, in the milliseconds `setTimeout` takes.
+pub const BACKOFF_START_MS: i32 = session::BACKOFF_START.as_millis() as i32;
+const BACKOFF_MAX_MS: i32 = session::BACKOFF_MAX.as_millis() as i32;
 
 /// One open (or opening) socket and the callbacks that must live as long as it.
 pub struct Socket {

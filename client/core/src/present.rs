@@ -42,6 +42,26 @@ pub fn sync_scene(
     }
 }
 
+/// The target to draw the next frame into, or `None` when there is nothing to draw on now
+/// (minimised, covered, or a lost or outdated surface, which is configured again for the next
+/// frame).
+pub fn acquire(
+    ctx: &GpuContext,
+    surface: &wgpu::Surface<'_>,
+    config: &wgpu::SurfaceConfiguration,
+) -> Option<wgpu::SurfaceTexture> {
+    match surface.get_current_texture() {
+        wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => {
+            Some(t)
+        }
+        wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+            surface.configure(&ctx.device, config);
+            None
+        }
+        _ => None,
+    }
+}
+
 /// Draws a traced image (enlarged without blur) and the overlay onto a target.
 pub struct Presenter {
     blit: wgpu::RenderPipeline,

@@ -6,11 +6,17 @@
 //! resume point, the same reset after a bad delta, the same words for a refusal). The shells own
 //! the socket and the retry timer; [`Session`] owns everything the messages mean.
 
+use std::time::Duration;
+
 use brickcast_protocol::replica::{Replica, ReplicaError};
 use brickcast_protocol::roster::Roster;
 use brickcast_protocol::wire::{
     ClientMsg, EditOp, ErrorCode, Limits, PROTOCOL_VERSION, Peer, Role, ServerMsg, UserId,
 };
+
+/// First wait before reconnecting after a lost connection; it doubles up to [`BACKOFF_MAX`].
+pub const BACKOFF_START: Duration = Duration::from_millis(250);
+pub const BACKOFF_MAX: Duration = Duration::from_secs(5);
 
 /// Where the connection stands, for the status line.
 #[derive(Debug, Clone, PartialEq)]
