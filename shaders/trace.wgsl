@@ -1,6 +1,6 @@
-// The GPU tracer: a line-by-line twin of `protocol/src/trace.rs` (the DDA) and
-// `protocol/src/render.rs` (camera rays, shading, sky). Read those first; the comments there say
-// why each step is the way it is. Differences, all forced by WGSL:
+// The GPU tracer: a line-by-line twin of `protocol/src/trace.rs` (the DDA), `protocol/src/render.rs`
+// (camera rays) and `protocol/src/shade.rs` (shading, sky). Read those first; the comments there
+// say why each step is the way it is. Differences, all forced by WGSL:
 //
 // * No infinity literal: `BIG` stands in for +inf. Plane times of moving axes are finite and far
 //   below it, so every comparison comes out as it would with a real infinity.
@@ -23,6 +23,12 @@ const BRICK_EDGE: i32 = 8;
 const MIN_DIRECTION: f32 = 1e-30;
 const NO_AXIS: i32 = -1;
 const MISS: u32 = 0xFFFFFFFFu;
+// `trace::AFTER_ALL`: an axis number after every real axis.
+const AFTER_ALL: i32 = 3;
+// `beam.rs`.
+const TILE: u32 = 8u;
+const BEAM_MARGIN: f32 = 1.0;
+const BEAM_MAX_STEPS: u32 = 48u;
 
 struct Frame {
     eye: vec4<f32>,
@@ -30,9 +36,13 @@ struct Frame {
     // Scaled to one pixel at unit distance, as `Projection` has them.
     right: vec4<f32>,
     up: vec4<f32>,
-    // xyz: unit vector towards the sun; w: ambient.
+    // `LightUniform` (shade.rs): xyz: unit vector towards the sun; w: sun strength.
     sun: vec4<f32>,
-    // xyz: scene size in voxels; w: 1 to trace shadow rays.
+    // x, z: the sun's compass direction times SUN_SIDE; y: sky scale; w: headlight.
+    sky: vec4<f32>,
+    // x: exposure; y: 1 for shadows; z: 1 for ambient occlusion.
+    flags: vec4<f32>,
+    // xyz: scene size in voxels.
     size: vec4<u32>,
     // xyz: regions per axis; w: iteration budget per ray.
     region_dims: vec4<u32>,
@@ -40,6 +50,9 @@ struct Frame {
     cell_dims: vec4<u32>,
     // x, y: image size in pixels.
     image: vec4<u32>,
+    // `BrickMap::occupied_regions`, inclusive region bounds; w: 1 when any region is occupied.
+    occupied_lo: vec4<i32>,
+    occupied_hi: vec4<i32>,
 }
 
 @group(0) @binding(0) var<uniform> frame: Frame;
@@ -172,8 +185,8 @@ fn settle(i: i32, lo: i32, hi: i32, at: f32, k: i32) -> i32 {
     return settle_scaled(i, lo, hi, at, k, 1);
 }
 
-// `Dda::start`: false when the ray misses the grid or is unusable.
-fn start(origin: vec3<f32>, dir: vec3<f32>) -> bool {
+// `Dda::start_in`: false when the ray misses the box `lo..hi` or is unusable.
+fn start_in(origin: vec3<f32>, dir: vec3<f32>, lo: vec3<i32>, hi: vec3<i32>, t_min: f32) -> bool {
     o = origin;
     d = dir;
     n = vec3<i32>(frame.size.xyz);
@@ -200,7 +213,8 @@ fn start(origin: vec3<f32>, dir: vec3<f32>) -> bool {
             first[i] = i32(floor(origin[i]));
         }
     }
-    if all(first >= vec3<i32>(0)) && all(first < n) {
+    let inside = all(first >= lo) && all(first < hi);
+    if inside && t_min <= 0.0 {
         v = first;
     } else {
         var near = -BIG;
@@ -209,7 +223,7 @@ fn start(origin: vec3<f32>, dir: vec3<f32>) -> bool {
         var far_axis = 0;
         for (var i = 0; i < 3; i++) {
             if stp[i] == 0 {
-                if origin[i] < 0.0 || origin[i] >= f32(n[i]) {
+                if origin[i] < f32(lo[i]) || origin[i] >= f32(hi[i]) {
                     return false;
                 }
                 continue;
@@ -217,11 +231,11 @@ fn start(origin: vec3<f32>, dir: vec3<f32>) -> bool {
             var enter: f32;
             var leave: f32;
             if stp[i] > 0 {
-                enter = plane_t(i, 0);
-                leave = plane_t(i, n[i]);
+                enter = plane_t(i, lo[i]);
+                leave = plane_t(i, hi[i]);
             } else {
-                enter = plane_t(i, n[i]);
-                leave = plane_t(i, 0);
+                enter = plane_t(i, hi[i]);
+                leave = plane_t(i, lo[i]);
             }
             if !before(enter, i, near, near_axis) {
                 near = enter;
@@ -232,19 +246,32 @@ fn start(origin: vec3<f32>, dir: vec3<f32>) -> bool {
                 far_axis = i;
             }
         }
-        if !before(near, near_axis, far, far_axis) || near < 0.0 {
-            return false;
-        }
-        let k = near_axis;
-        for (var i = 0; i < 3; i++) {
-            if i == k {
-                v[i] = select(n[k] - 1, 0, stp[k] > 0);
-            } else {
-                v[i] = settle(i, 0, n[i] - 1, near, k);
+        if t_min > 0.0 && (inside || before(near, near_axis, t_min, AFTER_ALL)) {
+            if !before(t_min, AFTER_ALL, far, far_axis) {
+                return false;
             }
+            for (var i = 0; i < 3; i++) {
+                v[i] = settle(i, lo[i], hi[i] - 1, t_min, AFTER_ALL);
+            }
+            t = t_min;
+            axis = NO_AXIS;
+        } else if inside {
+            v = first;
+        } else {
+            if !before(near, near_axis, far, far_axis) || near < 0.0 {
+                return false;
+            }
+            let k = near_axis;
+            for (var i = 0; i < 3; i++) {
+                if i == k {
+                    v[i] = select(hi[k] - 1, lo[k], stp[k] > 0);
+                } else {
+                    v[i] = settle(i, lo[i], hi[i] - 1, near, k);
+                }
+            }
+            t = near;
+            axis = k;
         }
-        t = near;
-        axis = k;
     }
     for (var i = 0; i < 3; i++) {
         next[i] = exit_t(i, v[i]);
@@ -305,9 +332,15 @@ fn make_hit(colour: u32) -> Hit {
     return Hit(true, v, colour, normal, t);
 }
 
-// `trace_with_stats`, without the stats.
-fn trace(origin: vec3<f32>, dir: vec3<f32>) -> Hit {
-    if !start(origin, dir) {
+// `trace_from_with_stats`, without the stats: only the occupied box is traced, from `t_min`.
+fn trace(origin: vec3<f32>, dir: vec3<f32>, t_min: f32) -> Hit {
+    if frame.occupied_lo.w == 0 || t_min >= BIG {
+        return miss();
+    }
+    let rlo = frame.occupied_lo.xyz;
+    let rhi = frame.occupied_hi.xyz;
+    let box_hi = min((rhi + vec3<i32>(1)) * REGION_EDGE, vec3<i32>(frame.size.xyz));
+    if !start_in(origin, dir, rlo * REGION_EDGE, box_hi, t_min) {
         return miss();
     }
     let rdims = vec3<i32>(frame.region_dims.xyz);
@@ -332,8 +365,8 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> Hit {
             v_valid = false;
             let clear = region_clearance(entry);
             if clear >= 2 {
-                let lo = max(r - vec3<i32>(clear), vec3<i32>(0));
-                let hi = min(r + vec3<i32>(clear), rdims - vec3<i32>(1));
+                let lo = max(r - vec3<i32>(clear), rlo);
+                let hi = min(r + vec3<i32>(clear), rhi);
                 let exit = block_exit(select(lo, hi, stp > vec3<i32>(0)), REGION_EDGE);
                 let k = earliest(exit);
                 t = exit[k];
@@ -352,7 +385,7 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> Hit {
                 r[k] += stp[k];
             }
             let k = axis;
-            if r[k] < 0 || r[k] >= rdims[k] {
+            if r[k] < rlo[k] || r[k] > rhi[k] {
                 return miss();
             }
             rnext[k] = block_exit_t(k, r[k], REGION_EDGE);
@@ -418,7 +451,7 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> Hit {
             }
             if c[k] / 4 != r[k] {
                 r[k] += stp[k];
-                if r[k] < 0 || r[k] >= rdims[k] {
+                if r[k] < rlo[k] || r[k] > rhi[k] {
                     return miss();
                 }
                 rnext[k] = block_exit_t(k, r[k], REGION_EDGE);
@@ -429,13 +462,32 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> Hit {
     return miss();
 }
 
-// ---- shading (render.rs) ---------------------------------------------------------------------
+// ---- shading (shade.rs) ----------------------------------------------------------------------
 
-fn colour_f32(c: u32) -> vec3<f32> {
+const SKY_ZENITH: vec3<f32> = vec3<f32>(0.80, 0.88, 1.0);
+const SKY_GROUND: vec3<f32> = vec3<f32>(0.22, 0.20, 0.18);
+const SUN_COLOUR: vec3<f32> = vec3<f32>(1.0, 0.94, 0.82);
+const AO_FLOOR: f32 = 0.3;
+
+fn srgb_to_linear(c: f32) -> f32 {
+    if c <= 0.04045 {
+        return c / 12.92;
+    }
+    return pow((c + 0.055) / 1.055, 2.4);
+}
+
+fn linear_to_srgb(c: f32) -> f32 {
+    if c <= 0.0031308 {
+        return c * 12.92;
+    }
+    return 1.055 * pow(c, 1.0 / 2.4) - 0.055;
+}
+
+fn albedo(c: u32) -> vec3<f32> {
     let r5 = f32((c >> 11u) & 0x1Fu);
     let g6 = f32((c >> 5u) & 0x3Fu);
     let b5 = f32(c & 0x1Fu);
-    return vec3<f32>(r5 / 31.0, g6 / 63.0, b5 / 31.0);
+    return vec3<f32>(srgb_to_linear(r5 / 31.0), srgb_to_linear(g6 / 63.0), srgb_to_linear(b5 / 31.0));
 }
 
 fn sky(dir: vec3<f32>) -> vec3<f32> {
@@ -445,27 +497,239 @@ fn sky(dir: vec3<f32>) -> vec3<f32> {
     return vec3<f32>(0.80 - 0.35 * s, 0.87 - 0.25 * s, 0.95 - 0.05 * s);
 }
 
-fn shadowed(hit: Hit) -> bool {
-    if frame.size.w == 0u || all(hit.normal == vec3<i32>(0)) {
+fn sky_light(nrm: vec3<f32>) -> vec3<f32> {
+    let h = 0.5 + 0.5 * nrm.y;
+    let side = 1.0 + nrm.x * frame.sky.x + nrm.z * frame.sky.z;
+    let scale = side * frame.sky.y;
+    return (SKY_GROUND + (SKY_ZENITH - SKY_GROUND) * h) * scale;
+}
+
+// `BrickMap::is_solid`: false outside the grid.
+fn solid(p: vec3<i32>) -> bool {
+    if any(p < vec3<i32>(0)) || any(p >= vec3<i32>(frame.size.xyz)) {
         return false;
     }
-    let front = vec3<f32>(hit.voxel + hit.normal) + vec3<f32>(0.5);
-    return trace(front, frame.sun.xyz).found;
+    let rdims = vec3<i32>(frame.region_dims.xyz);
+    let r = p / REGION_EDGE;
+    let entry = regions[u32(r.x + rdims.x * (r.y + rdims.y * r.z))];
+    if region_is_empty(entry) {
+        return false;
+    }
+    let c = p / BRICK_EDGE;
+    let local = u32((c.x & 3) | ((c.y & 3) << 2u) | ((c.z & 3) << 4u));
+    let slot = cell_word(entry * 64u + local);
+    if slot == EMPTY {
+        return false;
+    }
+    let bit = u32((p.x & 7) | ((p.y & 7) << 3u) | ((p.z & 7) << 6u));
+    return ((mask_word(slot * 16u + (bit >> 5u)) >> (bit & 31u)) & 1u) != 0u;
 }
 
-fn shade(hit: Hit, in_shadow: bool) -> vec3<f32> {
-    let nrm = vec3<f32>(hit.normal);
-    var diffuse = 0.0;
-    if !in_shadow {
-        diffuse = max(dot(nrm, frame.sun.xyz), 0.0);
-    }
-    let ambient = frame.sun.w;
-    let light = ambient + (1.0 - ambient) * diffuse;
-    return colour_f32(hit.colour) * light;
+fn occupied(p: vec3<i32>) -> f32 {
+    return select(0.0, 1.0, solid(p));
 }
+
+fn corner_level(side_a: f32, side_b: f32, diagonal: f32) -> f32 {
+    if side_a + side_b == 2.0 {
+        return 0.0;
+    }
+    return 3.0 - (side_a + side_b + diagonal);
+}
+
+// `ambient_occlusion`.
+fn ambient_occlusion(hit: Hit, origin: vec3<f32>, dir: vec3<f32>) -> f32 {
+    var k = -1;
+    for (var i = 0; i < 3; i++) {
+        if k < 0 && hit.normal[i] != 0 {
+            k = i;
+        }
+    }
+    if k < 0 {
+        return 1.0;
+    }
+    let a = (k + 1) % 3;
+    let b = (k + 2) % 3;
+    var ea = vec3<i32>(0);
+    ea[a] = 1;
+    var eb = vec3<i32>(0);
+    eb[b] = 1;
+    let front = hit.voxel + hit.normal;
+    let am = occupied(front - ea);
+    let ap = occupied(front + ea);
+    let bm = occupied(front - eb);
+    let bp = occupied(front + eb);
+    let l00 = corner_level(am, bm, occupied(front - ea - eb));
+    let l10 = corner_level(ap, bm, occupied(front + ea - eb));
+    let l01 = corner_level(am, bp, occupied(front - ea + eb));
+    let l11 = corner_level(ap, bp, occupied(front + ea + eb));
+    let u = clamp(origin[a] + dir[a] * hit.t - f32(hit.voxel[a]), 0.0, 1.0);
+    let w = clamp(origin[b] + dir[b] * hit.t - f32(hit.voxel[b]), 0.0, 1.0);
+    let lo = l00 + (l10 - l00) * u;
+    let hi = l01 + (l11 - l01) * u;
+    let level = lo + (hi - lo) * w;
+    return AO_FLOOR + (1.0 - AO_FLOOR) * (level / 3.0);
+}
+
+// `sun_reaches`.
+fn sun_reaches(hit: Hit) -> bool {
+    if frame.flags.y == 0.0 || all(hit.normal == vec3<i32>(0)) {
+        return true;
+    }
+    let front = vec3<f32>(hit.voxel + hit.normal) + vec3<f32>(0.5);
+    return !trace(front, frame.sun.xyz, 0.0).found;
+}
+
+// `shade`.
+fn shade(hit: Hit, dir: vec3<f32>, sun_visible: bool, ao: f32) -> vec3<f32> {
+    let nrm = vec3<f32>(hit.normal);
+    let sky_in = sky_light(nrm);
+    let len = sqrt(dot(dir, dir));
+    var facing = 0.0;
+    if len > 0.0 {
+        facing = max(-dot(nrm, dir) / len, 0.0);
+    }
+    let head = frame.sky.w * facing;
+    let cos_sun = max(dot(nrm, frame.sun.xyz), 0.0);
+    var sun = 0.0;
+    if sun_visible {
+        sun = frame.sun.w * cos_sun;
+    }
+    let light = (sky_in + vec3<f32>(head)) * ao + SUN_COLOUR * sun;
+    let c = albedo(hit.colour) * light * frame.flags.x;
+    let mapped = vec3<f32>(1.0) - exp(-c);
+    return vec3<f32>(linear_to_srgb(mapped.x), linear_to_srgb(mapped.y), linear_to_srgb(mapped.z));
+}
+
+// `shade_hit`.
+fn shade_hit(hit: Hit, origin: vec3<f32>, dir: vec3<f32>) -> vec3<f32> {
+    let faces_sun = dot(vec3<f32>(hit.normal), frame.sun.xyz) > 0.0 && frame.sun.w > 0.0;
+    var sun_visible = false;
+    if faces_sun {
+        sun_visible = sun_reaches(hit);
+    }
+    var ao = 1.0;
+    if frame.flags.z != 0.0 {
+        ao = ambient_occlusion(hit, origin, dir);
+    }
+    return shade(hit, dir, sun_visible, ao);
+}
+
+// ---- the beam pre-pass (beam.rs) -------------------------------------------------------------
+
+// `Beam::safe_start` for the tile whose top-left pixel is `p0`: BIG when the tile's rays never
+// reach an occupied region.
+fn safe_start(p0: vec2<u32>) -> f32 {
+    if frame.occupied_lo.w == 0 {
+        return BIG;
+    }
+    let width = frame.image.x;
+    let height = frame.image.y;
+    let x1 = max(min(p0.x + TILE, width), p0.x + 1u);
+    let y1 = max(min(p0.y + TILE, height), p0.y + 1u);
+    let uc = f32(p0.x + x1) * 0.5 - f32(width) * 0.5;
+    let vc = f32(height) * 0.5 - f32(p0.y + y1) * 0.5;
+    let hu = f32(x1 - p0.x - 1u) * 0.5;
+    let hv = f32(y1 - p0.y - 1u) * 0.5;
+    let eye = frame.eye.xyz;
+    let c = frame.forward.xyz + frame.right.xyz * uc + frame.up.xyz * vc;
+    let s = abs(frame.right.xyz) * hu + abs(frame.up.xyz) * hv;
+    let rlo = frame.occupied_lo.xyz;
+    let rhi = frame.occupied_hi.xyz;
+    let r = f32(REGION_EDGE);
+    let box_lo = vec3<f32>(rlo) * r;
+    let box_hi = min(vec3<f32>(rhi + vec3<i32>(1)) * r, vec3<f32>(frame.size.xyz));
+    let rdims = vec3<i32>(frame.region_dims.xyz);
+    var tt = 0.0;
+    for (var step_n = 0u; step_n < BEAM_MAX_STEPS; step_n++) {
+        let p = eye + c * tt;
+        let hw = s * tt + vec3<f32>(BEAM_MARGIN);
+        let lo = p - hw;
+        let hi = p + hw;
+        var elo = vec3<f32>(-BIG);
+        var ehi = vec3<f32>(BIG);
+        var outside = -1;
+        for (var i = 0; i < 3; i++) {
+            if outside < 0 && (hi[i] < box_lo[i] || lo[i] > box_hi[i]) {
+                outside = i;
+            }
+        }
+        if outside >= 0 {
+            let i = outside;
+            if hi[i] < box_lo[i] {
+                ehi[i] = box_lo[i];
+            } else {
+                elo[i] = box_hi[i];
+            }
+        } else {
+            var cell: vec3<i32>;
+            for (var i = 0; i < 3; i++) {
+                let q = clamp(p[i], box_lo[i], box_hi[i] - 0.5);
+                cell[i] = clamp(i32(q / r), rlo[i], rhi[i]);
+            }
+            let entry = regions[u32(cell.x + rdims.x * (cell.y + rdims.y * cell.z))];
+            if !region_is_empty(entry) {
+                return tt;
+            }
+            let clear = f32(region_clearance(entry));
+            for (var i = 0; i < 3; i++) {
+                elo[i] = (f32(cell[i]) - clear) * r;
+                ehi[i] = (f32(cell[i]) + clear + 1.0) * r;
+                if elo[i] <= box_lo[i] {
+                    elo[i] = -BIG;
+                }
+                if ehi[i] >= box_hi[i] {
+                    ehi[i] = BIG;
+                }
+            }
+        }
+        var adv = BIG;
+        for (var i = 0; i < 3; i++) {
+            if ehi[i] < BIG {
+                let room = ehi[i] - hi[i];
+                if room < 0.0 {
+                    return tt;
+                }
+                let rate = c[i] + s[i];
+                if rate > 0.0 {
+                    adv = min(adv, room / rate);
+                }
+            }
+            if elo[i] > -BIG {
+                let room = lo[i] - elo[i];
+                if room < 0.0 {
+                    return tt;
+                }
+                let rate = s[i] - c[i];
+                if rate > 0.0 {
+                    adv = min(adv, room / rate);
+                }
+            }
+        }
+        if adv >= BIG {
+            return BIG;
+        }
+        if !(adv > 0.0) {
+            return tt;
+        }
+        tt += adv;
+    }
+    return tt;
+}
+
+// One workgroup is one tile: its first invocation marches the tile's beam, all share the start.
+var<workgroup> tile_start: f32;
 
 @compute @workgroup_size(8, 8, 1)
-fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+fn main(
+    @builtin(global_invocation_id) id: vec3<u32>,
+    @builtin(local_invocation_index) local_index: u32,
+    @builtin(workgroup_id) wg: vec3<u32>,
+) {
+    if local_index == 0u {
+        tile_start = safe_start(wg.xy * TILE);
+    }
+    workgroupBarrier();
+    let t0 = tile_start;
     let width = frame.image.x;
     let height = frame.image.y;
     if id.x >= width || id.y >= height {
@@ -474,11 +738,11 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let u = f32(id.x) + 0.5 - f32(width) * 0.5;
     let vv = f32(height) * 0.5 - (f32(id.y) + 0.5);
     let dir = frame.forward.xyz + frame.right.xyz * u + frame.up.xyz * vv;
-    let hit = trace(frame.eye.xyz, dir);
+    let hit = trace(frame.eye.xyz, dir, t0);
     var rgb: vec3<f32>;
     var record = vec2<u32>(MISS, MISS);
     if hit.found {
-        rgb = shade(hit, shadowed(hit));
+        rgb = shade_hit(hit, frame.eye.xyz, dir);
         let p = vec3<u32>(hit.voxel);
         record = vec2<u32>(p.x | (p.y << 16u), p.z);
     } else {

@@ -33,9 +33,16 @@ fn gpu_trace(c: &mut Criterion) {
     group.throughput(Throughput::Elements(u64::from(w * h)));
     for (name, camera) in cameras {
         let projection = camera.project(w, h).expect("camera");
-        for (variant, shadows) in [("primary", false), ("shaded", true)] {
+        // "primary": one ray per pixel and the shading arithmetic; "sun": plus the shadow ray
+        // where a face turns to the sun; "shaded": plus ambient occlusion (the viewer's default).
+        for (variant, shadows, ao) in [
+            ("primary", false, false),
+            ("sun", true, false),
+            ("shaded", true, true),
+        ] {
             let lighting = Lighting {
                 shadows,
+                ao,
                 ..Lighting::default()
             };
             // Warm-up: pipeline compilation and first-touch of the buffers.

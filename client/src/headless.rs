@@ -4,7 +4,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use brickcast_protocol::{Camera, Lighting, Projection};
+use brickcast_protocol::viewpoint;
+use brickcast_protocol::{BrickMap, Camera, Lighting, Projection};
 use serde::Serialize;
 
 use crate::gpu::{BackendChoice, GpuContext, GpuScene, Tracer};
@@ -48,13 +49,25 @@ pub async fn fetch(url: &str, token: Option<&str>) -> Result<(Replica, f64)> {
     Ok((replica, sync_ms))
 }
 
-/// The camera a user asked for, with the scene overview filling in what they left out.
-pub fn camera(size: [u32; 3], eye: Option<[f32; 3]>, target: Option<[f32; 3]>, fov: f32) -> Camera {
-    let overview = Camera::overview(size);
-    Camera {
-        eye: eye.unwrap_or(overview.eye),
-        target: target.unwrap_or(overview.target),
-        fov_y: fov,
+/// The camera a user asked for. Without `--eye`, the first camera [`viewpoint::find`] picks
+/// for the scene (outside framing the model, or inside an enclosed one); a `--target` given
+/// alone replaces only its target. With `--eye` and no `--target`, it looks at the scene's
+/// centre.
+pub fn camera(map: &BrickMap, eye: Option<[f32; 3]>, target: Option<[f32; 3]>, fov: f32) -> Camera {
+    match eye {
+        None => {
+            let found = viewpoint::find(map, fov).camera;
+            Camera {
+                target: target.unwrap_or(found.target),
+                fov_y: fov,
+                ..found
+            }
+        }
+        Some(eye) => Camera {
+            eye,
+            target: target.unwrap_or(map.size().map(|s| s as f32 * 0.5)),
+            fov_y: fov,
+        },
     }
 }
 
@@ -142,6 +155,7 @@ pub struct RenderJob<'a> {
     pub cpu: bool,
     pub backends: BackendChoice,
     pub timed_frames: u32,
+    pub lighting: Lighting,
 }
 
 pub fn run(job: &RenderJob<'_>) -> Result<RenderReport> {
@@ -149,15 +163,14 @@ pub fn run(job: &RenderJob<'_>) -> Result<RenderReport> {
         .enable_all()
         .build()?;
     let (mut replica, sync_ms) = runtime.block_on(fetch(job.url, job.token))?;
-    let size = replica.map.size();
-    let camera = camera(size, job.eye, job.target, job.fov);
+    let camera = camera(&replica.map, job.eye, job.target, job.fov);
     let projection = camera.project(job.width, job.height).with_context(|| {
         format!(
             "the camera is degenerate (eye {:?}, target {:?}, fov {}, {}×{})",
             camera.eye, camera.target, camera.fov_y, job.width, job.height
         )
     })?;
-    let lighting = Lighting::default();
+    let lighting = job.lighting;
     let rendered = if job.cpu {
         render_cpu(&replica, &projection, &lighting, job.timed_frames)
     } else {

@@ -4,6 +4,7 @@
 
 pub mod headless;
 pub mod identity;
+pub mod light;
 pub mod link;
 pub mod live;
 pub mod load;
@@ -12,4 +13,7 @@ pub mod viewer;
 
 // The portable half (also compiled into the browser viewer), under the paths this crate has
 // always used.
-pub use brickcast_client_core::{Instant, camera, follow, gpu, overlay, present, session, tools};
+pub use brickcast_client_core::{
+    Instant, camera, follow, gpu, overlay, present, session, shading, tools,
+};
+pub use light::LightArgs;

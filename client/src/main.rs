@@ -44,11 +44,11 @@ enum Command {
         width: u32,
         #[arg(long, default_value_t = 360)]
         height: u32,
-        /// Camera position in voxels, "x,y,z" (default: above a corner of the scene).
-        #[arg(long, value_parser = parse_vec3)]
+        /// Camera position in voxels, "x,y,z" (default: the scene's first camera, see README).
+        #[arg(long, value_parser = brickcast_client::light::parse_vec3)]
         eye: Option<[f32; 3]>,
         /// Point the camera looks at, "x,y,z".
-        #[arg(long, value_parser = parse_vec3)]
+        #[arg(long, value_parser = brickcast_client::light::parse_vec3)]
         target: Option<[f32; 3]>,
         /// Vertical field of view in degrees.
         #[arg(long, default_value_t = 60.0)]
@@ -65,6 +65,8 @@ enum Command {
         /// Only use Vulkan adapters (no fallback to other APIs).
         #[arg(long)]
         vulkan: bool,
+        #[command(flatten)]
+        light: brickcast_client::LightArgs,
     },
     /// Load-test a server: many clients edit one scene; report throughput and latency, and
     /// check that every client's copy ends equal to the server's (non-zero exit if not).
@@ -74,20 +76,6 @@ enum Command {
         #[command(flatten)]
         args: brickcast_client::load::LoadArgs,
     },
-}
-
-fn parse_vec3(text: &str) -> Result<[f32; 3], String> {
-    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
-    let [x, y, z] = parts.as_slice() else {
-        return Err(format!("expected x,y,z, got {text:?}"));
-    };
-    let parse = |s: &str| {
-        s.parse::<f32>()
-            .ok()
-            .filter(|v| v.is_finite())
-            .ok_or_else(|| format!("{s:?} is not a finite number"))
-    };
-    Ok([parse(x)?, parse(y)?, parse(z)?])
 }
 
 fn main() -> Result<()> {
@@ -133,6 +121,7 @@ fn main() -> Result<()> {
             frames,
             json,
             vulkan,
+            light,
         } => {
             if width == 0 || height == 0 || width > 16384 || height > 16384 {
                 bail!("image size {width}×{height} is out of range (1..=16384 per side)");
@@ -153,6 +142,7 @@ fn main() -> Result<()> {
                     BackendChoice::Primary
                 },
                 timed_frames: frames,
+                lighting: light.lighting()?,
             })?;
             if json {
                 println!(

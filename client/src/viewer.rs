@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow};
 use brickcast_protocol::wire::{Cursor, Role, View};
-use brickcast_protocol::{Camera, Colour, Lighting, Projection};
+use brickcast_protocol::{Colour, Lighting, Projection};
 use winit::application::ApplicationHandler;
 use winit::event::{
     DeviceEvent, DeviceId, ElementState, MouseButton, MouseScrollDelta, WindowEvent,
@@ -29,8 +29,9 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, ModifiersState, PhysicalKey};
 use winit::window::{CursorGrabMode, Window, WindowId};
 
-pub use brickcast_client_core::camera::FlyCamera;
+pub use brickcast_client_core::camera::{FirstView, FlyCamera};
 use brickcast_client_core::camera::{PALETTE, movement};
+use brickcast_client_core::shading::shading_key;
 use brickcast_client_core::tools::{Button, ray_edit, step_radius};
 
 use crate::follow::Follow;
@@ -66,6 +67,8 @@ pub struct ViewArgs {
     /// Ride along with this user's camera as soon as they are present (F cycles, moving stops).
     #[arg(long)]
     pub follow: Option<String>,
+    #[command(flatten)]
+    pub light: crate::LightArgs,
 }
 
 /// Everything that exists once the window does.
@@ -87,6 +90,9 @@ struct App {
     gpu: Option<Gpu>,
     error: Option<anyhow::Error>,
     camera: Option<FlyCamera>,
+    first_view: FirstView,
+    /// Starts from `--no-ao` and friends; the O, L and H keys switch it (`SHADING_KEYS`).
+    lighting: Lighting,
     keys: HashSet<KeyCode>,
     modifiers: ModifiersState,
     cursor: (f64, f64),
@@ -133,6 +139,7 @@ pub fn run(url: &str, token: Option<String>, args: ViewArgs) -> Result<()> {
     let live = Live::start(url, name, crate::identity::user_id(), token)
         .context("starting the network thread")?;
     let follow = Follow::by_name(args.follow.clone());
+    let lighting = args.light.lighting()?;
     let mut app = App {
         args: ViewArgs {
             size: format!("{w}x{h}"),
@@ -144,6 +151,8 @@ pub fn run(url: &str, token: Option<String>, args: ViewArgs) -> Result<()> {
         gpu: None,
         error: None,
         camera: None,
+        first_view: FirstView::default(),
+        lighting,
         keys: HashSet::new(),
         modifiers: ModifiersState::empty(),
         cursor: (0.0, 0.0),
@@ -266,10 +275,8 @@ impl App {
             let undo = live.last_undo.clone();
             let synced = match &mut live.replica {
                 Some(replica) => {
-                    let size = replica.map.size();
-                    if self.camera.is_none() {
-                        self.camera = Some(FlyCamera::from_camera(&Camera::overview(size), size));
-                    }
+                    self.first_view
+                        .place(&mut self.camera, &replica.map, replica.synced);
                     sync_scene(&gpu.ctx, &mut gpu.scene, replica)?;
                     replica.synced
                 }
@@ -322,7 +329,7 @@ impl App {
                         &mut encoder,
                         scene,
                         &projection,
-                        &Lighting::default(),
+                        &self.lighting,
                     )?;
                     self.projection = Some(projection);
                     true
@@ -552,6 +559,9 @@ impl ApplicationHandler for App {
                 }
                 let ctrl = self.modifiers.control_key();
                 let shift = self.modifiers.shift_key();
+                if shading_key(&mut self.lighting, &format!("{code:?}")).is_some() {
+                    return;
+                }
                 match code {
                     KeyCode::KeyZ if ctrl => self.live.undo(shift),
                     KeyCode::KeyY if ctrl => self.live.undo(true),

@@ -191,6 +191,68 @@ fn demo_scene_matches_the_cpu_tracer_from_several_cameras() {
     assert!(hits > 160 * 96 / 3, "overview hit only {hits} pixels");
 }
 
+/// An untextured enclosed room seen from its first camera (inside): the sun reaches nothing, so
+/// only the sky light, ambient occlusion and the headlight can tell faces apart. Both twins must
+/// agree, and faces of the one grey that face different ways must differ visibly.
+#[test]
+fn enclosed_room_matches_and_shows_its_shape() {
+    use brickcast_protocol::trace::trace;
+    use brickcast_protocol::viewpoint::{Placement, find};
+    let ctx = gpu();
+    let mut map = brickcast_protocol::demo::room_scene([160, 72, 128]).expect("room");
+    let found = find(&map, 60.0);
+    assert!(matches!(found.placement, Placement::Inside), "{found:?}");
+    let scene = GpuScene::new(&ctx, &mut map, None).expect("upload");
+    let mut tracer = Tracer::new(&ctx).expect("tracer");
+    let projection = found.camera.project(192, 108).expect("camera");
+    let hits = assert_twins("room", &ctx, &scene, &mut tracer, &map, &projection);
+    assert_eq!(hits, 192 * 108, "an enclosed room: every pixel hits");
+
+    // Group the CPU picture's pixels by the direction of the face they show.
+    let frame = render(&map, &projection, &Lighting::default(), 0);
+    let mut by_normal: std::collections::BTreeMap<[i32; 3], Vec<u8>> = Default::default();
+    for y in 0..projection.height {
+        for x in 0..projection.width {
+            if let Some(hit) = trace(&map, &projection.ray(x, y)) {
+                let grey = frame.pixels[(y * projection.width + x) as usize][0];
+                by_normal.entry(hit.normal).or_default().push(grey);
+            }
+        }
+    }
+    let medians: Vec<([i32; 3], u8)> = by_normal
+        .into_iter()
+        .filter(|(_, v)| v.len() >= 100)
+        .map(|(n, mut v)| {
+            v.sort_unstable();
+            (n, v[v.len() / 2])
+        })
+        .collect();
+    assert!(
+        medians.len() >= 4,
+        "the view shows floor, walls and furniture sides: {medians:?}"
+    );
+    for (i, (na, a)) in medians.iter().enumerate() {
+        for (nb, b) in &medians[i + 1..] {
+            assert!(
+                a.abs_diff(*b) >= 6,
+                "faces facing {na:?} and {nb:?} look alike ({a} vs {b}): {medians:?}"
+            );
+        }
+    }
+    // The old lighting (a constant ambient, no sun indoors) painted all of them one grey.
+    let flat = Lighting {
+        sky: 0.0,
+        headlight: 0.0,
+        ao: false,
+        ..Lighting::default()
+    };
+    let dark = render(&map, &projection, &flat, 0);
+    assert!(
+        dark.pixels.iter().all(|p| p[0] == dark.pixels[0][0]),
+        "without sky light every face is alike"
+    );
+}
+
 /// Scenes made by the mesh importer: surfaces at every angle, one voxel thick, textured.
 #[test]
 fn voxelized_mesh_matches_the_cpu_tracer() {

@@ -1,8 +1,9 @@
 //! Prints where a frame's rays spend their steps (regions, cells, voxels): a guide for tuning
 //! empty-space skipping. `cargo run --release -p brickcast-protocol --example trace_stats`
+use brickcast_protocol::beam::{Beam, TILE};
 use brickcast_protocol::demo::demo_scene;
 use brickcast_protocol::render::trace_frame;
-use brickcast_protocol::trace::{TraceStats, trace_with_stats};
+use brickcast_protocol::trace::{TraceStats, trace_from_with_stats};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let map = demo_scene([1024, 1024, 1024])?;
@@ -18,15 +19,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let p = camera.project(640, 360).ok_or("camera")?;
         let mut total = TraceStats::default();
         let mut hits = 0u64;
+        let mut skipped_tiles = 0u32;
+        let mut tiles = 0u32;
         for y in 0..360 {
             for x in 0..640 {
+                let (tx, ty) = (x / TILE * TILE, y / TILE * TILE);
+                let t0 = Beam::tile(&p, tx, ty, tx + TILE, ty + TILE).safe_start(&map);
+                if x % TILE == 0 && y % TILE == 0 {
+                    tiles += 1;
+                    skipped_tiles += u32::from(t0 > 0.0);
+                }
                 let mut s = TraceStats::default();
-                hits += u64::from(trace_with_stats(&map, &p.ray(x, y), &mut s).is_some());
+                hits += u64::from(trace_from_with_stats(&map, &p.ray(x, y), t0, &mut s).is_some());
                 total.region_skips += s.region_skips;
                 total.cell_skips += s.cell_skips;
                 total.voxel_steps += s.voxel_steps;
             }
         }
+        println!("{name}: the beam pre-pass moved the start of {skipped_tiles} of {tiles} tiles");
         let n = 640.0 * 360.0;
         let started = std::time::Instant::now();
         let frames = 5;

@@ -268,6 +268,108 @@ pub fn benchmark_cameras_1024() -> [(&'static str, crate::Camera); 2] {
     ]
 }
 
+/// The one colour of [`room_scene`]: a light grey, so only shading tells its faces apart.
+pub const ROOM_GREY: Colour = Colour::from_rgb8(200, 200, 200);
+
+/// Thickness of the room's floor, ceiling and walls, in voxels.
+pub const ROOM_WALL: u32 = 3;
+
+/// Smallest room [`room_scene`] builds: smaller requested axes are raised to these, so the
+/// furniture keeps legs, seat and shelves that are distinct voxels. The returned map's `size()`
+/// is what was built.
+pub const ROOM_MIN: [u32; 3] = [32, 24, 32];
+
+/// A closed, untextured room: floor, ceiling and four walls [`ROOM_WALL`] voxels thick, with a
+/// table (top and four legs), a chair (seat, back, legs), a bookcase against the back wall and a
+/// crate in a corner, all in [`ROOM_GREY`].
+///
+/// Why it exists: it is the indoor counterpart of [`demo_scene`], for tests and README pictures.
+/// The sun never reaches inside and every face has the same colour, so what a renderer shows
+/// here comes from shading alone (which faces it can still tell apart), and a first-camera rule
+/// must find a place inside rather than a view of the outer box.
+///
+/// Furniture is placed at fixed fractions of the interior (heights of its height, footprints of
+/// its width and depth), so any size works, multiples of 8 or not; axes below [`ROOM_MIN`] are
+/// raised to it (see there). Deterministic. Errors only where [`BrickMap::new`] does (an axis
+/// above the largest scene edge).
+pub fn room_scene(size: [u32; 3]) -> Result<BrickMap, MapError> {
+    let size: [u32; 3] = std::array::from_fn(|i| size[i].max(ROOM_MIN[i]));
+    let mut map = BrickMap::new(size)?;
+    let [sx, sy, sz] = size;
+    let w = ROOM_WALL;
+    let mut put = |min: [u32; 3], max: [u32; 3]| {
+        // Inclusive boxes; a degenerate one (max below min on an axis) still covers one voxel.
+        let max = std::array::from_fn(|i| max[i].max(min[i]));
+        map.fill_box(min, max, BrushMode::Fill, ROOM_GREY);
+    };
+    // The shell as six slabs, so a large room never allocates its interior.
+    put([0, 0, 0], [sx - 1, w - 1, sz - 1]);
+    put([0, sy - w, 0], [sx - 1, sy - 1, sz - 1]);
+    put([0, 0, 0], [w - 1, sy - 1, sz - 1]);
+    put([sx - w, 0, 0], [sx - 1, sy - 1, sz - 1]);
+    put([0, 0, 0], [sx - 1, sy - 1, w - 1]);
+    put([0, 0, sz - w], [sx - 1, sy - 1, sz - 1]);
+
+    // Interior: voxels w..s-w on each axis.
+    let inner = size.map(|s| s - 2 * w);
+    let at = |axis: usize, frac: f32| w + (frac * inner[axis] as f32) as u32;
+    let up = |frac: f32| w + ((frac * inner[1] as f32).round() as u32).max(1);
+    let t = (inner[0].min(inner[2]) / 40).max(1);
+    let floor = w;
+    let last = size.map(|s| s - w - 1);
+
+    // Table: a top slab and four legs.
+    let (tx0, tx1) = (at(0, 0.50), at(0, 0.78));
+    let (tz0, tz1) = (at(2, 0.45), at(2, 0.72));
+    let table_top = up(0.30);
+    put([tx0, table_top - t, tz0], [tx1, table_top - 1, tz1]);
+    for (lx, lz) in [
+        (tx0, tz0),
+        (tx1 + 1 - t, tz0),
+        (tx0, tz1 + 1 - t),
+        (tx1 + 1 - t, tz1 + 1 - t),
+    ] {
+        put([lx, floor, lz], [lx + t - 1, table_top - t - 1, lz + t - 1]);
+    }
+
+    // Chair facing the table (+x): seat, four legs, a back on its -x side.
+    let (cx0, cx1) = (at(0, 0.36), at(0, 0.46));
+    let (cz0, cz1) = (at(2, 0.50), at(2, 0.64));
+    let seat = up(0.17);
+    put([cx0, seat - t, cz0], [cx1, seat - 1, cz1]);
+    for (lx, lz) in [
+        (cx0, cz0),
+        (cx1 + 1 - t, cz0),
+        (cx0, cz1 + 1 - t),
+        (cx1 + 1 - t, cz1 + 1 - t),
+    ] {
+        put([lx, floor, lz], [lx + t - 1, seat - t - 1, lz + t - 1]);
+    }
+    put([cx0, seat, cz0], [cx0 + t - 1, up(0.45), cz1]);
+
+    // Bookcase against the back (+z) wall: sides, back panel, top and boards.
+    let (bx0, bx1) = (at(0, 0.10), at(0, 0.40));
+    let bz0 = at(2, 0.88);
+    let shelf_top = up(0.60);
+    put([bx0, floor, bz0], [bx0 + t - 1, shelf_top, last[2]]);
+    put([bx1 + 1 - t, floor, bz0], [bx1, shelf_top, last[2]]);
+    put([bx0, floor, last[2] + 1 - t], [bx1, shelf_top, last[2]]);
+    for frac in [0.0, 0.15, 0.30, 0.45] {
+        let y = floor + (frac * inner[1] as f32) as u32;
+        put([bx0, y, bz0], [bx1, y + t - 1, last[2]]);
+    }
+    put([bx0, shelf_top + 1 - t, bz0], [bx1, shelf_top, last[2]]);
+
+    // A crate in the front (-z) corner on the +x side.
+    put(
+        [at(0, 0.86), floor, floor],
+        [last[0], up(0.20), at(2, 0.14)],
+    );
+
+    map.rebuild_clearance();
+    Ok(map)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -293,5 +395,87 @@ mod tests {
     fn odd_sizes_work() {
         let map = demo_scene([37, 21, 45]).unwrap();
         map.check_invariants().unwrap();
+    }
+
+    /// Whether every interior voxel is sealed off: a flood fill from an interior air voxel never
+    /// reaches the grid's outer layer.
+    fn sealed(map: &BrickMap, from: [u32; 3]) -> (bool, u64) {
+        let s = map.size();
+        let index = |v: [u32; 3]| (v[0] + s[0] * (v[1] + s[1] * v[2])) as usize;
+        let mut seen = vec![false; (s[0] * s[1] * s[2]) as usize];
+        let mut stack = vec![from];
+        seen[index(from)] = true;
+        let mut air = 0;
+        while let Some(v) = stack.pop() {
+            air += 1;
+            if (0..3).any(|i| v[i] == 0 || v[i] == s[i] - 1) {
+                return (false, air);
+            }
+            for (axis, delta) in [(0, -1), (0, 1), (1, -1), (1, 1), (2, -1), (2, 1)] {
+                let mut n = v;
+                n[axis] = (n[axis] as i64 + delta) as u32;
+                if !seen[index(n)] && !map.is_solid(n) {
+                    seen[index(n)] = true;
+                    stack.push(n);
+                }
+            }
+        }
+        (true, air)
+    }
+
+    #[test]
+    fn room_is_closed_grey_and_furnished() {
+        let size = [160, 72, 128];
+        let a = room_scene(size).unwrap();
+        let b = room_scene(size).unwrap();
+        assert_eq!(a.size(), size);
+        assert_eq!(a.content_hash(), b.content_hash(), "deterministic");
+        a.check_invariants().unwrap();
+        assert!(
+            a.bricks()
+                .all(|(brick, _)| brick.colours.iter().all(|&c| c == ROOM_GREY)),
+            "one colour"
+        );
+        let centre = [80, 40, 40];
+        assert!(!a.is_solid(centre));
+        let (closed, air) = sealed(&a, centre);
+        assert!(closed, "the air inside never reaches the outside");
+        let interior: u64 = (160 - 6) * (72 - 6) * (128 - 6);
+        assert!(
+            air < interior && air > interior / 2,
+            "furniture takes some room, not most: {air} of {interior}"
+        );
+        // Furniture stands on the floor: a column under the table top reaches it from the floor.
+        let floor_contacts = (3..157)
+            .flat_map(|x| (3..125).map(move |z| [x, 3, z]))
+            .filter(|&v| a.is_solid(v))
+            .count();
+        assert!(floor_contacts > 20, "legs and bases: {floor_contacts}");
+    }
+
+    #[test]
+    fn small_and_odd_rooms_are_closed() {
+        for size in [
+            [1, 1, 1],
+            [20, 50, 10],
+            [32, 24, 32],
+            [37, 29, 45],
+            [61, 33, 200],
+        ] {
+            let map = room_scene(size).unwrap();
+            let built = map.size();
+            assert!(
+                (0..3).all(|i| built[i] == size[i].max(ROOM_MIN[i])),
+                "{size:?}"
+            );
+            map.check_invariants().unwrap();
+            let from = [built[0] / 2, built[1] - ROOM_WALL - 2, built[2] / 2];
+            assert!(!map.is_solid(from), "{size:?}: air under the ceiling");
+            assert!(sealed(&map, from).0, "{size:?}");
+        }
+        assert!(
+            room_scene([9000, 64, 64]).is_err(),
+            "too large is the map's error"
+        );
     }
 }

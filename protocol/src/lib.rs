@@ -3,15 +3,19 @@
 //! * [`brick`], [`colour`]: the 8×8×8 brick (512-bit mask + compact RGB565 colours).
 //! * [`map`]: the sparse three-level brick map, its edits, versions and memory accounting.
 //! * [`trace`]: the CPU DDA tracer (the GPU shader's twin) and its flat reference.
-//! * [`render`]: camera, shading and the multi-threaded CPU renderer.
+//! * [`beam`]: the per-tile pre-pass that starts primary rays past the empty space they share.
+//! * [`render`]: camera and the multi-threaded CPU renderer.
+//! * [`shade`]: sky light, ambient occlusion, sun and shadows, tone mapping (the shader's twin).
 //! * [`wire`]: the websocket messages and their compact, compressed brick payloads.
 //! * [`apply`]: what a wire edit op does to a brick map (shared by the server and log replay).
 //! * [`demo`]: the built-in procedural demo scene.
 //! * [`journal`]: before-images of the bricks an edit changes (for undo), and brick diffs.
 //! * [`replica`]: a client's copy of a scene, kept current by applying server messages.
 //! * [`roster`]: a client's list of who else is present and what they look at.
+//! * [`viewpoint`]: the first camera for a scene: one that shows the model, outside or in.
 
 pub mod apply;
+pub mod beam;
 pub mod brick;
 pub mod colour;
 pub mod demo;
@@ -20,7 +24,9 @@ pub mod map;
 pub mod render;
 pub mod replica;
 pub mod roster;
+pub mod shade;
 pub mod trace;
+pub mod viewpoint;
 pub mod wire;
 
 pub use brick::{BrickData, EMPTY, Mask};

@@ -171,6 +171,10 @@ pub struct BrickMap {
     /// full resync.
     tombstone_horizon: u64,
 
+    /// Inclusive region bounds of every allocated region (grown when one is allocated, made
+    /// tight again by [`BrickMap::rebuild_clearance`]); `None` while no region is. Rays start
+    /// where they enter this box and end where they leave it.
+    occupied: Option<([u32; 3], [u32; 3])>,
     sequence: u64,
     solid_voxels: u64,
     bricks: u64,
@@ -221,6 +225,7 @@ impl BrickMap {
             free_chunks: vec![Vec::new(); 513],
             tombstones: HashMap::new(),
             tombstone_horizon: 0,
+            occupied: None,
             sequence: 0,
             solid_voxels: 0,
             bricks: 0,
@@ -385,6 +390,19 @@ impl BrickMap {
         (region[0] + self.region_dims[0] * (region[1] + self.region_dims[1] * region[2])) as usize
     }
 
+    fn region_coords(&self, index: usize) -> [u32; 3] {
+        let i = index as u32;
+        let [dx, dy, _] = self.region_dims;
+        [i % dx, (i / dx) % dy, i / (dx * dy)]
+    }
+
+    /// Inclusive region bounds that contain every allocated region, `None` when none is. Never
+    /// smaller than the occupied regions; after [`BrickMap::rebuild_clearance`] exactly their
+    /// bounding box (edits that free regions leave it larger until then, which is still safe).
+    pub fn occupied_regions(&self) -> Option<([u32; 3], [u32; 3])> {
+        self.occupied
+    }
+
     /// Index of a cell inside its block.
     #[inline]
     pub(crate) const fn cell_in_block(cell: [u32; 3]) -> u32 {
@@ -420,9 +438,18 @@ impl BrickMap {
             .then(|| self.colours[(self.colour_base[slot] + rank(mask, bit)) as usize])
     }
 
-    /// Whether a voxel is solid.
+    /// Whether a voxel is solid (the mask alone: no colour lookup). False outside the scene.
     pub fn is_solid(&self, pos: [u32; 3]) -> bool {
-        self.get(pos).is_some()
+        if !self.in_bounds(pos) {
+            return false;
+        }
+        self.slot_of_cell(pos.map(|p| p / BRICK_EDGE))
+            .is_some_and(|slot| {
+                mask_get(
+                    &self.masks[slot as usize],
+                    voxel_bit(pos[0], pos[1], pos[2]),
+                )
+            })
     }
 
     // ---- single-voxel edits -------------------------------------------------------------------
@@ -874,7 +901,15 @@ impl BrickMap {
             if let Some(g) = &mut self.gpu {
                 g.regions.push(region as u32);
             }
-            self.lower_clearance_around(cell.map(|c| c / REGION_CELLS));
+            let r = cell.map(|c| c / REGION_CELLS);
+            self.occupied = Some(match self.occupied {
+                None => (r, r),
+                Some((lo, hi)) => (
+                    std::array::from_fn(|i| lo[i].min(r[i])),
+                    std::array::from_fn(|i| hi[i].max(r[i])),
+                ),
+            });
+            self.lower_clearance_around(r);
         }
         let slot = match self.free_slots.pop() {
             Some(s) => s,
@@ -1024,6 +1059,19 @@ impl BrickMap {
                 }
             }
         }
+        self.occupied = None;
+        for (i, &entry) in self.regions.iter().enumerate() {
+            if !region_is_empty(entry) {
+                let r = self.region_coords(i);
+                self.occupied = Some(match self.occupied {
+                    None => (r, r),
+                    Some((lo, hi)) => (
+                        std::array::from_fn(|a| lo[a].min(r[a])),
+                        std::array::from_fn(|a| hi[a].max(r[a])),
+                    ),
+                });
+            }
+        }
         for (i, &d) in dist.iter().enumerate() {
             if region_is_empty(self.regions[i]) {
                 let entry = EMPTY_REGION | (d.max(1) - 1).min(CLEARANCE_CAP);
@@ -1127,6 +1175,22 @@ impl BrickMap {
                 .count();
             if used != fill as usize {
                 return Err(format!("block {b} fill {fill} but {used} cells used"));
+            }
+        }
+        // The occupied box holds every allocated region.
+        for (i, &entry) in self.regions.iter().enumerate() {
+            if region_is_empty(entry) {
+                continue;
+            }
+            let r = self.region_coords(i);
+            let inside = self
+                .occupied
+                .is_some_and(|(lo, hi)| (0..3).all(|a| lo[a] <= r[a] && r[a] <= hi[a]));
+            if !inside {
+                return Err(format!(
+                    "region {r:?} is allocated but outside the occupied box {:?}",
+                    self.occupied
+                ));
             }
         }
         // Clearance never claims an occupied region.

@@ -1,4 +1,4 @@
-//! Camera, shading and the multi-threaded CPU renderer.
+//! Camera and the multi-threaded CPU renderer (shading lives in [`crate::shade`]).
 //!
 //! This is the oracle for the GPU tracer and the fallback renderer for machines without one.
 //! Everything a pixel depends on (the camera basis, per-pixel steps, the light) is computed once
@@ -7,8 +7,11 @@
 
 use std::sync::atomic::{AtomicU32, Ordering};
 
+use crate::beam::{Beam, TILE};
 use crate::map::BrickMap;
-use crate::trace::{Hit, Ray, trace};
+pub use crate::shade::{LightUniform, Lighting, LightingError, sky, to_byte};
+use crate::shade::{normalize, shade_hit};
+use crate::trace::{Hit, Ray, trace, trace_from};
 
 /// Marks a pixel whose primary ray missed, in [`Frame::hits`].
 pub const MISS: u32 = u32::MAX;
@@ -45,15 +48,8 @@ fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
         a[0] * b[1] - a[1] * b[0],
     ]
 }
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
 fn scale(a: [f32; 3], s: f32) -> [f32; 3] {
     a.map(|c| c * s)
-}
-fn normalize(a: [f32; 3]) -> Option<[f32; 3]> {
-    let len = dot(a, a).sqrt();
-    (len > 1e-12 && len.is_finite()).then(|| scale(a, 1.0 / len))
 }
 
 impl Camera {
@@ -110,70 +106,6 @@ impl Projection {
     }
 }
 
-/// Lighting shared with the shader.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Lighting {
-    /// Unit vector towards the light.
-    pub sun: [f32; 3],
-    pub ambient: f32,
-    /// Trace a second ray towards the sun from the empty voxel in front of each hit.
-    pub shadows: bool,
-}
-
-impl Default for Lighting {
-    fn default() -> Self {
-        let sun = normalize([0.45, 0.8, 0.35]).unwrap_or([0.0, 1.0, 0.0]);
-        Lighting {
-            sun,
-            ambient: 0.35,
-            shadows: true,
-        }
-    }
-}
-
-/// Sky colour for a missed ray: a vertical gradient on the ray direction.
-pub fn sky(dir: [f32; 3]) -> [f32; 3] {
-    let len = dot(dir, dir).sqrt();
-    let up = if len > 0.0 { dir[1] / len } else { 0.0 };
-    let t = (up * 0.5 + 0.5).clamp(0.0, 1.0);
-    [0.80 - 0.35 * t, 0.87 - 0.25 * t, 0.95 - 0.05 * t]
-}
-
-/// Shaded colour of a hit in linear 0..1 floats. `in_shadow` comes from the shadow ray.
-pub fn shade(hit: &Hit, lighting: &Lighting, in_shadow: bool) -> [f32; 3] {
-    let n = hit.normal.map(|c| c as f32);
-    let diffuse = if in_shadow {
-        0.0
-    } else {
-        dot(n, lighting.sun).max(0.0)
-    };
-    let light = lighting.ambient + (1.0 - lighting.ambient) * diffuse;
-    hit.colour.to_f32().map(|c| c * light)
-}
-
-/// Whether the sun is blocked from the empty voxel in front of a hit. Starting from that voxel's
-/// centre keeps the shadow ray off the hit surface without any epsilon.
-pub fn shadowed(map: &BrickMap, hit: &Hit, lighting: &Lighting) -> bool {
-    if !lighting.shadows || hit.normal == [0; 3] {
-        return false;
-    }
-    let from = std::array::from_fn(|i| (hit.voxel[i] as i32 + hit.normal[i]) as f32 + 0.5);
-    trace(
-        map,
-        &Ray {
-            origin: from,
-            dir: lighting.sun,
-        },
-    )
-    .is_some()
-}
-
-/// Converts a linear 0..1 channel to a byte, rounding to nearest.
-#[inline]
-pub fn to_byte(c: f32) -> u8 {
-    (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
-}
-
 /// One rendered image plus what each pixel hit, for comparing renderers.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Frame {
@@ -190,18 +122,17 @@ pub fn voxel_index(size: [u32; 3], v: [u32; 3]) -> u32 {
     v[0] + size[0] * (v[1] + size[1] * v[2])
 }
 
-/// Renders one pixel: shaded colour and primary hit.
-pub fn render_pixel(
+/// Shaded colour and voxel index of a primary ray's result.
+fn pixel_of(
     map: &BrickMap,
-    projection: &Projection,
+    ray: &Ray,
+    hit: Option<Hit>,
     lighting: &Lighting,
-    x: u32,
-    y: u32,
+    uniform: &LightUniform,
 ) -> ([u8; 4], u32) {
-    let ray = projection.ray(x, y);
-    match trace(map, &ray) {
+    match hit {
         Some(hit) => {
-            let rgb = shade(&hit, lighting, shadowed(map, &hit, lighting));
+            let rgb = shade_hit(map, &hit, ray, lighting, uniform);
             (
                 [to_byte(rgb[0]), to_byte(rgb[1]), to_byte(rgb[2]), 255],
                 voxel_index(map.size(), hit.voxel),
@@ -217,8 +148,43 @@ pub fn render_pixel(
     }
 }
 
-/// Renders a frame on `threads` threads (0 = all cores). Rows are handed out one at a time from
-/// a shared counter, so a thread that draws sky does not sit idle while another draws terrain.
+/// Renders one pixel: shaded colour and primary hit. `uniform` is `lighting.uniform()`, computed
+/// once per frame. (The frame renderers trace the same hit faster, after a beam pre-pass.)
+pub fn render_pixel(
+    map: &BrickMap,
+    projection: &Projection,
+    lighting: &Lighting,
+    uniform: &LightUniform,
+    x: u32,
+    y: u32,
+) -> ([u8; 4], u32) {
+    let ray = projection.ray(x, y);
+    pixel_of(map, &ray, trace(map, &ray), lighting, uniform)
+}
+
+/// Calls `f(x, y, ray, t0)` for each pixel of the band of rows `y0..y0 + TILE`, tile by tile:
+/// `t0` is the tile's safe start from the beam pre-pass.
+fn for_band(
+    map: &BrickMap,
+    projection: &Projection,
+    y0: u32,
+    mut f: impl FnMut(u32, u32, &Ray, f32),
+) {
+    let y1 = (y0 + TILE).min(projection.height);
+    for x0 in (0..projection.width).step_by(TILE as usize) {
+        let x1 = (x0 + TILE).min(projection.width);
+        let t0 = Beam::tile(projection, x0, y0, x1, y1).safe_start(map);
+        for y in y0..y1 {
+            for x in x0..x1 {
+                f(x, y, &projection.ray(x, y), t0);
+            }
+        }
+    }
+}
+
+/// Renders a frame on `threads` threads (0 = all cores). Bands of [`TILE`] rows are handed out
+/// one at a time from a shared counter, so a thread that draws sky does not sit idle while
+/// another draws terrain.
 pub fn render(
     map: &BrickMap,
     projection: &Projection,
@@ -226,24 +192,22 @@ pub fn render(
     threads: usize,
 ) -> Frame {
     let w = projection.width;
+    let uniform = lighting.uniform();
     let mut pixels = vec![[0u8; 4]; (w * projection.height) as usize];
     let mut hits = vec![MISS; (w * projection.height) as usize];
-    let rows = by_rows(projection.height, threads, |y| {
-        let (mut px, mut hx) = (
-            Vec::with_capacity(w as usize),
-            Vec::with_capacity(w as usize),
-        );
-        for x in 0..w {
-            let (p, hit) = render_pixel(map, projection, lighting, x, y);
-            px.push(p);
-            hx.push(hit);
-        }
-        (px, hx)
+    let bands = by_bands(projection.height, threads, |y0| {
+        let mut band = Vec::with_capacity((w * TILE) as usize);
+        for_band(map, projection, y0, |x, y, ray, t0| {
+            let (p, hit) = pixel_of(map, ray, trace_from(map, ray, t0), lighting, &uniform);
+            band.push(((y * w + x) as usize, p, hit));
+        });
+        band
     });
-    for (y, (px, hx)) in rows {
-        let at = (y * w) as usize;
-        pixels[at..at + w as usize].copy_from_slice(&px);
-        hits[at..at + w as usize].copy_from_slice(&hx);
+    for (_, band) in bands {
+        for (at, p, hit) in band {
+            pixels[at] = p;
+            hits[at] = hit;
+        }
     }
     Frame {
         width: w,
@@ -256,14 +220,21 @@ pub fn render(
 /// Traces just the primary rays of a frame on `threads` threads, without shading: the tracer's
 /// throughput figure. Returns the number of rays that hit.
 pub fn trace_frame(map: &BrickMap, projection: &Projection, threads: usize) -> u64 {
-    by_rows(projection.height, threads.max(1), |y| {
-        (0..projection.width)
-            .map(|x| u64::from(trace(map, &projection.ray(x, y)).is_some()))
-            .sum::<u64>()
+    by_bands(projection.height, threads.max(1), |y0| {
+        let mut hits = 0u64;
+        for_band(map, projection, y0, |_, _, ray, t0| {
+            hits += u64::from(trace_from(map, ray, t0).is_some());
+        });
+        hits
     })
     .into_iter()
     .map(|(_, hits)| hits)
     .sum()
+}
+
+/// `band(y0)` for every band of [`TILE`] rows (y0 = 0, TILE, 2·TILE, …) below `height`.
+fn by_bands<R: Send>(height: u32, threads: usize, band: impl Fn(u32) -> R + Sync) -> Vec<(u32, R)> {
+    by_rows(height.div_ceil(TILE), threads, |b| band(b * TILE))
 }
 
 /// `row(y)` for every row below `height`, on `threads` threads (0 = all cores) that take rows

@@ -81,6 +81,10 @@ pub fn floor_i32(x: f32) -> i32 {
     t - i32::from((t as f32) > x)
 }
 
+/// An axis number after every real axis: event `(t, AFTER_ALL)` is "once every crossing at or
+/// before `t` has happened".
+const AFTER_ALL: usize = 3;
+
 /// Whether crossing `(t, axis)` comes before event `(at, at_axis)` in the total order.
 #[inline(always)]
 fn before(t: f32, axis: usize, at: f32, at_axis: usize) -> bool {
@@ -140,6 +144,16 @@ impl Dda {
 
     /// Sets up the ray; `None` when it misses the grid or is not a usable ray.
     fn start(size: [u32; 3], ray: &Ray) -> Option<Dda> {
+        let n = size.map(|s| s as i32);
+        Dda::start_in(size, [0; 3], n, ray, 0.0)
+    }
+
+    /// Sets up the ray in the box `lo..hi` of voxels (planes, `0 <= lo < hi <= size`): it starts
+    /// where it enters the box. Outside the box every voxel is empty, so the flat DDA would only
+    /// cross empty voxels up to that entry event: the state there is the one it would have.
+    /// With `t_min > 0` the caller vouches that every voxel the ray meets before `t_min` is empty
+    /// (the beam pre-pass, [`crate::beam`]), and the ray starts there instead when that is later.
+    fn start_in(size: [u32; 3], lo: [i32; 3], hi: [i32; 3], ray: &Ray, t_min: f32) -> Option<Dda> {
         if ray.origin.iter().chain(&ray.dir).any(|c| !c.is_finite()) {
             return None;
         }
@@ -174,24 +188,25 @@ impl Dda {
                 ray.origin[i].floor() as i32
             }
         });
-        if (0..3).all(|i| start[i] >= 0 && start[i] < n[i]) {
+        let inside = (0..3).all(|i| start[i] >= lo[i] && start[i] < hi[i]);
+        if inside && t_min <= 0.0 {
             dda.v = start;
         } else {
             // Slab test with the same event order: the entry event is the last entry crossing
             // (ties to the later axis), the exit event the first exit crossing.
             let (mut near, mut near_axis) = (f32::NEG_INFINITY, 0usize);
             let (mut far, mut far_axis) = (f32::INFINITY, 0usize);
-            for (i, &size) in n.iter().enumerate() {
+            for i in 0..3 {
                 if dda.step[i] == 0 {
-                    if ray.origin[i] < 0.0 || ray.origin[i] >= size as f32 {
+                    if ray.origin[i] < lo[i] as f32 || ray.origin[i] >= hi[i] as f32 {
                         return None;
                     }
                     continue;
                 }
                 let (enter, leave) = if dda.step[i] > 0 {
-                    (dda.plane_t(i, 0), dda.plane_t(i, size))
+                    (dda.plane_t(i, lo[i]), dda.plane_t(i, hi[i]))
                 } else {
-                    (dda.plane_t(i, size), dda.plane_t(i, 0))
+                    (dda.plane_t(i, hi[i]), dda.plane_t(i, lo[i]))
                 };
                 if !before(enter, i, near, near_axis) {
                     (near, near_axis) = (enter, i);
@@ -200,19 +215,35 @@ impl Dda {
                     (far, far_axis) = (leave, i);
                 }
             }
-            if !before(near, near_axis, far, far_axis) || near < 0.0 {
-                return None;
+            if t_min > 0.0 && (inside || before(near, near_axis, t_min, AFTER_ALL)) {
+                // Every voxel before `t_min` is empty (the caller knows it): the state there is
+                // the one after every crossing at or before `t_min`, "event (t_min, after all
+                // axes)". If the ray has left the box by then it meets nothing.
+                if !before(t_min, AFTER_ALL, far, far_axis) {
+                    return None;
+                }
+                for i in 0..3 {
+                    dda.v[i] = dda.settle(i, lo[i], hi[i] - 1, t_min, AFTER_ALL);
+                }
+                dda.t = t_min;
+                dda.axis = None;
+            } else if inside {
+                dda.v = start;
+            } else {
+                if !before(near, near_axis, far, far_axis) || near < 0.0 {
+                    return None;
+                }
+                let k = near_axis;
+                for i in 0..3 {
+                    dda.v[i] = if i == k {
+                        if dda.step[k] > 0 { lo[k] } else { hi[k] - 1 }
+                    } else {
+                        dda.settle(i, lo[i], hi[i] - 1, near, k)
+                    };
+                }
+                dda.t = near;
+                dda.axis = Some(k);
             }
-            let k = near_axis;
-            for i in 0..3 {
-                dda.v[i] = if i == k {
-                    if dda.step[k] > 0 { 0 } else { n[k] - 1 }
-                } else {
-                    dda.settle(i, 0, n[i] - 1, near, k)
-                };
-            }
-            dda.t = near;
-            dda.axis = Some(k);
         }
         for i in 0..3 {
             dda.next[i] = dda.exit_t(i, dda.v[i]);
@@ -306,12 +337,43 @@ fn earliest(next: &[f32; 3]) -> usize {
 /// at the entry event ([`Dda::settle`]); climbing back up needs nothing, as the brick's exit
 /// event is a coarse crossing too.
 pub fn trace_with_stats(map: &BrickMap, ray: &Ray, stats: &mut TraceStats) -> Option<Hit> {
+    trace_from_with_stats(map, ray, 0.0, stats)
+}
+
+/// [`trace`] for a ray known to meet only empty voxels before parameter `t_min` (from
+/// [`crate::beam`]): it starts there. The hit is the one [`trace`] finds, bit for bit, as long as
+/// that promise holds; `t_min` of 0 (or less) is plain [`trace`], infinity a miss.
+pub fn trace_from(map: &BrickMap, ray: &Ray, t_min: f32) -> Option<Hit> {
+    trace_from_with_stats(map, ray, t_min, &mut TraceStats::default())
+}
+
+/// [`trace_from`], counting the steps taken at each level.
+pub fn trace_from_with_stats(
+    map: &BrickMap,
+    ray: &Ray,
+    t_min: f32,
+    stats: &mut TraceStats,
+) -> Option<Hit> {
+    if t_min == f32::INFINITY {
+        return None;
+    }
+    let t_min = if t_min.is_nan() { 0.0 } else { t_min };
     const R: i32 = REGION_EDGE as i32;
     const C: i32 = BRICK_EDGE as i32;
-    let mut dda = Dda::start(map.size(), ray)?;
-    let n = dda.n;
-    let rdims = map.region_dims().map(|d| d as i32);
+    // Only the occupied regions' box is traced (none: nothing to hit).
+    let (rlo, rhi) = map.occupied_regions()?;
+    let (rlo, rhi) = (rlo.map(|r| r as i32), rhi.map(|r| r as i32));
+    let size = map.size();
+    let n = size.map(|s| s as i32);
+    let mut dda = Dda::start_in(
+        size,
+        rlo.map(|r| r * R),
+        std::array::from_fn(|i| ((rhi[i] + 1) * R).min(n[i])),
+        ray,
+        t_min,
+    )?;
     let cdims = map.cell_dims().map(|d| d as i32);
+    let rdims = map.region_dims().map(|d| d as i32);
     let step = dda.step;
     // Whether `dda.v` holds the voxel at the last event; false after a coarse step.
     let mut v_valid = true;
@@ -330,8 +392,8 @@ pub fn trace_with_stats(map: &BrickMap, ray: &Ray, stats: &mut TraceStats) -> Op
             if clear >= 2 {
                 // Leave the whole empty cube of regions r ± clear in one event. Worth a settle
                 // only when it replaces several single steps.
-                let lo: [i32; 3] = std::array::from_fn(|i| (r[i] - clear).max(0));
-                let hi: [i32; 3] = std::array::from_fn(|i| (r[i] + clear).min(rdims[i] - 1));
+                let lo: [i32; 3] = std::array::from_fn(|i| (r[i] - clear).max(rlo[i]));
+                let hi: [i32; 3] = std::array::from_fn(|i| (r[i] + clear).min(rhi[i]));
                 let exit: [f32; 3] = std::array::from_fn(|i| {
                     dda.block_exit_t(i, if step[i] > 0 { hi[i] } else { lo[i] }, R)
                 });
@@ -352,7 +414,7 @@ pub fn trace_with_stats(map: &BrickMap, ray: &Ray, stats: &mut TraceStats) -> Op
                 r[k] += step[k];
             }
             let k = dda.axis.unwrap_or(0);
-            if r[k] < 0 || r[k] >= rdims[k] {
+            if r[k] < rlo[k] || r[k] > rhi[k] {
                 return None;
             }
             rnext[k] = dda.block_exit_t(k, r[k], R);
@@ -384,31 +446,64 @@ pub fn trace_with_stats(map: &BrickMap, ray: &Ray, stats: &mut TraceStats) -> Op
                     dda.enter_block(lo, hi);
                     v_valid = true;
                 }
-                for i in 0..3 {
-                    dda.next[i] = dda.exit_t(i, dda.v[i]);
-                }
                 let mask = &map.masks[slot as usize];
-                // Voxel level, inside this brick.
-                loop {
-                    let bit = voxel_bit(dda.v[0] as u32, dda.v[1] as u32, dda.v[2] as u32);
+                // Voxel level, inside this brick. The state lives in scalars and every axis is
+                // updated with selects rather than an index: the stepping axis changes
+                // unpredictably, and a branch or a memory round trip per step costs more than
+                // computing all three candidates. Plane times are the same expressions as
+                // `Dda::exit_t`, so the times are bit for bit those of the flat DDA.
+                let [ox, oy, oz] = dda.o;
+                let [ix, iy, iz] = dda.inv;
+                let [sx, sy, sz] = step;
+                let off = step.map(|s| i32::from(s > 0));
+                let plane = |v: i32, off: i32, o: f32, inv: f32| ((v + off) as f32 - o) * inv;
+                let [mut vx, mut vy, mut vz] = dda.v;
+                let mut nx = dda.exit_t(0, vx);
+                let mut ny = dda.exit_t(1, vy);
+                let mut nz = dda.exit_t(2, vz);
+                let mut t = dda.t;
+                let mut axis = dda.axis;
+                let k = loop {
+                    let bit = voxel_bit(vx as u32, vy as u32, vz as u32);
                     if mask_get(mask, bit) {
                         let colour = map.colours
                             [(map.colour_base[slot as usize] + rank(mask, bit)) as usize];
+                        dda.v = [vx, vy, vz];
+                        dda.t = t;
+                        dda.axis = axis;
                         return Some(dda.hit(colour));
                     }
                     stats.voxel_steps += 1;
-                    let k = earliest(&dda.next);
-                    dda.t = dda.next[k];
-                    dda.axis = Some(k);
-                    dda.v[k] += step[k];
-                    dda.next[k] = dda.exit_t(k, dda.v[k]);
-                    if dda.v[k] < lo[k] || dda.v[k] > hi[k] {
-                        // Left the brick: that crossing is a cell plane as well.
-                        c[k] += step[k];
-                        cnext[k] = dda.block_exit_t(k, c[k], C);
+                    let k = earliest(&[nx, ny, nz]);
+                    let (x, y, z) = (k == 0, k == 1, k == 2);
+                    t = if x {
+                        nx
+                    } else if y {
+                        ny
+                    } else {
+                        nz
+                    };
+                    vx += if x { sx } else { 0 };
+                    vy += if y { sy } else { 0 };
+                    vz += if z { sz } else { 0 };
+                    nx = if x { plane(vx, off[0], ox, ix) } else { nx };
+                    ny = if y { plane(vy, off[1], oy, iy) } else { ny };
+                    nz = if z { plane(vz, off[2], oz, iz) } else { nz };
+                    axis = Some(k);
+                    let out = (vx < lo[0] || vx > hi[0])
+                        | (vy < lo[1] || vy > hi[1])
+                        | (vz < lo[2] || vz > hi[2]);
+                    if out {
                         break k;
                     }
-                }
+                };
+                // Left the brick: that crossing is a cell plane as well.
+                dda.v = [vx, vy, vz];
+                dda.t = t;
+                dda.axis = axis;
+                c[k] += step[k];
+                cnext[k] = dda.block_exit_t(k, c[k], C);
+                k
             };
             if c[k] < 0 || c[k] >= cdims[k] {
                 return None;
@@ -416,7 +511,7 @@ pub fn trace_with_stats(map: &BrickMap, ray: &Ray, stats: &mut TraceStats) -> Op
             if c[k].div_euclid(REGION_CELLS as i32) != r[k] {
                 // Left the region: that crossing is a region plane as well.
                 r[k] += step[k];
-                if r[k] < 0 || r[k] >= rdims[k] {
+                if r[k] < rlo[k] || r[k] > rhi[k] {
                     return None;
                 }
                 rnext[k] = dda.block_exit_t(k, r[k], R);

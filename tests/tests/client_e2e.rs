@@ -389,8 +389,9 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
 /// camera sits at his eye, looking his way (her shared view, as a third user sees it).
 #[test]
 fn viewer_draws_other_users_where_they_stand_and_follows_them() {
+    use brickcast_client::camera::FIRST_FOV;
     use brickcast_client::viewer::FlyCamera;
-    use brickcast_protocol::Camera;
+    use brickcast_protocol::viewpoint;
     use brickcast_protocol::wire::View;
 
     let data = tempfile::tempdir().expect("tempdir");
@@ -398,9 +399,12 @@ fn viewer_draws_other_users_where_they_stand_and_follows_them() {
     let display = VirtualDisplay::start().expect("Xvfb");
     let url = server.url("demo");
     let ws = brickcast_client::link::websocket_url(&url).expect("url");
-    let size = fetch(&url).expect("fresh copy").map.size();
+    let map = fetch(&url).expect("fresh copy").map;
+    let size = map.size();
     let (w, h) = (320u32, 200u32);
-    let alice_view = FlyCamera::from_camera(&Camera::overview(size), size)
+    // Her window opens on the scene's first camera once it has synced (`camera::FirstView`).
+    let first = viewpoint::find(&map, FIRST_FOV).camera;
+    let alice_view = FlyCamera::from_camera(&first, size)
         .camera()
         .project(w, h)
         .expect("a projection");

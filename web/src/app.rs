@@ -12,7 +12,7 @@ use std::rc::Rc;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
-use brickcast_client_core::camera::{FlyCamera, PALETTE, movement};
+use brickcast_client_core::camera::{FirstView, FlyCamera, PALETTE, movement};
 use brickcast_client_core::follow::Follow;
 use brickcast_client_core::gpu::tracer::PendingFrame;
 use brickcast_client_core::gpu::{
@@ -22,6 +22,7 @@ use brickcast_client_core::overlay::canvas::Canvas;
 use brickcast_client_core::overlay::{OverlayInput, draw as draw_overlay};
 use brickcast_client_core::present::{Presenter, acquire, sync_scene};
 use brickcast_client_core::session::{ClientSeq, Session, Status};
+use brickcast_client_core::shading::shading_key;
 use brickcast_client_core::tools::{Button, ray_edit, step_radius};
 use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, UserId, View};
 use brickcast_protocol::{Camera, Colour, Lighting, Projection};
@@ -111,6 +112,9 @@ pub struct App {
     gpu: Option<Gpu>,
     gpu_error: Option<String>,
     camera: Option<FlyCamera>,
+    first_view: FirstView,
+    /// What the O, L and H keys switch (`shading::SHADING_KEYS`).
+    lighting: Lighting,
     keys: HashSet<String>,
     pub ctrl: bool,
     /// Looking around: pointer locked, or a drag in progress.
@@ -201,6 +205,8 @@ impl App {
             gpu: None,
             gpu_error: None,
             camera: None,
+            first_view: FirstView::default(),
+            lighting: Lighting::default(),
             keys: HashSet::new(),
             ctrl: false,
             locked: false,
@@ -290,10 +296,8 @@ impl App {
         self.welcome_ms.get_or_insert_with(page::now_ms);
         self.camera_sent = false;
         if let Some(replica) = &self.session.replica {
-            let size = replica.map.size();
-            if self.camera.is_none() {
-                self.camera = Some(FlyCamera::from_camera(&Camera::overview(size), size));
-            }
+            self.first_view
+                .place(&mut self.camera, &replica.map, replica.synced);
         }
     }
 
@@ -318,6 +322,7 @@ impl App {
                 self.follow.cycle(&self.session.roster);
                 true
             }
+            _ if shading_key(&mut self.lighting, code).is_some() => true,
             "BracketLeft" | "BracketRight" => {
                 let max = self.session.max_radius;
                 self.radius = step_radius(self.radius, code == "BracketRight", max);
@@ -541,6 +546,8 @@ impl App {
         let ctx = gpu.ctx.clone();
         let synced = match &mut self.session.replica {
             Some(replica) => {
+                self.first_view
+                    .place(&mut self.camera, &replica.map, replica.synced);
                 sync_scene(&ctx, &mut gpu.scene, replica).map_err(|e| e.to_string())?;
                 replica.synced
             }
@@ -576,7 +583,7 @@ impl App {
             && let Some(p) = camera.camera().project(tw, th)
         {
             gpu.tracer
-                .encode(&ctx, &mut encoder, scene, &p, &Lighting::default())
+                .encode(&ctx, &mut encoder, scene, &p, &self.lighting)
                 .map_err(|e| e.to_string())?;
             self.projection = Some(p);
             traced = true;
@@ -667,7 +674,7 @@ impl App {
                 label: Some("exact"),
             });
         probe
-            .encode(&ctx, &mut encoder, scene, &p, &Lighting::default())
+            .encode(&ctx, &mut encoder, scene, &p, &self.lighting)
             .map_err(|e| e.to_string())?;
         ctx.queue.submit([encoder.finish()]);
         let pending = probe.start_read_back(&ctx).map_err(|e| e.to_string())?;

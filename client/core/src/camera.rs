@@ -5,8 +5,9 @@
 //! variants carry the same names, so one table serves both shells and a French keyboard flies
 //! with the keys where WASD would be.
 
-use brickcast_protocol::Camera;
+use brickcast_protocol::viewpoint;
 use brickcast_protocol::wire::View;
+use brickcast_protocol::{BrickMap, Camera};
 
 /// Keys that fly forward/back, right/left, up/down: (positive, negative) per axis.
 pub const MOVE_KEYS: [(&[&str], &[&str]); 3] = [
@@ -101,5 +102,39 @@ impl FlyCamera {
         const SENSITIVITY: f32 = 0.003;
         self.yaw += dx * SENSITIVITY;
         self.pitch = (self.pitch - dy * SENSITIVITY).clamp(-1.55, 1.55);
+    }
+}
+
+/// Field of view of a viewer's first camera, degrees.
+pub const FIRST_FOV: f32 = 55.0;
+
+/// Places a viewer's first camera, then improves it once. Why: at Welcome the map is still
+/// empty, so the best a viewer can do is the grid's overview; once the scene has synced,
+/// [`viewpoint::find`] can see the model and pick a camera that shows it (from inside, for an
+/// enclosed one). The better view replaces the first only while the user has not moved it.
+#[derive(Debug, Default)]
+pub struct FirstView {
+    placed: Option<FlyCamera>,
+    settled: bool,
+}
+
+impl FirstView {
+    /// Call every frame with the viewer's camera and its copy of the scene.
+    pub fn place(&mut self, camera: &mut Option<FlyCamera>, map: &BrickMap, synced: bool) {
+        let size = map.size();
+        if camera.is_none() {
+            let mut overview = Camera::overview(size);
+            overview.fov_y = FIRST_FOV;
+            let first = FlyCamera::from_camera(&overview, size);
+            *camera = Some(first);
+            self.placed = Some(first);
+        }
+        if synced && !self.settled {
+            self.settled = true;
+            if *camera == self.placed {
+                let found = viewpoint::find(map, FIRST_FOV).camera;
+                *camera = Some(FlyCamera::from_camera(&found, size));
+            }
+        }
     }
 }

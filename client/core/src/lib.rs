@@ -16,6 +16,7 @@ pub mod gpu;
 pub mod overlay;
 pub mod present;
 pub mod session;
+pub mod shading;
 pub mod tools;
 
 /// A clock that works on wasm32 too (`std::time::Instant` panics there).

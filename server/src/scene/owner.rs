@@ -184,10 +184,11 @@ impl Owner {
     }
 
     /// Every user's undo and redo stacks.
-    /// The committed scene from its overview camera, traced on this thread (one core, a few
-    /// milliseconds at thumbnail size; the scene list caches it per sequence number).
+    /// The committed scene from its first camera (`viewpoint::find`, as a viewer opens it),
+    /// traced on this thread (one core, a few milliseconds at thumbnail size; the scene list
+    /// caches it per sequence number).
     fn thumbnail(&self, width: u32, height: u32) -> brickcast_protocol::Frame {
-        let camera = brickcast_protocol::Camera::overview(self.map.size());
+        let camera = brickcast_protocol::viewpoint::find(&self.map, 55.0).camera;
         match camera.project(width.max(1), height.max(1)) {
             Some(p) => brickcast_protocol::render::render(
                 &self.map,

@@ -224,6 +224,8 @@ pub struct UploadStats {
 pub struct GpuScene {
     size: [u32; 3],
     region_dims: [u32; 3],
+    /// The map's occupied region box at the last upload or update: the tracer's bounds.
+    occupied: Option<([u32; 3], [u32; 3])>,
     cell_dims: [u32; 3],
     page_shift: u32,
     arrays: [PagedArray; 5],
@@ -266,6 +268,7 @@ impl GpuScene {
         let mut scene = GpuScene {
             size: map.size(),
             region_dims: map.region_dims(),
+            occupied: map.occupied_regions(),
             cell_dims: map.cell_dims(),
             page_shift,
             arrays,
@@ -291,6 +294,7 @@ impl GpuScene {
             });
         }
         map.take_gpu_changes();
+        self.occupied = map.occupied_regions();
         let mut stats = UploadStats::default();
         for array in &mut self.arrays {
             let len = array.array.len_words(map);
@@ -316,6 +320,7 @@ impl GpuScene {
         map: &mut BrickMap,
     ) -> Result<UploadStats, GpuError> {
         let changes = map.take_gpu_changes();
+        self.occupied = map.occupied_regions();
         let mut stats = UploadStats::default();
         if changes.is_empty() {
             return Ok(stats);
@@ -372,6 +377,10 @@ impl GpuScene {
     }
     pub fn region_dims(&self) -> [u32; 3] {
         self.region_dims
+    }
+    /// Inclusive bounds of the occupied regions as last uploaded (`None`: nothing to trace).
+    pub fn occupied_regions(&self) -> Option<([u32; 3], [u32; 3])> {
+        self.occupied
     }
     pub fn cell_dims(&self) -> [u32; 3] {
         self.cell_dims

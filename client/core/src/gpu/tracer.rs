@@ -20,10 +20,14 @@ struct FrameUniform {
     right: [f32; 4],
     up: [f32; 4],
     sun: [f32; 4],
+    sky: [f32; 4],
+    flags: [f32; 4],
     size: [u32; 4],
     region_dims: [u32; 4],
     cell_dims: [u32; 4],
     image: [u32; 4],
+    occupied_lo: [i32; 4],
+    occupied_hi: [i32; 4],
 }
 
 fn xyz0(v: [f32; 3], w: f32) -> [f32; 4] {
@@ -39,16 +43,24 @@ impl FrameUniform {
         // Every loop iteration crosses a plane, so nx+ny+nz (+ a few) bounds a ray; twice that
         // can only be reached by a bug, and then the ray ends as a miss instead of hanging.
         let budget = 2 * (size[0] + size[1] + size[2]) + 64;
+        let lights = light.uniform();
+        let occupied = scene
+            .occupied_regions()
+            .map(|(lo, hi)| (lo.map(|c| c as i32), hi.map(|c| c as i32)));
         FrameUniform {
             eye: xyz0(p.eye, 0.0),
             forward: xyz0(p.forward, 0.0),
             right: xyz0(p.right, 0.0),
             up: xyz0(p.up, 0.0),
-            sun: xyz0(light.sun, light.ambient),
-            size: uxyz(size, u32::from(light.shadows)),
+            sun: lights.sun,
+            sky: lights.sky,
+            flags: lights.flags,
+            size: uxyz(size, 0),
             region_dims: uxyz(scene.region_dims(), budget),
             cell_dims: uxyz(scene.cell_dims(), scene.page_shift()),
             image: [p.width, p.height, 0, 0],
+            occupied_lo: occupied.map_or([0; 4], |(lo, _)| [lo[0], lo[1], lo[2], 1]),
+            occupied_hi: occupied.map_or([0; 4], |(_, hi)| [hi[0], hi[1], hi[2], 1]),
         }
     }
 }
