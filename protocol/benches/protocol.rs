@@ -8,7 +8,8 @@ use std::time::Duration;
 use brickcast_protocol::Colour;
 use brickcast_protocol::demo::demo_scene;
 use brickcast_protocol::map::{BrickMap, BrushMode};
-use brickcast_protocol::render::trace_frame;
+use brickcast_protocol::Lighting;
+use brickcast_protocol::render::{render, trace_frame};
 use brickcast_protocol::wire::{
     BlobDecoder, BlobEncoder, BrickBlob, Limits, ServerMsg, decode_server, encode_server,
 };
@@ -91,6 +92,32 @@ fn tracer(c: &mut Criterion) {
         for threads in [1usize, 2] {
             group.bench_function(format!("{name}_640x360_{threads}t"), |b| {
                 b.iter(|| black_box(trace_frame(&map, &projection, threads)))
+            });
+        }
+    }
+    group.finish();
+
+    // The shaded frame against primary rays alone: "flat" is the renderer with shadows and AO
+    // off (primary rays plus the shading arithmetic), "sun" adds the shadow ray where a face
+    // turns to the sun, "shaded" adds ambient occlusion (the default lighting).
+    let mut group = c.benchmark_group("render");
+    group.sample_size(20);
+    group.measurement_time(Duration::from_secs(8));
+    group.throughput(Throughput::Elements(u64::from(w * h)));
+    for (name, camera) in cameras {
+        let projection = camera.project(w, h).expect("camera");
+        for (variant, shadows, ao) in [
+            ("flat", false, false),
+            ("sun", true, false),
+            ("shaded", true, true),
+        ] {
+            let lighting = Lighting {
+                shadows,
+                ao,
+                ..Lighting::default()
+            };
+            group.bench_function(format!("{name}_640x360_{variant}_2t"), |b| {
+                b.iter(|| black_box(render(&map, &projection, &lighting, 2)))
             });
         }
     }

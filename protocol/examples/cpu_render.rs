@@ -1,13 +1,17 @@
 //! Renders the built-in demo scene with the CPU tracer and writes a PNG: a look at the scene and
 //! the renderer without a server or a GPU.
 //!
-//! `cargo run --release -p brickcast-protocol --example cpu_render -- demo.png [width height]`
+//! `cargo run --release -p brickcast-protocol --example cpu_render -- demo.png [width height [room]]`
+//!
+//! With `room`, renders the generated enclosed room (`demo::room_scene`) instead, from the first
+//! camera `viewpoint::find` picks for it (inside).
 
 use std::fs::File;
 use std::io::BufWriter;
 use std::time::Instant;
 
-use brickcast_protocol::demo::demo_scene;
+use brickcast_protocol::demo::{demo_scene, room_scene};
+use brickcast_protocol::viewpoint;
 use brickcast_protocol::render::{Camera, Lighting, render};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -17,9 +21,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let height: u32 = args.next().map(|a| a.parse()).transpose()?.unwrap_or(540);
 
     let started = Instant::now();
-    let map = demo_scene([512, 512, 512])?;
+    let room = args.next().is_some_and(|a| a == "room");
+    let map = if room {
+        room_scene([160, 72, 128])?
+    } else {
+        demo_scene([512, 512, 512])?
+    };
     let built = started.elapsed();
-    let camera = Camera::overview(map.size());
+    let camera = if room {
+        viewpoint::find(&map, 60.0).camera
+    } else {
+        Camera::overview(map.size())
+    };
     let projection = camera.project(width, height).ok_or("degenerate camera")?;
     let started = Instant::now();
     let frame = render(&map, &projection, &Lighting::default(), 0);
