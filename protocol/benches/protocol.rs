@@ -6,9 +6,9 @@ use std::hint::black_box;
 use std::time::Duration;
 
 use brickcast_protocol::Colour;
+use brickcast_protocol::Lighting;
 use brickcast_protocol::demo::demo_scene;
 use brickcast_protocol::map::{BrickMap, BrushMode};
-use brickcast_protocol::Lighting;
 use brickcast_protocol::render::{render, trace_frame};
 use brickcast_protocol::wire::{
     BlobDecoder, BlobEncoder, BrickBlob, Limits, ServerMsg, decode_server, encode_server,

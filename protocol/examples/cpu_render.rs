@@ -11,8 +11,8 @@ use std::io::BufWriter;
 use std::time::Instant;
 
 use brickcast_protocol::demo::{demo_scene, room_scene};
-use brickcast_protocol::viewpoint;
 use brickcast_protocol::render::{Camera, Lighting, render};
+use brickcast_protocol::viewpoint;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
