@@ -244,6 +244,27 @@ impl Occupancy {
     }
 }
 
+/// The bricks of region `r` (region coordinates): each one's cell inside the region and its
+/// slot. Nothing for an empty region or one outside the grid.
+fn region_bricks(map: &BrickMap, r: [u32; 3]) -> impl Iterator<Item = ([u32; 3], u32)> + '_ {
+    let rd = map.region_dims();
+    let inside = (0..3).all(|i| r[i] < rd[i]);
+    let index = (r[0] + rd[0] * (r[1] + rd[1] * r[2])) as usize;
+    let block = map
+        .regions()
+        .get(index)
+        .copied()
+        .filter(|&b| inside && !region_is_empty(b));
+    block.into_iter().flat_map(move |block| {
+        (0..CELLS_PER_BLOCK).filter_map(move |local| {
+            let slot = *map
+                .cells()
+                .get((block * CELLS_PER_BLOCK + local) as usize)?;
+            (slot != EMPTY).then_some(([local & 3, (local >> 2) & 3, (local >> 4) & 3], slot))
+        })
+    })
+}
+
 /// `span` grown to include `y`.
 fn widen(span: Option<(u32, u32)>, y: u32) -> (u32, u32) {
     match span {
@@ -258,8 +279,7 @@ fn widen(span: Option<(u32, u32)>, y: u32) -> (u32, u32) {
 fn brick_columns(map: &BrickMap, rlo: [u32; 3], rhi: [u32; 3]) -> Vec<[[u32; 3]; 2]> {
     /// Lowest and highest brick of a column: (brick row, slot) each.
     type Span = ((u32, u32), (u32, u32));
-    let rd = map.region_dims();
-    let (regions, cells, masks) = (map.regions(), map.cells(), map.masks());
+    let masks = map.masks();
     let width = (rhi[0] - rlo[0] + 1) * REGION_CELLS;
     let mut out = Vec::new();
     let mut spans: Vec<Option<Span>> = vec![None; (width * REGION_CELLS) as usize];
@@ -267,21 +287,7 @@ fn brick_columns(map: &BrickMap, rlo: [u32; 3], rhi: [u32; 3]) -> Vec<[[u32; 3];
         spans.fill(None);
         for ry in rlo[1]..=rhi[1] {
             for rx in rlo[0]..=rhi[0] {
-                let index = (rx + rd[0] * (ry + rd[1] * rz)) as usize;
-                let Some(&block) = regions.get(index) else {
-                    continue;
-                };
-                if region_is_empty(block) {
-                    continue;
-                }
-                for local in 0..CELLS_PER_BLOCK {
-                    let Some(&slot) = cells.get((block * CELLS_PER_BLOCK + local) as usize) else {
-                        continue;
-                    };
-                    if slot == EMPTY {
-                        continue;
-                    }
-                    let l = [local & 3, (local >> 2) & 3, (local >> 4) & 3];
+                for (l, slot) in region_bricks(map, [rx, ry, rz]) {
                     let column = (rx - rlo[0]) * REGION_CELLS + l[0] + width * l[2];
                     let here = (ry * REGION_CELLS + l[1], slot);
                     if let Some(span) = spans.get_mut(column as usize) {
@@ -336,8 +342,7 @@ fn refine_face(
     axis: usize,
     high: bool,
 ) -> Option<u32> {
-    let rd = map.region_dims();
-    let (regions, cells, masks) = (map.regions(), map.cells(), map.masks());
+    let masks = map.masks();
     let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
     let mut best: Option<u32> = None;
     for ru in rlo[u]..=rhi[u] {
@@ -346,21 +351,7 @@ fn refine_face(
             r[axis] = if high { rhi[axis] } else { rlo[axis] };
             r[u] = ru;
             r[v] = rv;
-            let index = (r[0] + rd[0] * (r[1] + rd[1] * r[2])) as usize;
-            let Some(&block) = regions.get(index) else {
-                continue;
-            };
-            if region_is_empty(block) {
-                continue;
-            }
-            for local in 0..CELLS_PER_BLOCK {
-                let Some(&slot) = cells.get((block * CELLS_PER_BLOCK + local) as usize) else {
-                    continue;
-                };
-                if slot == EMPTY {
-                    continue;
-                }
-                let l = [local & 3, (local >> 2) & 3, (local >> 4) & 3];
+            for (l, slot) in region_bricks(map, r) {
                 let cell = r[axis] * REGION_CELLS + l[axis];
                 // Skip bricks that cannot beat the best so far.
                 let base = cell * BRICK_EDGE;
