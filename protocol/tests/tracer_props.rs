@@ -7,7 +7,7 @@
 
 use brickcast_protocol::Colour;
 use brickcast_protocol::map::{BrickMap, BrushMode};
-use brickcast_protocol::trace::{Ray, trace, trace_flat};
+use brickcast_protocol::trace::{Ray, trace, trace_flat, trace_from};
 use proptest::prelude::*;
 
 #[derive(Debug, Clone)]
@@ -104,6 +104,23 @@ fn case() -> impl Strategy<Value = ([u32; 3], Vec<Shape>, Vec<Ray>)> {
     })
 }
 
+/// An independent flat copy of the voxels (index `x + sx·(y + sy·z)`), so a reference tracer
+/// does not read the brick map.
+fn flat_copy(map: &BrickMap) -> Vec<Option<Colour>> {
+    let size = map.size();
+    let mut flat = vec![None; (size[0] * size[1] * size[2]) as usize];
+    for (brick, _) in map.bricks() {
+        for b in 0..512u32 {
+            if let Some(c) = brick.colour_at(b) {
+                let l = brickcast_protocol::brick::bit_voxel(b);
+                let v: [u32; 3] = std::array::from_fn(|i| brick.cell[i] * 8 + l[i]);
+                flat[(v[0] + size[0] * (v[1] + size[1] * v[2])) as usize] = Some(c);
+            }
+        }
+    }
+    flat
+}
+
 /// Slab interval `(enter, exit)` of a ray against one voxel, in f64.
 fn slab(ray: &Ray, v: [u32; 3]) -> Option<(f64, f64)> {
     let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
@@ -129,22 +146,37 @@ proptest! {
     #[test]
     fn hierarchy_matches_flat_grid_exactly((size, shapes, rays) in case()) {
         let map = scene(size, &shapes);
-        // An independent flat copy of the voxels, so the reference does not read the brick map.
-        let mut flat = vec![None; (size[0] * size[1] * size[2]) as usize];
-        for (brick, _) in map.bricks() {
-            for b in 0..512u32 {
-                if let Some(c) = brick.colour_at(b) {
-                    let l = brickcast_protocol::brick::bit_voxel(b);
-                    let v: [u32; 3] = std::array::from_fn(|i| brick.cell[i] * 8 + l[i]);
-                    flat[(v[0] + size[0] * (v[1] + size[1] * v[2])) as usize] = Some(c);
-                }
-            }
-        }
+        let flat = flat_copy(&map);
         let lookup = |v: [u32; 3]| flat[(v[0] + size[0] * (v[1] + size[1] * v[2])) as usize];
         for ray in &rays {
             let fast = trace(&map, ray);
             let reference = trace_flat(size, lookup, ray);
             prop_assert_eq!(fast, reference, "ray {:?}", ray);
+        }
+    }
+
+    /// Starting later (what the beam pre-pass does) changes nothing as long as every voxel
+    /// before the start is empty: any start before the hit's entry time, any start at all for
+    /// a ray that misses. Checked against the flat DDA. This also covers the shortcut that settles a coordinate by `floor`
+    /// alone when it is clearly inside a voxel.
+    #[test]
+    fn starting_later_on_empty_space_changes_nothing(
+        (size, shapes, rays) in case(),
+        fractions in prop::collection::vec(0.0f32..0.999, 48),
+    ) {
+        let map = scene(size, &shapes);
+        let flat = flat_copy(&map);
+        let lookup = |v: [u32; 3]| flat[(v[0] + size[0] * (v[1] + size[1] * v[2])) as usize];
+        for (ray, fraction) in rays.iter().zip(&fractions) {
+            let full = trace_flat(size, lookup, ray);
+            let t_min = match full {
+                Some(hit) => hit.t * fraction,
+                None => 1.0 + 400.0 * fraction,
+            };
+            if full.is_some_and(|hit| !(t_min < hit.t)) {
+                continue;
+            }
+            prop_assert_eq!(trace_from(&map, ray, t_min), full, "ray {:?} from t = {}", ray, t_min);
         }
     }
 
