@@ -62,6 +62,8 @@ struct Dda {
     d: [f32; 3],
     inv: [f32; 3],
     step: [i32; 3],
+    /// 1 on axes the ray moves up on, else 0: the exit plane of block `b` is `b + off` blocks up.
+    off: [i32; 3],
     n: [i32; 3],
     /// Current voxel.
     v: [i32; 3],
@@ -188,6 +190,7 @@ impl Dda {
             d: ray.dir,
             inv: [0.0; 3],
             step: [0; 3],
+            off: [0; 3],
             n,
             v: [0; 3],
             next: [f32::INFINITY; 3],
@@ -197,6 +200,7 @@ impl Dda {
         for i in 0..3 {
             if ray.dir[i].abs() >= MIN_DIRECTION {
                 dda.step[i] = if ray.dir[i] > 0.0 { 1 } else { -1 };
+                dda.off[i] = i32::from(ray.dir[i] > 0.0);
                 dda.inv[i] = 1.0 / ray.dir[i];
             }
         }
@@ -303,6 +307,13 @@ impl Dda {
         } else {
             f32::INFINITY
         }
+    }
+
+    /// [`Dda::block_exit_t`] for an axis the ray moves on, without branching on the direction
+    /// (the stepping axis changes unpredictably, so a branch on its sign mispredicts).
+    #[inline(always)]
+    fn moving_exit_t(&self, i: usize, b: i32, scale: i32) -> f32 {
+        self.plane_t(i, ((b + self.off[i]) * scale).min(self.n[i]))
     }
 
     /// Voxel coordinates after the event that brought the ray into the block `lo..=hi`: the
@@ -458,14 +469,17 @@ pub fn trace_from_with_stats(
             if r[k] < rlo[k] || r[k] > rhi[k] {
                 return None;
             }
-            rnext[k] = dda.block_exit_t(k, r[k], R);
+            rnext[k] = dda.moving_exit_t(k, r[k], R);
         };
         if !v_valid {
             let lo = r.map(|c| c * R);
             dda.enter_block(lo, std::array::from_fn(|i| (lo[i] + R - 1).min(n[i] - 1)));
             v_valid = true;
         }
-        // Cell level, inside this region.
+        // Cell level, inside this region: cells `clo..=chi` (the grid ends inside the box's
+        // last regions, so leaving the region covers leaving the grid).
+        let clo = r.map(|r| r * REGION_CELLS as i32);
+        let chi: [i32; 3] = std::array::from_fn(|i| (clo[i] + REGION_CELLS as i32 - 1).min(cdims[i] - 1));
         let mut c = dda.v.map(|v| v / C);
         let mut cnext: [f32; 3] = std::array::from_fn(|i| dda.block_exit_t(i, c[i], C));
         'cells: loop {
@@ -477,7 +491,7 @@ pub fn trace_from_with_stats(
                 dda.t = cnext[k];
                 dda.axis = Some(k);
                 c[k] += step[k];
-                cnext[k] = dda.block_exit_t(k, c[k], C);
+                cnext[k] = dda.moving_exit_t(k, c[k], C);
                 v_valid = false;
                 k
             } else {
@@ -543,19 +557,17 @@ pub fn trace_from_with_stats(
                 dda.t = t;
                 dda.axis = axis;
                 c[k] += step[k];
-                cnext[k] = dda.block_exit_t(k, c[k], C);
+                cnext[k] = dda.moving_exit_t(k, c[k], C);
                 k
             };
-            if c[k] < 0 || c[k] >= cdims[k] {
-                return None;
-            }
-            if c[k].div_euclid(REGION_CELLS as i32) != r[k] {
-                // Left the region: that crossing is a region plane as well.
+            if c[k] < clo[k] || c[k] > chi[k] {
+                // Left the region: that crossing is a region plane as well (or the grid's edge,
+                // which lies outside the occupied box).
                 r[k] += step[k];
                 if r[k] < rlo[k] || r[k] > rhi[k] {
                     return None;
                 }
-                rnext[k] = dda.block_exit_t(k, r[k], R);
+                rnext[k] = dda.moving_exit_t(k, r[k], R);
                 break 'cells;
             }
         }
