@@ -16,7 +16,6 @@
 // 2^page_shift words each; `*_word(i)` picks the page.
 
 const BIG: f32 = 3.0e38;
-const EMPTY: u32 = 0xFFFFFFFFu;
 const EMPTY_REGION: u32 = 0xFFFFFF00u;
 const REGION_EDGE: i32 = 32;
 const BRICK_EDGE: i32 = 8;
@@ -27,7 +26,8 @@ const MISS: u32 = 0xFFFFFFFFu;
 const AFTER_ALL: i32 = 3;
 // `beam.rs`.
 const TILE: u32 = 8u;
-const BEAM_MARGIN: f32 = 1.0;
+const BEAM_MARGIN: f32 = 0.03125;
+const BEAM_NEAR_RANGE: f32 = 16384.0;
 const BEAM_MAX_STEPS: u32 = 48u;
 
 struct Frame {
@@ -123,6 +123,13 @@ fn region_is_empty(entry: u32) -> bool {
     return entry >= EMPTY_REGION;
 }
 fn region_clearance(entry: u32) -> i32 {
+    return i32(entry & 0xFFu);
+}
+// Empty cells are coded like empty regions: `0xFFFFFF00 | clearance` (in cells).
+fn cell_is_empty(entry: u32) -> bool {
+    return entry >= EMPTY_REGION;
+}
+fn cell_clearance(entry: u32) -> i32 {
     return i32(entry & 0xFFu);
 }
 
@@ -395,7 +402,9 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>, t_min: f32) -> Hit {
             enter_block(lo, min(lo + vec3<i32>(REGION_EDGE - 1), n - vec3<i32>(1)));
             v_valid = true;
         }
-        // Cell level, inside this region.
+        // Cell level, inside this region: cells `clo..=chi`.
+        let clo = r * 4;
+        let chi = min(clo + vec3<i32>(3), cdims - vec3<i32>(1));
         var c = v / BRICK_EDGE;
         var cnext = block_exit(c, BRICK_EDGE);
         loop {
@@ -406,13 +415,31 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>, t_min: f32) -> Hit {
             let local = u32((c.x & 3) | ((c.y & 3) << 2u) | ((c.z & 3) << 4u));
             let slot = cell_word(block * 64u + local);
             var k: i32;
-            if slot == EMPTY {
-                k = earliest(cnext);
-                t = cnext[k];
-                axis = k;
-                c[k] += stp[k];
-                cnext[k] = block_exit_t(k, c[k], BRICK_EDGE);
+            if cell_is_empty(slot) {
                 v_valid = false;
+                let clear = cell_clearance(slot);
+                if clear >= 1 {
+                    let lo = max(c - vec3<i32>(clear), clo);
+                    let hi = min(c + vec3<i32>(clear), chi);
+                    let exit = block_exit(select(lo, hi, stp > vec3<i32>(0)), BRICK_EDGE);
+                    k = earliest(exit);
+                    t = exit[k];
+                    axis = k;
+                    for (var i = 0; i < 3; i++) {
+                        if i != k {
+                            c[i] = settle_scaled(i, lo[i], hi[i], t, k, BRICK_EDGE);
+                            cnext[i] = block_exit_t(i, c[i], BRICK_EDGE);
+                        }
+                    }
+                    c[k] = select(lo[k] - 1, hi[k] + 1, stp[k] > 0);
+                    cnext[k] = block_exit_t(k, c[k], BRICK_EDGE);
+                } else {
+                    k = earliest(cnext);
+                    t = cnext[k];
+                    axis = k;
+                    c[k] += stp[k];
+                    cnext[k] = block_exit_t(k, c[k], BRICK_EDGE);
+                }
             } else {
                 let lo = c * BRICK_EDGE;
                 let hi = min(lo + vec3<i32>(BRICK_EDGE - 1), n - vec3<i32>(1));
@@ -446,10 +473,7 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>, t_min: f32) -> Hit {
                     }
                 }
             }
-            if c[k] < 0 || c[k] >= cdims[k] {
-                return miss();
-            }
-            if c[k] / 4 != r[k] {
+            if c[k] < clo[k] || c[k] > chi[k] {
                 r[k] += stp[k];
                 if r[k] < rlo[k] || r[k] > rhi[k] {
                     return miss();
@@ -518,7 +542,7 @@ fn solid(p: vec3<i32>) -> bool {
     let c = p / BRICK_EDGE;
     let local = u32((c.x & 3) | ((c.y & 3) << 2u) | ((c.z & 3) << 4u));
     let slot = cell_word(entry * 64u + local);
-    if slot == EMPTY {
+    if cell_is_empty(slot) {
         return false;
     }
     let bit = u32((p.x & 7) | ((p.y & 7) << 3u) | ((p.z & 7) << 6u));
@@ -642,7 +666,11 @@ fn safe_start(p0: vec2<u32>) -> f32 {
     var tt = 0.0;
     for (var step_n = 0u; step_n < BEAM_MAX_STEPS; step_n++) {
         let p = eye + c * tt;
-        let hw = s * tt + vec3<f32>(BEAM_MARGIN);
+        var margin = BEAM_MARGIN;
+        if any(abs(eye) >= vec3<f32>(BEAM_NEAR_RANGE)) || any(abs(p) >= vec3<f32>(BEAM_NEAR_RANGE)) {
+            margin = 1.0;
+        }
+        let hw = s * tt + vec3<f32>(margin);
         let lo = p - hw;
         let hi = p + hw;
         var elo = vec3<f32>(-BIG);
@@ -667,13 +695,28 @@ fn safe_start(p0: vec2<u32>) -> f32 {
                 cell[i] = clamp(i32(q / r), rlo[i], rhi[i]);
             }
             let entry = regions[u32(cell.x + rdims.x * (cell.y + rdims.y * cell.z))];
-            if !region_is_empty(entry) {
-                return tt;
+            var unit = r;
+            var at = cell;
+            var clear: f32;
+            if region_is_empty(entry) {
+                clear = f32(region_clearance(entry));
+            } else {
+                // An occupied region: its cell under the beam's centre and that cell's cube.
+                unit = f32(BRICK_EDGE);
+                for (var i = 0; i < 3; i++) {
+                    let q = clamp(p[i], box_lo[i], box_hi[i] - 0.5);
+                    at[i] = clamp(i32(q / unit), cell[i] * 4, cell[i] * 4 + 3);
+                }
+                let local = u32((at.x & 3) | ((at.y & 3) << 2u) | ((at.z & 3) << 4u));
+                let slot = cell_word(entry * 64u + local);
+                if !cell_is_empty(slot) {
+                    return tt;
+                }
+                clear = f32(cell_clearance(slot));
             }
-            let clear = f32(region_clearance(entry));
             for (var i = 0; i < 3; i++) {
-                elo[i] = (f32(cell[i]) - clear) * r;
-                ehi[i] = (f32(cell[i]) + clear + 1.0) * r;
+                elo[i] = (f32(at[i]) - clear) * unit;
+                ehi[i] = (f32(at[i]) + clear + 1.0) * unit;
                 if elo[i] <= box_lo[i] {
                     elo[i] = -BIG;
                 }

@@ -9,19 +9,27 @@
 //! tile's pixel ranges, so at parameter `t` they all lie in an axis-aligned box centred on the
 //! tile's centre ray with half-size `t·ρ` (`ρ[i] = |R[i]|·hu + |U[i]|·hv`). The march only
 //! advances `t` while that box, grown by [`MARGIN`] voxels for rounding, stays inside space known
-//! to be empty: outside the map's occupied box, or inside the cube of empty regions an empty
-//! region's clearance vouches for. Every voxel any of the tile's rays meets before the returned
+//! to be empty: outside the map's occupied box, inside the cube of empty regions an empty
+//! region's clearance vouches for, or, in an occupied region, inside the cube of empty cells an
+//! empty cell's clearance vouches for. Every voxel any of the tile's rays meets before the returned
 //! `t` is therefore empty, which is what [`crate::trace::trace_from`] needs to return exactly
 //! the hit [`crate::trace::trace`] would. The GPU does the same march once per workgroup.
 
-use crate::map::{BrickMap, REGION_EDGE, region_clearance, region_is_empty};
+use crate::brick::BRICK_EDGE;
+use crate::map::{
+    BrickMap, CELLS_PER_BLOCK, REGION_EDGE, cell_clearance, cell_is_empty, region_clearance,
+    region_is_empty,
+};
 use crate::render::Projection;
 
 /// Pixels along a tile's edge: one GPU workgroup is one tile.
 pub const TILE: u32 = 8;
-/// Voxels added around the beam's box for float rounding (coordinates up to 8192 carry errors
-/// around 1e-3 voxels).
-pub const MARGIN: f32 = 1.0;
+/// Voxels added around the beam's box for rounding, while every coordinate involved is below
+/// [`NEAR_RANGE`]: a ray's voxel path then strays at most about 7e-3 voxels from the exact line
+/// (see `trace::clearly_inside_voxel`), and the beam's own arithmetic less.
+pub const MARGIN: f32 = 1.0 / 32.0;
+/// Beyond coordinates of this size the margin is a whole voxel.
+pub const NEAR_RANGE: f32 = 16384.0;
 /// Steps the march may take before it settles for what it has.
 pub const MAX_STEPS: u32 = 48;
 
@@ -51,6 +59,15 @@ impl Beam {
     /// The largest ray parameter up to which every voxel the beam's rays meet is known to be
     /// empty: 0 when nothing is known, infinity when the beam never reaches an occupied region.
     pub fn safe_start(&self, map: &BrickMap) -> f32 {
+        self.safe_start_from(map, 0.0)
+    }
+
+    /// [`Beam::safe_start`] for a beam already known to cross only empty voxels up to `from`
+    /// (a larger beam holding this one vouched for it): the march resumes there.
+    pub fn safe_start_from(&self, map: &BrickMap, from: f32) -> f32 {
+        if from == f32::INFINITY {
+            return f32::INFINITY;
+        }
         let Some((rlo, rhi)) = map.occupied_regions() else {
             return f32::INFINITY;
         };
@@ -70,11 +87,19 @@ impl Beam {
             std::array::from_fn(|i| ((rhi[i] + 1) as f32 * r).min(size[i] as f32));
         let dims = map.region_dims();
         let regions = map.regions();
+        let cells = map.cells();
+        let b = BRICK_EDGE as f32;
         let (c, s) = (self.centre, self.spread);
-        let mut t = 0.0f32;
+        let mut t = if from > 0.0 { from } else { 0.0 };
+        let eye_near = self.eye.iter().all(|c| c.abs() < NEAR_RANGE);
         for _ in 0..MAX_STEPS {
             let p: [f32; 3] = std::array::from_fn(|i| self.eye[i] + c[i] * t);
-            let half: [f32; 3] = std::array::from_fn(|i| s[i] * t + MARGIN);
+            let margin = if eye_near && p.iter().all(|c| c.abs() < NEAR_RANGE) {
+                MARGIN
+            } else {
+                1.0
+            };
+            let half: [f32; 3] = std::array::from_fn(|i| s[i] * t + margin);
             let lo: [f32; 3] = std::array::from_fn(|i| p[i] - half[i]);
             let hi: [f32; 3] = std::array::from_fn(|i| p[i] + half[i]);
             // The empty box we may move in, per axis; infinite where it reaches past the
@@ -99,15 +124,27 @@ impl Beam {
                     ((v / r) as u32).clamp(rlo[i], rhi[i])
                 });
                 let entry = regions[(cell[0] + dims[0] * (cell[1] + dims[1] * cell[2])) as usize];
-                if !region_is_empty(entry) {
-                    return t;
-                }
-                let clear = region_clearance(entry) as f32;
+                // An occupied region: go down to its cell under the beam's centre, and the cube
+                // of empty cells that cell's clearance vouches for.
+                let (unit, at, clear) = if region_is_empty(entry) {
+                    (r, cell, region_clearance(entry) as f32)
+                } else {
+                    let c: [u32; 3] = std::array::from_fn(|i| {
+                        let v = p[i].clamp(box_lo[i], box_hi[i] - 0.5);
+                        ((v / b) as u32).clamp(cell[i] * 4, cell[i] * 4 + 3)
+                    });
+                    let local = (c[0] & 3) | ((c[1] & 3) << 2) | ((c[2] & 3) << 4);
+                    let slot = cells[(entry * CELLS_PER_BLOCK + local) as usize];
+                    if !cell_is_empty(slot) {
+                        return t;
+                    }
+                    (b, c, cell_clearance(slot) as f32)
+                };
                 let mut elo = [0.0; 3];
                 let mut ehi = [0.0; 3];
                 for i in 0..3 {
-                    elo[i] = (cell[i] as f32 - clear) * r;
-                    ehi[i] = (cell[i] as f32 + clear + 1.0) * r;
+                    elo[i] = (at[i] as f32 - clear) * unit;
+                    ehi[i] = (at[i] as f32 + clear + 1.0) * unit;
                     if elo[i] <= box_lo[i] {
                         elo[i] = f32::NEG_INFINITY;
                     }

@@ -7,7 +7,9 @@
 //!   above the top level": a ray leaves an empty region, and the empty regions around it, in one
 //!   step, and empty regions cost 4 bytes instead of 256, which keeps the coarse level sparse (a
 //!   dense 512³ coarse grid for a 4096³ scene would alone be 512 MiB).
-//! * `cells`: cell blocks of 64 `u32`s, each a brick slot or [`EMPTY`] (the paper's brick grid).
+//! * `cells`: cell blocks of 64 `u32`s, each a brick slot or, when empty, `0xFFFFFF00 |
+//!   clearance` in cells (see [`cell_clearance`]); the paper's brick grid. Cells of empty regions
+//!   are not stored.
 //! * per brick slot: a 512-bit `mask` and a `colour_base` into the shared `colours` pool, which holds
 //!   only the colours of solid voxels (see [`crate::brick`]).
 //!
@@ -48,6 +50,26 @@ pub const EMPTY_REGION: u32 = 0xFFFF_FF00;
 #[inline(always)]
 pub const fn region_is_empty(entry: u32) -> bool {
     entry >= EMPTY_REGION
+}
+
+/// Largest clearance stored for an empty cell (in cells). Creating a brick lowers the clearance
+/// of the (2·cap+1)³ cells around it, so the cap bounds that cost.
+pub const CELL_CLEARANCE_CAP: u32 = 2;
+/// An empty cell with no clearance: what a new block and a removed brick leave.
+pub const EMPTY_CELL: u32 = EMPTY_REGION;
+
+/// Whether a cell entry is empty.
+#[inline(always)]
+pub const fn cell_is_empty(entry: u32) -> bool {
+    entry >= EMPTY_CELL
+}
+
+/// Clearance of an empty cell entry: every cell within this Chebyshev distance (in cells) is
+/// empty, in this region or in the ones around it (cells of empty regions count as empty), so a
+/// ray may leave that cube of cells in one step. Conservative like [`region_clearance`].
+#[inline(always)]
+pub const fn cell_clearance(entry: u32) -> u32 {
+    entry & 0xFF
 }
 
 /// Clearance of an empty region entry: every region within this Chebyshev distance (in regions)
@@ -423,7 +445,7 @@ impl BrickMap {
             return None;
         }
         let slot = self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize];
-        (slot != EMPTY).then_some(slot)
+        (!cell_is_empty(slot)).then_some(slot)
     }
 
     /// Colour of a voxel, `None` where it is empty or outside the scene.
@@ -933,6 +955,7 @@ impl BrickMap {
         self.colours[base as usize..base as usize + colours.len()].copy_from_slice(colours);
         self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize] = slot;
         self.block_fill[block as usize] += 1;
+        self.lower_cell_clearance_around(cell);
         self.tombstones.remove(&cell_index);
         self.bricks += 1;
         self.solid_voxels += colours.len() as u64;
@@ -973,7 +996,7 @@ impl BrickMap {
         let cell = self.cell_coords(cell_index);
         let region = self.region_index(cell.map(|c| c / REGION_CELLS));
         let block = self.regions[region];
-        self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize] = EMPTY;
+        self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize] = EMPTY_CELL;
         self.block_fill[block as usize] -= 1;
         if let Some(g) = &mut self.gpu {
             g.cell_blocks.push(block);
@@ -1023,10 +1046,98 @@ impl BrickMap {
         }
     }
 
+    /// The cell entry of `cell` (any coordinates, outside the grid included): `None` where the
+    /// cell's region is empty or the cell lies outside the grid, else `(index into cells,
+    /// entry)`.
+    fn cell_entry(&self, cell: [i64; 3]) -> Option<(usize, u32)> {
+        let dims = self.cell_dims;
+        if (0..3).any(|i| cell[i] < 0 || cell[i] >= i64::from(dims[i])) {
+            return None;
+        }
+        let cell = cell.map(|c| c as u32);
+        let block = self.regions[self.region_index(cell.map(|c| c / REGION_CELLS))];
+        if region_is_empty(block) {
+            return None;
+        }
+        let at = (block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize;
+        Some((at, self.cells[at]))
+    }
+
+    /// A brick appeared at `cell`: empty cells within [`CELL_CLEARANCE_CAP`] of it may claim
+    /// less clearance than they do.
+    fn lower_cell_clearance_around(&mut self, cell: [u32; 3]) {
+        let cap = i64::from(CELL_CLEARANCE_CAP);
+        let c = cell.map(i64::from);
+        for z in c[2] - cap..=c[2] + cap {
+            for y in c[1] - cap..=c[1] + cap {
+                for x in c[0] - cap..=c[0] + cap {
+                    let d = (x - c[0]).abs().max((y - c[1]).abs()).max((z - c[2]).abs());
+                    let Some((at, entry)) = self.cell_entry([x, y, z]) else {
+                        continue;
+                    };
+                    if d > 0 && cell_is_empty(entry) && i64::from(cell_clearance(entry)) >= d {
+                        self.cells[at] = EMPTY_CELL | (d - 1) as u32;
+                        if let Some(g) = &mut self.gpu {
+                            g.cell_blocks.push(at as u32 / CELLS_PER_BLOCK);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Recomputes every empty cell's clearance exactly: each empty cell of an allocated block
+    /// starts at the cap, and every brick lowers the cells around it (one pass over the bricks,
+    /// (2·cap+1)³ cells each).
+    fn rebuild_cell_clearance(&mut self) {
+        let cap = CELL_CLEARANCE_CAP;
+        let mut changed = vec![false; self.block_fill.len()];
+        for (at, entry) in self.cells.iter_mut().enumerate() {
+            if cell_is_empty(*entry) && *entry != EMPTY_CELL | cap {
+                *entry = EMPTY_CELL | cap;
+                changed[at / CELLS_PER_BLOCK as usize] = true;
+            }
+        }
+        let occupied: Vec<u32> = self
+            .slot_cell
+            .iter()
+            .copied()
+            .filter(|&c| c != EMPTY)
+            .collect();
+        let icap = i64::from(cap);
+        for index in occupied {
+            let c = self.cell_coords(index).map(i64::from);
+            for z in c[2] - icap..=c[2] + icap {
+                for y in c[1] - icap..=c[1] + icap {
+                    for x in c[0] - icap..=c[0] + icap {
+                        let d = (x - c[0]).abs().max((y - c[1]).abs()).max((z - c[2]).abs());
+                        let Some((at, entry)) = self.cell_entry([x, y, z]) else {
+                            continue;
+                        };
+                        if d > 0 && cell_is_empty(entry) && i64::from(cell_clearance(entry)) >= d {
+                            self.cells[at] = EMPTY_CELL | (d - 1) as u32;
+                            changed[at / CELLS_PER_BLOCK as usize] = true;
+                        }
+                    }
+                }
+            }
+        }
+        if let Some(g) = &mut self.gpu {
+            g.cell_blocks.extend(
+                changed
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, c)| **c)
+                    .map(|(b, _)| b as u32),
+            );
+        }
+    }
+
     /// Recomputes every empty region's clearance exactly (edits only lower it). Cheap: three
     /// separable passes of a capped Chebyshev distance transform over the region grid. The client
     /// runs it after a full sync, the server after loading a scene.
     pub fn rebuild_clearance(&mut self) {
+        self.rebuild_cell_clearance();
         let dims = self.region_dims.map(|d| d as usize);
         let far = CLEARANCE_CAP + 1;
         // Distance to the nearest occupied region, capped at `far`; out-of-grid counts as empty.
@@ -1087,10 +1198,18 @@ impl BrickMap {
 
     fn alloc_block(&mut self) -> u32 {
         match self.free_blocks.pop() {
-            Some(b) => b,
+            Some(b) => {
+                // Its cells still carry clearances from the region it served before.
+                let at = (b * CELLS_PER_BLOCK) as usize;
+                self.cells[at..at + CELLS_PER_BLOCK as usize].fill(EMPTY_CELL);
+                if let Some(g) = &mut self.gpu {
+                    g.cell_blocks.push(b);
+                }
+                b
+            }
             None => {
                 self.cells
-                    .extend(std::iter::repeat_n(EMPTY, CELLS_PER_BLOCK as usize));
+                    .extend(std::iter::repeat_n(EMPTY_CELL, CELLS_PER_BLOCK as usize));
                 self.block_fill.push(0);
                 self.block_fill.len() as u32 - 1
             }
@@ -1171,7 +1290,7 @@ impl BrickMap {
         for (b, &fill) in self.block_fill.iter().enumerate() {
             let used = self.cells[b * 64..b * 64 + 64]
                 .iter()
-                .filter(|&&c| c != EMPTY)
+                .filter(|&&c| !cell_is_empty(c))
                 .count();
             if used != fill as usize {
                 return Err(format!("block {b} fill {fill} but {used} cells used"));
@@ -1191,6 +1310,38 @@ impl BrickMap {
                     "region {r:?} is allocated but outside the occupied box {:?}",
                     self.occupied
                 ));
+            }
+        }
+        // Cell clearance never claims an occupied cell.
+        for (at, &entry) in self.cells.iter().enumerate() {
+            if !cell_is_empty(entry) || self.block_fill[at / 64] == 0 {
+                continue;
+            }
+            let block = (at / 64) as u32;
+            let Some(region) = self.regions.iter().position(|&e| e == block) else {
+                continue;
+            };
+            let r = self.region_coords(region);
+            let local = at as u32 % 64;
+            let l = [local & 3, (local >> 2) & 3, (local >> 4) & 3];
+            let c: [i64; 3] = std::array::from_fn(|i| i64::from(r[i] * REGION_CELLS + l[i]));
+            if (0..3).any(|i| c[i] >= i64::from(self.cell_dims[i])) {
+                continue; // past the grid's edge: no ray visits it
+            }
+            let k = i64::from(cell_clearance(entry));
+            for z in c[2] - k..=c[2] + k {
+                for y in c[1] - k..=c[1] + k {
+                    for x in c[0] - k..=c[0] + k {
+                        if let Some((_, e)) = self.cell_entry([x, y, z])
+                            && !cell_is_empty(e)
+                        {
+                            return Err(format!(
+                                "cell {c:?} claims clearance {k} past occupied cell {:?}",
+                                [x, y, z]
+                            ));
+                        }
+                    }
+                }
             }
         }
         // Clearance never claims an occupied region.

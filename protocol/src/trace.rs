@@ -15,10 +15,11 @@
 //!
 //! The GPU tracer in `shaders/trace.wgsl` is a line-by-line twin of this file.
 
-use crate::brick::{BRICK_EDGE, EMPTY, mask_get, rank, voxel_bit};
+use crate::brick::{BRICK_EDGE, mask_get, rank, voxel_bit};
 use crate::colour::Colour;
 use crate::map::{
-    BrickMap, CELLS_PER_BLOCK, REGION_CELLS, REGION_EDGE, region_clearance, region_is_empty,
+    BrickMap, CELLS_PER_BLOCK, REGION_CELLS, REGION_EDGE, cell_clearance, cell_is_empty,
+    region_clearance, region_is_empty,
 };
 
 /// Direction components smaller than this are treated as zero, so `1/d` stays finite (GPUs flush
@@ -479,21 +480,45 @@ pub fn trace_from_with_stats(
         // Cell level, inside this region: cells `clo..=chi` (the grid ends inside the box's
         // last regions, so leaving the region covers leaving the grid).
         let clo = r.map(|r| r * REGION_CELLS as i32);
-        let chi: [i32; 3] = std::array::from_fn(|i| (clo[i] + REGION_CELLS as i32 - 1).min(cdims[i] - 1));
+        let chi: [i32; 3] =
+            std::array::from_fn(|i| (clo[i] + REGION_CELLS as i32 - 1).min(cdims[i] - 1));
         let mut c = dda.v.map(|v| v / C);
         let mut cnext: [f32; 3] = std::array::from_fn(|i| dda.block_exit_t(i, c[i], C));
         'cells: loop {
             let local = ((c[0] & 3) | ((c[1] & 3) << 2) | ((c[2] & 3) << 4)) as u32;
             let slot = map.cells[(block * CELLS_PER_BLOCK + local) as usize];
-            let k = if slot == EMPTY {
+            let k = if cell_is_empty(slot) {
                 stats.cell_skips += 1;
-                let k = earliest(&cnext);
-                dda.t = cnext[k];
-                dda.axis = Some(k);
-                c[k] += step[k];
-                cnext[k] = dda.moving_exit_t(k, c[k], C);
                 v_valid = false;
-                k
+                let clear = cell_clearance(slot) as i32;
+                if clear >= 1 {
+                    // Leave the cube of empty cells c ± clear (within this region) in one event,
+                    // as the region level does.
+                    let lo: [i32; 3] = std::array::from_fn(|i| (c[i] - clear).max(clo[i]));
+                    let hi: [i32; 3] = std::array::from_fn(|i| (c[i] + clear).min(chi[i]));
+                    let exit: [f32; 3] = std::array::from_fn(|i| {
+                        dda.block_exit_t(i, if step[i] > 0 { hi[i] } else { lo[i] }, C)
+                    });
+                    let k = earliest(&exit);
+                    dda.t = exit[k];
+                    dda.axis = Some(k);
+                    for i in 0..3 {
+                        if i != k {
+                            c[i] = dda.settle_scaled(i, lo[i], hi[i], dda.t, k, C);
+                            cnext[i] = dda.block_exit_t(i, c[i], C);
+                        }
+                    }
+                    c[k] = if step[k] > 0 { hi[k] + 1 } else { lo[k] - 1 };
+                    cnext[k] = dda.moving_exit_t(k, c[k], C);
+                    k
+                } else {
+                    let k = earliest(&cnext);
+                    dda.t = cnext[k];
+                    dda.axis = Some(k);
+                    c[k] += step[k];
+                    cnext[k] = dda.moving_exit_t(k, c[k], C);
+                    k
+                }
             } else {
                 let lo = c.map(|v| v * C);
                 let hi: [i32; 3] = std::array::from_fn(|i| (lo[i] + C - 1).min(n[i] - 1));

@@ -48,8 +48,10 @@
 //! clock. Nothing in the map can make it panic, and the camera it returns always projects
 //! (`camera.project(w, h)` is `Some` for any non-zero `w`, `h`).
 
-use crate::brick::{BRICK_EDGE, EMPTY, Mask};
-use crate::map::{BrickMap, CELLS_PER_BLOCK, REGION_CELLS, REGION_EDGE, region_is_empty};
+use crate::brick::{BRICK_EDGE, Mask};
+use crate::map::{
+    BrickMap, CELLS_PER_BLOCK, REGION_CELLS, REGION_EDGE, cell_is_empty, region_is_empty,
+};
 use crate::render::Camera;
 use crate::trace::{Ray, trace};
 
@@ -260,7 +262,8 @@ fn region_bricks(map: &BrickMap, r: [u32; 3]) -> impl Iterator<Item = ([u32; 3],
             let slot = *map
                 .cells()
                 .get((block * CELLS_PER_BLOCK + local) as usize)?;
-            (slot != EMPTY).then_some(([local & 3, (local >> 2) & 3, (local >> 4) & 3], slot))
+            (!cell_is_empty(slot))
+                .then_some(([local & 3, (local >> 2) & 3, (local >> 4) & 3], slot))
         })
     })
 }

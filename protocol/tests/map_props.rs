@@ -118,7 +118,7 @@ impl Mirror {
         }
         let local = (cell[0] & 3) | ((cell[1] & 3) << 2) | ((cell[2] & 3) << 4);
         let slot = self.cells[(block * 64 + local) as usize];
-        if slot == EMPTY {
+        if brickcast_protocol::map::cell_is_empty(slot) {
             return None;
         }
         let mask = &self.masks[slot as usize];

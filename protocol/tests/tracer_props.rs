@@ -148,10 +148,38 @@ proptest! {
         let map = scene(size, &shapes);
         let flat = flat_copy(&map);
         let lookup = |v: [u32; 3]| flat[(v[0] + size[0] * (v[1] + size[1] * v[2])) as usize];
+        // As edited (clearances only ever lowered) and with every clearance rebuilt to its
+        // largest (so rays take the long jumps over empty regions and cells).
+        let mut rebuilt = map.clone();
+        rebuilt.rebuild_clearance();
+        rebuilt.check_invariants().map_err(TestCaseError::fail)?;
         for ray in &rays {
-            let fast = trace(&map, ray);
             let reference = trace_flat(size, lookup, ray);
-            prop_assert_eq!(fast, reference, "ray {:?}", ray);
+            prop_assert_eq!(trace(&map, ray), reference, "ray {:?}", ray);
+            prop_assert_eq!(trace(&rebuilt, ray), reference, "ray {:?}, rebuilt", ray);
+        }
+        // Random rays rarely find small shapes in a big grid: also aim at solid voxels, from the
+        // grid's corners and centre, across the empty cells and regions around them.
+        let s = size.map(|c| c as f32);
+        let origins = [
+            [-3.0, -3.0, -3.0],
+            [s[0] + 3.0, s[1] * 0.5, -2.0],
+            [s[0] * 0.5 + 0.25, s[1] + 4.0, s[2] * 0.5 + 0.75],
+            [-2.5, s[1] + 2.0, s[2] + 3.0],
+            [s[0] * 0.37, s[1] * 0.61, s[2] * 0.29],
+        ];
+        let targets = (0..size[2]).flat_map(|z| (0..size[1]).flat_map(move |y| (0..size[0]).map(move |x| [x, y, z])))
+            .filter(|&v| lookup(v).is_some())
+            .step_by(7)
+            .take(12);
+        for target in targets {
+            for origin in origins {
+                let aim = [target[0] as f32 + 0.3, target[1] as f32 + 0.6, target[2] as f32 + 0.45];
+                let ray = Ray { origin, dir: std::array::from_fn(|i| aim[i] - origin[i]) };
+                let reference = trace_flat(size, lookup, &ray);
+                prop_assert_eq!(trace(&rebuilt, &ray), reference, "aimed ray {:?}, rebuilt", ray);
+                prop_assert_eq!(trace(&map, &ray), reference, "aimed ray {:?}", ray);
+            }
         }
     }
 
@@ -164,7 +192,8 @@ proptest! {
         (size, shapes, rays) in case(),
         fractions in prop::collection::vec(0.0f32..0.999, 48),
     ) {
-        let map = scene(size, &shapes);
+        let mut map = scene(size, &shapes);
+        map.rebuild_clearance();
         let flat = flat_copy(&map);
         let lookup = |v: [u32; 3]| flat[(v[0] + size[0] * (v[1] + size[1] * v[2])) as usize];
         for (ray, fraction) in rays.iter().zip(&fractions) {
