@@ -202,7 +202,7 @@ proptest! {
                 Some(hit) => hit.t * fraction,
                 None => 1.0 + 400.0 * fraction,
             };
-            if full.is_some_and(|hit| !(t_min < hit.t)) {
+            if full.is_some_and(|hit| t_min >= hit.t || t_min.is_nan()) {
                 continue;
             }
             prop_assert_eq!(trace_from(&map, ray, t_min), full, "ray {:?} from t = {}", ray, t_min);
