@@ -124,11 +124,8 @@ impl Dda {
     /// Time of the plane that the ray crosses when leaving voxel coordinate `v` on axis `i`.
     #[inline(always)]
     fn exit_t(&self, i: usize, v: i32) -> f32 {
-        if self.step[i] == 0 {
-            f32::INFINITY
-        } else {
-            self.plane_t(i, v + i32::from(self.step[i] > 0))
-        }
+        let t = self.plane_t(i, v + self.off[i]);
+        if self.step[i] == 0 { f32::INFINITY } else { t }
     }
 
     /// The voxel coordinate on axis `i` once every crossing ordered before event `(at, k)` has
@@ -301,13 +298,9 @@ impl Dda {
     /// `i`. The far plane is clipped to the grid, as partial blocks end where the scene ends.
     #[inline(always)]
     fn block_exit_t(&self, i: usize, b: i32, scale: i32) -> f32 {
-        if self.step[i] > 0 {
-            self.plane_t(i, ((b + 1) * scale).min(self.n[i]))
-        } else if self.step[i] < 0 {
-            self.plane_t(i, b * scale)
-        } else {
-            f32::INFINITY
-        }
+        // A select, not branches: the same plane as `moving_exit_t`, infinite when not moving.
+        let t = self.moving_exit_t(i, b, scale);
+        if self.step[i] == 0 { f32::INFINITY } else { t }
     }
 
     /// [`Dda::block_exit_t`] for an axis the ray moves on, without branching on the direction
