@@ -11,6 +11,11 @@
 //   iterations; `frame.region_dims.w` is a budget well above that which turns a driver hang on a
 //   bug into a visible miss instead.
 //
+// Not here, because they are CPU speed-ups that give the same hits: the beam pre-pass
+// (`beam.rs`; one invocation marching per workgroup made lavapipe ~20% slower), settling by
+// `floor` alone, and the scalar voxel loop. The traversal order, the occupied box and the cell
+// and region clearance jumps are the same.
+//
 // Buffers mirror `BrickMap`'s arrays byte for byte (see `client/src/gpu/scene.rs`). The three pools
 // that can outgrow one storage binding (cells, masks, colours) are split into two bindings of
 // 2^page_shift words each; `*_word(i)` picks the page.
@@ -22,13 +27,6 @@ const BRICK_EDGE: i32 = 8;
 const MIN_DIRECTION: f32 = 1e-30;
 const NO_AXIS: i32 = -1;
 const MISS: u32 = 0xFFFFFFFFu;
-// `trace::AFTER_ALL`: an axis number after every real axis.
-const AFTER_ALL: i32 = 3;
-// `beam.rs`.
-const TILE: u32 = 8u;
-const BEAM_MARGIN: f32 = 0.03125;
-const BEAM_NEAR_RANGE: f32 = 16384.0;
-const BEAM_MAX_STEPS: u32 = 48u;
 
 struct Frame {
     eye: vec4<f32>,
@@ -192,8 +190,8 @@ fn settle(i: i32, lo: i32, hi: i32, at: f32, k: i32) -> i32 {
     return settle_scaled(i, lo, hi, at, k, 1);
 }
 
-// `Dda::start_in`: false when the ray misses the box `lo..hi` or is unusable.
-fn start_in(origin: vec3<f32>, dir: vec3<f32>, lo: vec3<i32>, hi: vec3<i32>, t_min: f32) -> bool {
+// `Dda::start_in` (with `t_min` 0): false when the ray misses the box `lo..hi` or is unusable.
+fn start_in(origin: vec3<f32>, dir: vec3<f32>, lo: vec3<i32>, hi: vec3<i32>) -> bool {
     o = origin;
     d = dir;
     n = vec3<i32>(frame.size.xyz);
@@ -220,8 +218,7 @@ fn start_in(origin: vec3<f32>, dir: vec3<f32>, lo: vec3<i32>, hi: vec3<i32>, t_m
             first[i] = i32(floor(origin[i]));
         }
     }
-    let inside = all(first >= lo) && all(first < hi);
-    if inside && t_min <= 0.0 {
+    if all(first >= lo) && all(first < hi) {
         v = first;
     } else {
         var near = -BIG;
@@ -253,32 +250,19 @@ fn start_in(origin: vec3<f32>, dir: vec3<f32>, lo: vec3<i32>, hi: vec3<i32>, t_m
                 far_axis = i;
             }
         }
-        if t_min > 0.0 && (inside || before(near, near_axis, t_min, AFTER_ALL)) {
-            if !before(t_min, AFTER_ALL, far, far_axis) {
-                return false;
-            }
-            for (var i = 0; i < 3; i++) {
-                v[i] = settle(i, lo[i], hi[i] - 1, t_min, AFTER_ALL);
-            }
-            t = t_min;
-            axis = NO_AXIS;
-        } else if inside {
-            v = first;
-        } else {
-            if !before(near, near_axis, far, far_axis) || near < 0.0 {
-                return false;
-            }
-            let k = near_axis;
-            for (var i = 0; i < 3; i++) {
-                if i == k {
-                    v[i] = select(hi[k] - 1, lo[k], stp[k] > 0);
-                } else {
-                    v[i] = settle(i, lo[i], hi[i] - 1, near, k);
-                }
-            }
-            t = near;
-            axis = k;
+        if !before(near, near_axis, far, far_axis) || near < 0.0 {
+            return false;
         }
+        let k = near_axis;
+        for (var i = 0; i < 3; i++) {
+            if i == k {
+                v[i] = select(hi[k] - 1, lo[k], stp[k] > 0);
+            } else {
+                v[i] = settle(i, lo[i], hi[i] - 1, near, k);
+            }
+        }
+        t = near;
+        axis = k;
     }
     for (var i = 0; i < 3; i++) {
         next[i] = exit_t(i, v[i]);
@@ -339,15 +323,16 @@ fn make_hit(colour: u32) -> Hit {
     return Hit(true, v, colour, normal, t);
 }
 
-// `trace_from_with_stats`, without the stats: only the occupied box is traced, from `t_min`.
-fn trace(origin: vec3<f32>, dir: vec3<f32>, t_min: f32) -> Hit {
-    if frame.occupied_lo.w == 0 || t_min >= BIG {
+// `trace_with_stats`, without the stats: only the occupied box is traced. (The CPU's beam
+// pre-pass is not here: marched by one invocation per workgroup it cost lavapipe about 20%.)
+fn trace(origin: vec3<f32>, dir: vec3<f32>) -> Hit {
+    if frame.occupied_lo.w == 0 {
         return miss();
     }
     let rlo = frame.occupied_lo.xyz;
     let rhi = frame.occupied_hi.xyz;
     let box_hi = min((rhi + vec3<i32>(1)) * REGION_EDGE, vec3<i32>(frame.size.xyz));
-    if !start_in(origin, dir, rlo * REGION_EDGE, box_hi, t_min) {
+    if !start_in(origin, dir, rlo * REGION_EDGE, box_hi) {
         return miss();
     }
     let rdims = vec3<i32>(frame.region_dims.xyz);
@@ -600,7 +585,7 @@ fn sun_reaches(hit: Hit) -> bool {
         return true;
     }
     let front = vec3<f32>(hit.voxel + hit.normal) + vec3<f32>(0.5);
-    return !trace(front, frame.sun.xyz, 0.0).found;
+    return !trace(front, frame.sun.xyz).found;
 }
 
 // `shade`.
@@ -638,141 +623,8 @@ fn shade_hit(hit: Hit, origin: vec3<f32>, dir: vec3<f32>) -> vec3<f32> {
     return shade(hit, dir, sun_visible, ao);
 }
 
-// ---- the beam pre-pass (beam.rs) -------------------------------------------------------------
-
-// `Beam::safe_start` for the tile whose top-left pixel is `p0`: BIG when the tile's rays never
-// reach an occupied region.
-fn safe_start(p0: vec2<u32>) -> f32 {
-    if frame.occupied_lo.w == 0 {
-        return BIG;
-    }
-    let width = frame.image.x;
-    let height = frame.image.y;
-    let x1 = max(min(p0.x + TILE, width), p0.x + 1u);
-    let y1 = max(min(p0.y + TILE, height), p0.y + 1u);
-    let uc = f32(p0.x + x1) * 0.5 - f32(width) * 0.5;
-    let vc = f32(height) * 0.5 - f32(p0.y + y1) * 0.5;
-    let hu = f32(x1 - p0.x - 1u) * 0.5;
-    let hv = f32(y1 - p0.y - 1u) * 0.5;
-    let eye = frame.eye.xyz;
-    let c = frame.forward.xyz + frame.right.xyz * uc + frame.up.xyz * vc;
-    let s = abs(frame.right.xyz) * hu + abs(frame.up.xyz) * hv;
-    let rlo = frame.occupied_lo.xyz;
-    let rhi = frame.occupied_hi.xyz;
-    let r = f32(REGION_EDGE);
-    let box_lo = vec3<f32>(rlo) * r;
-    let box_hi = min(vec3<f32>(rhi + vec3<i32>(1)) * r, vec3<f32>(frame.size.xyz));
-    let rdims = vec3<i32>(frame.region_dims.xyz);
-    var tt = 0.0;
-    for (var step_n = 0u; step_n < BEAM_MAX_STEPS; step_n++) {
-        let p = eye + c * tt;
-        var margin = BEAM_MARGIN;
-        if any(abs(eye) >= vec3<f32>(BEAM_NEAR_RANGE)) || any(abs(p) >= vec3<f32>(BEAM_NEAR_RANGE)) {
-            margin = 1.0;
-        }
-        let hw = s * tt + vec3<f32>(margin);
-        let lo = p - hw;
-        let hi = p + hw;
-        var elo = vec3<f32>(-BIG);
-        var ehi = vec3<f32>(BIG);
-        var outside = -1;
-        for (var i = 0; i < 3; i++) {
-            if outside < 0 && (hi[i] < box_lo[i] || lo[i] > box_hi[i]) {
-                outside = i;
-            }
-        }
-        if outside >= 0 {
-            let i = outside;
-            if hi[i] < box_lo[i] {
-                ehi[i] = box_lo[i];
-            } else {
-                elo[i] = box_hi[i];
-            }
-        } else {
-            var cell: vec3<i32>;
-            for (var i = 0; i < 3; i++) {
-                let q = clamp(p[i], box_lo[i], box_hi[i] - 0.5);
-                cell[i] = clamp(i32(q / r), rlo[i], rhi[i]);
-            }
-            let entry = regions[u32(cell.x + rdims.x * (cell.y + rdims.y * cell.z))];
-            var unit = r;
-            var at = cell;
-            var clear: f32;
-            if region_is_empty(entry) {
-                clear = f32(region_clearance(entry));
-            } else {
-                // An occupied region: its cell under the beam's centre and that cell's cube.
-                unit = f32(BRICK_EDGE);
-                for (var i = 0; i < 3; i++) {
-                    let q = clamp(p[i], box_lo[i], box_hi[i] - 0.5);
-                    at[i] = clamp(i32(q / unit), cell[i] * 4, cell[i] * 4 + 3);
-                }
-                let local = u32((at.x & 3) | ((at.y & 3) << 2u) | ((at.z & 3) << 4u));
-                let slot = cell_word(entry * 64u + local);
-                if !cell_is_empty(slot) {
-                    return tt;
-                }
-                clear = f32(cell_clearance(slot));
-            }
-            for (var i = 0; i < 3; i++) {
-                elo[i] = (f32(at[i]) - clear) * unit;
-                ehi[i] = (f32(at[i]) + clear + 1.0) * unit;
-                if elo[i] <= box_lo[i] {
-                    elo[i] = -BIG;
-                }
-                if ehi[i] >= box_hi[i] {
-                    ehi[i] = BIG;
-                }
-            }
-        }
-        var adv = BIG;
-        for (var i = 0; i < 3; i++) {
-            if ehi[i] < BIG {
-                let room = ehi[i] - hi[i];
-                if room < 0.0 {
-                    return tt;
-                }
-                let rate = c[i] + s[i];
-                if rate > 0.0 {
-                    adv = min(adv, room / rate);
-                }
-            }
-            if elo[i] > -BIG {
-                let room = lo[i] - elo[i];
-                if room < 0.0 {
-                    return tt;
-                }
-                let rate = s[i] - c[i];
-                if rate > 0.0 {
-                    adv = min(adv, room / rate);
-                }
-            }
-        }
-        if adv >= BIG {
-            return BIG;
-        }
-        if !(adv > 0.0) {
-            return tt;
-        }
-        tt += adv;
-    }
-    return tt;
-}
-
-// One workgroup is one tile: its first invocation marches the tile's beam, all share the start.
-var<workgroup> tile_start: f32;
-
 @compute @workgroup_size(8, 8, 1)
-fn main(
-    @builtin(global_invocation_id) id: vec3<u32>,
-    @builtin(local_invocation_index) local_index: u32,
-    @builtin(workgroup_id) wg: vec3<u32>,
-) {
-    if local_index == 0u {
-        tile_start = safe_start(wg.xy * TILE);
-    }
-    workgroupBarrier();
-    let t0 = tile_start;
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let width = frame.image.x;
     let height = frame.image.y;
     if id.x >= width || id.y >= height {
@@ -781,7 +633,7 @@ fn main(
     let u = f32(id.x) + 0.5 - f32(width) * 0.5;
     let vv = f32(height) * 0.5 - (f32(id.y) + 0.5);
     let dir = frame.forward.xyz + frame.right.xyz * u + frame.up.xyz * vv;
-    let hit = trace(frame.eye.xyz, dir, t0);
+    let hit = trace(frame.eye.xyz, dir);
     var rgb: vec3<f32>;
     var record = vec2<u32>(MISS, MISS);
     if hit.found {

@@ -13,7 +13,9 @@
 //! region's clearance vouches for, or, in an occupied region, inside the cube of empty cells an
 //! empty cell's clearance vouches for. Every voxel any of the tile's rays meets before the returned
 //! `t` is therefore empty, which is what [`crate::trace::trace_from`] needs to return exactly
-//! the hit [`crate::trace::trace`] would. The GPU does the same march once per workgroup.
+//! the hit [`crate::trace::trace`] would. CPU only for now: in the shader, one invocation per
+//! workgroup marching while the other 63 waited made lavapipe about 20% slower; a separate pass
+//! writing one start per tile is the way to try it there.
 
 use crate::brick::BRICK_EDGE;
 use crate::map::{
@@ -22,7 +24,7 @@ use crate::map::{
 };
 use crate::render::Projection;
 
-/// Pixels along a tile's edge: one GPU workgroup is one tile.
+/// Pixels along a tile's edge.
 pub const TILE: u32 = 8;
 /// Voxels added around the beam's box for rounding, while every coordinate involved is below
 /// [`NEAR_RANGE`]: a ray's voxel path then strays at most about 7e-3 voxels from the exact line
