@@ -1743,14 +1743,9 @@ mod tests {
                     (i as u32 / rd[0] % rd[1]) as i64,
                     (i as u32 / rd[0] / rd[1]) as i64,
                 ];
-                let d = occupied
-                    .iter()
-                    .map(|o| (0..3).map(|k| (p[k] - o[k]).abs()).max().unwrap_or(0))
-                    .min()
-                    .unwrap_or(i64::MAX);
                 assert_eq!(
                     i64::from(region_clearance(e)),
-                    (d - 1).min(i64::from(CLEARANCE_CAP)),
+                    exact_clearance(p, occupied, CLEARANCE_CAP),
                     "region {p:?}"
                 );
             }
@@ -1764,6 +1759,17 @@ mod tests {
         map.rebuild_clearance();
         exact(&map, &[[15, 0, 9]]);
         map.check_invariants().unwrap();
+    }
+
+    /// The clearance brute force gives `p`: Chebyshev distance to the nearest occupied block,
+    /// less one, capped.
+    fn exact_clearance(p: [i64; 3], occupied: &[[i64; 3]], cap: u32) -> i64 {
+        let d = occupied
+            .iter()
+            .map(|o| (0..3).map(|k| (p[k] - o[k]).abs()).max().unwrap_or(0))
+            .min()
+            .unwrap_or(i64::MAX);
+        (d - 1).min(i64::from(cap))
     }
 
     /// Rebuilt cell clearances are the largest true ones: min(cap, distance to the nearest
@@ -1796,14 +1802,9 @@ mod tests {
                         continue;
                     }
                     let p = [x, y, z].map(i64::from);
-                    let d = occupied
-                        .iter()
-                        .map(|o| (0..3).map(|k| (p[k] - o[k]).abs()).max().unwrap_or(0))
-                        .min()
-                        .unwrap_or(i64::MAX);
                     assert_eq!(
                         i64::from(cell_clearance(entry)),
-                        (d - 1).min(i64::from(CELL_CLEARANCE_CAP)),
+                        exact_clearance(p, &occupied, CELL_CLEARANCE_CAP),
                         "cell {p:?}"
                     );
                     checked += 1;
