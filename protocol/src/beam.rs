@@ -61,15 +61,6 @@ impl Beam {
     /// The largest ray parameter up to which every voxel the beam's rays meet is known to be
     /// empty: 0 when nothing is known, infinity when the beam never reaches an occupied region.
     pub fn safe_start(&self, map: &BrickMap) -> f32 {
-        self.safe_start_from(map, 0.0)
-    }
-
-    /// [`Beam::safe_start`] for a beam already known to cross only empty voxels up to `from`
-    /// (a larger beam holding this one vouched for it): the march resumes there.
-    pub fn safe_start_from(&self, map: &BrickMap, from: f32) -> f32 {
-        if from == f32::INFINITY {
-            return f32::INFINITY;
-        }
         let Some((rlo, rhi)) = map.occupied_regions() else {
             return f32::INFINITY;
         };
@@ -92,7 +83,7 @@ impl Beam {
         let cells = map.cells();
         let b = BRICK_EDGE as f32;
         let (c, s) = (self.centre, self.spread);
-        let mut t = if from > 0.0 { from } else { 0.0 };
+        let mut t = 0.0f32;
         let eye_near = self.eye.iter().all(|c| c.abs() < NEAR_RANGE);
         for _ in 0..MAX_STEPS {
             let p: [f32; 3] = std::array::from_fn(|i| self.eye[i] + c[i] * t);
