@@ -1366,12 +1366,17 @@ impl BrickMap {
             }
         }
         // Cell clearance never claims an occupied cell.
+        let mut region_of_block = vec![None; self.block_fill.len()];
+        for (i, &entry) in self.regions.iter().enumerate() {
+            if let Some(slot) = region_of_block.get_mut(entry as usize) {
+                *slot = Some(i);
+            }
+        }
         for (at, &entry) in self.cells.iter().enumerate() {
             if !cell_is_empty(entry) || self.block_fill[at / 64] == 0 {
                 continue;
             }
-            let block = (at / 64) as u32;
-            let Some(region) = self.regions.iter().position(|&e| e == block) else {
+            let Some(region) = region_of_block[at / 64] else {
                 continue;
             };
             let r = self.region_coords(region);
