@@ -310,6 +310,39 @@ impl Dda {
         self.plane_t(i, ((b + self.off[i]) * scale).min(self.n[i]))
     }
 
+    /// Leaves the cube of empty blocks `lo..=hi` (of `scale` voxels) in one event, the region
+    /// and cell levels' clearance jump: the ray's event becomes the cube's exit, `b` the block
+    /// after it (settled on the other axes, with their exit times in `bnext`). Returns the exit
+    /// axis; `bnext` on it is left to the caller, which checks the block first.
+    #[inline(always)]
+    fn leave_cube(
+        &mut self,
+        b: &mut [i32; 3],
+        bnext: &mut [f32; 3],
+        lo: [i32; 3],
+        hi: [i32; 3],
+        scale: i32,
+    ) -> usize {
+        let exit: [f32; 3] = std::array::from_fn(|i| {
+            self.block_exit_t(i, if self.step[i] > 0 { hi[i] } else { lo[i] }, scale)
+        });
+        let k = earliest(&exit);
+        self.t = exit[k];
+        self.axis = Some(k);
+        for i in 0..3 {
+            if i != k {
+                b[i] = self.settle_scaled(i, lo[i], hi[i], self.t, k, scale);
+                bnext[i] = self.block_exit_t(i, b[i], scale);
+            }
+        }
+        b[k] = if self.step[k] > 0 {
+            hi[k] + 1
+        } else {
+            lo[k] - 1
+        };
+        k
+    }
+
     /// Voxel coordinates after the event that brought the ray into the block `lo..=hi`: the
     /// event's axis is on the entry face, the others settle.
     #[inline(always)]
@@ -440,19 +473,7 @@ pub fn trace_from_with_stats(
                 // only when it replaces several single steps.
                 let lo: [i32; 3] = std::array::from_fn(|i| (r[i] - clear).max(rlo[i]));
                 let hi: [i32; 3] = std::array::from_fn(|i| (r[i] + clear).min(rhi[i]));
-                let exit: [f32; 3] = std::array::from_fn(|i| {
-                    dda.block_exit_t(i, if step[i] > 0 { hi[i] } else { lo[i] }, R)
-                });
-                let k = earliest(&exit);
-                dda.t = exit[k];
-                dda.axis = Some(k);
-                for i in 0..3 {
-                    if i != k {
-                        r[i] = dda.settle_scaled(i, lo[i], hi[i], dda.t, k, R);
-                        rnext[i] = dda.block_exit_t(i, r[i], R);
-                    }
-                }
-                r[k] = if step[k] > 0 { hi[k] + 1 } else { lo[k] - 1 };
+                dda.leave_cube(&mut r, &mut rnext, lo, hi, R);
             } else {
                 let k = earliest(&rnext);
                 dda.t = rnext[k];
@@ -489,19 +510,7 @@ pub fn trace_from_with_stats(
                     // as the region level does.
                     let lo: [i32; 3] = std::array::from_fn(|i| (c[i] - clear).max(clo[i]));
                     let hi: [i32; 3] = std::array::from_fn(|i| (c[i] + clear).min(chi[i]));
-                    let exit: [f32; 3] = std::array::from_fn(|i| {
-                        dda.block_exit_t(i, if step[i] > 0 { hi[i] } else { lo[i] }, C)
-                    });
-                    let k = earliest(&exit);
-                    dda.t = exit[k];
-                    dda.axis = Some(k);
-                    for i in 0..3 {
-                        if i != k {
-                            c[i] = dda.settle_scaled(i, lo[i], hi[i], dda.t, k, C);
-                            cnext[i] = dda.block_exit_t(i, c[i], C);
-                        }
-                    }
-                    c[k] = if step[k] > 0 { hi[k] + 1 } else { lo[k] - 1 };
+                    let k = dda.leave_cube(&mut c, &mut cnext, lo, hi, C);
                     cnext[k] = dda.moving_exit_t(k, c[k], C);
                     k
                 } else {
