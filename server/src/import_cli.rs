@@ -40,6 +40,9 @@ pub struct Args {
     /// Print the summary as one JSON object.
     #[arg(long)]
     json: bool,
+    /// Import into a cluster (its NATS URL) instead of the redb store: every node serves it.
+    #[arg(long, value_name = "URL")]
+    nats: Option<String>,
     /// No progress bars.
     #[arg(long)]
     quiet: bool,
@@ -105,6 +108,8 @@ impl Progress for Bars {
 /// Where the imported scene goes.
 enum Destination {
     Store(Store),
+    /// A cluster: the scene's log stream, first snapshot and scene-list entry go to NATS.
+    Cluster(Box<(tokio::runtime::Runtime, brickcast_server::cluster::Cluster)>),
     /// A server holds the store: hand the scene over through its spool.
     RunningServer,
 }
@@ -131,28 +136,45 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     options.check()?;
     // Check the destination before the expensive part, so a name clash fails in milliseconds.
-    let destination = match Store::open(&args.data) {
-        Ok(store) => {
-            let exists = store.scenes()?.iter().any(|(n, _)| *n == args.scene);
-            if exists && !args.replace {
-                anyhow::bail!(
-                    "scene {} already exists in {}; pass --replace to overwrite it",
-                    args.scene,
-                    args.data.display()
-                );
-            }
-            Destination::Store(store)
+    let destination = if let Some(url) = &args.nats {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()?;
+        let cluster = runtime.block_on(brickcast_server::cluster::Cluster::connect(url))?;
+        let exists = runtime
+            .block_on(cluster.scene_names())?
+            .contains(&args.scene);
+        if exists && !args.replace {
+            anyhow::bail!(
+                "scene {} already exists in the cluster at {url}; pass --replace to overwrite it (and restart the nodes serving it)",
+                args.scene
+            );
         }
-        Err(e) if e.is_locked() => {
-            if args.replace {
-                anyhow::bail!(
-                    "a running server holds {}; --replace needs the server stopped (a live scene cannot be swapped under its viewers)",
-                    args.data.display()
-                );
+        Destination::Cluster(Box::new((runtime, cluster)))
+    } else {
+        match Store::open(&args.data) {
+            Ok(store) => {
+                let exists = store.scenes()?.iter().any(|(n, _)| *n == args.scene);
+                if exists && !args.replace {
+                    anyhow::bail!(
+                        "scene {} already exists in {}; pass --replace to overwrite it",
+                        args.scene,
+                        args.data.display()
+                    );
+                }
+                Destination::Store(store)
             }
-            Destination::RunningServer
+            Err(e) if e.is_locked() => {
+                if args.replace {
+                    anyhow::bail!(
+                        "a running server holds {}; --replace needs the server stopped (a live scene cannot be swapped under its viewers)",
+                        args.data.display()
+                    );
+                }
+                Destination::RunningServer
+            }
+            Err(e) => return Err(e.into()),
         }
-        Err(e) => return Err(e.into()),
     };
 
     let started = Instant::now();
@@ -174,6 +196,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             store.create_scene_with_progress(&args.scene, map, &mut |n| bars.advance(n))?;
             bars.finish();
             "the store"
+        }
+        Destination::Cluster(cluster) => {
+            let (runtime, cluster) = *cluster;
+            bars.start(Phase::Storing, 0);
+            runtime.block_on(cluster.create_scene(&args.scene, map, args.replace))?;
+            bars.finish();
+            "the cluster"
         }
         Destination::RunningServer => {
             bars.start(Phase::Storing, 0);

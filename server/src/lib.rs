@@ -12,6 +12,7 @@
 
 pub mod auth;
 mod bucket;
+pub mod cluster;
 pub mod conns;
 pub mod http;
 pub mod identity;
@@ -54,6 +55,18 @@ pub const DEMO_SIZE: [u32; 3] = [512, 512, 512];
 
 /// How often a running server looks in its spool for newly imported scenes.
 pub const SPOOL_POLL: Duration = Duration::from_millis(300);
+/// How often a cluster node looks for scenes added to the cluster.
+pub const CLUSTER_POLL: Duration = Duration::from_secs(1);
+
+/// A node's name when `--node` is not given: the host's name and the listening port.
+fn default_node_name(listen: SocketAddr) -> String {
+    let host = std::fs::read_to_string("/etc/hostname")
+        .ok()
+        .map(|h| h.trim().to_string())
+        .filter(|h| store::valid_scene_name(h))
+        .unwrap_or_else(|| "node".to_string());
+    format!("{host}-{}", listen.port())
+}
 
 /// Everything `serve` needs.
 #[derive(Clone, Debug)]
@@ -69,6 +82,16 @@ pub struct ServerConfig {
     /// A client that takes no data for this long while the server has data for it is cut off.
     pub stall_timeout: Duration,
     pub http: http::HttpConfig,
+    /// Join a cluster instead of serving the redb store (`serve --nats`).
+    pub cluster: Option<ClusterConfig>,
+}
+
+/// `serve --nats URL [--node NAME]`.
+#[derive(Clone, Debug)]
+pub struct ClusterConfig {
+    pub url: String,
+    /// This node's name (unique in the cluster); default: host name and port.
+    pub node: Option<String>,
 }
 
 impl ServerConfig {
@@ -82,8 +105,16 @@ impl ServerConfig {
             connections: ConnectionLimits::default(),
             stall_timeout: Duration::from_secs(30),
             http: http::HttpConfig::default(),
+            cluster: None,
         }
     }
+}
+
+/// A cluster node's connection and name.
+struct Node {
+    cluster: cluster::Cluster,
+    name: String,
+    registration: tokio::task::JoinHandle<()>,
 }
 
 /// State shared by the HTTP handlers and sessions.
@@ -93,7 +124,9 @@ pub struct App {
     scenes: RwLock<BTreeMap<String, SceneHandle>>,
     /// Owner threads, joined at shutdown (scenes added while running included).
     owners: Mutex<Vec<std::thread::JoinHandle<()>>>,
-    store: Arc<Store>,
+    /// The redb store (one node), or the cluster this node belongs to.
+    store: Option<Arc<Store>>,
+    node: Option<Node>,
     owner_config: OwnerConfig,
     data: PathBuf,
     pub metrics: Arc<Metrics>,
@@ -150,14 +183,23 @@ impl App {
 
     /// Starts serving a recovered scene: spawns its owner and makes it reachable.
     fn add_scene(&self, name: String, loaded: store::Loaded) -> anyhow::Result<()> {
+        let store = self
+            .store
+            .clone()
+            .context("a scene from the redb store on a cluster node")?;
         let (handle, thread) = scene::spawn(
             name.clone(),
             loaded,
-            self.store.clone(),
+            store,
             self.metrics.clone(),
             self.owner_config.clone(),
             tokio::runtime::Handle::current(),
         )?;
+        self.serve_scene(name, handle, thread);
+        Ok(())
+    }
+
+    fn serve_scene(&self, name: String, handle: SceneHandle, thread: std::thread::JoinHandle<()>) {
         self.scenes
             .write()
             .unwrap_or_else(|e| e.into_inner())
@@ -166,7 +208,62 @@ impl App {
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .push(thread);
+    }
+
+    /// Cluster: loads a scene from the cluster and serves it (following its log; the lease
+    /// decides whether this node orders its edits).
+    async fn add_cluster_scene(&self, name: String) -> anyhow::Result<()> {
+        let node = self.node.as_ref().context("not a cluster node")?;
+        let loaded = cluster::log::load(&node.cluster.handles(&node.name), &name)
+            .await
+            .with_context(|| format!("loading scene {name} from the cluster"))?;
+        tracing::info!(scene = %name, seq = loaded.loaded.seq, replayed = loaded.loaded.replayed, pos = loaded.pos, "scene loaded from the cluster");
+        let (handle, thread) = cluster::start_scene(
+            &node.cluster,
+            &node.name,
+            name.clone(),
+            loaded,
+            self.metrics.clone(),
+            self.owner_config.clone(),
+            self.shutdown.clone(),
+        )
+        .await?;
+        self.serve_scene(name, handle, thread);
         Ok(())
+    }
+
+    /// Cluster: serves scenes added to the cluster (`import --nats`) while running.
+    async fn watch_cluster_scenes(self: Arc<Self>) {
+        let mut shutdown = self.shutdown.clone();
+        loop {
+            tokio::select! {
+                _ = tokio::time::sleep(CLUSTER_POLL) => {}
+                _ = shutdown.changed() => {}
+            }
+            if *shutdown.borrow() {
+                return;
+            }
+            let Some(node) = &self.node else { return };
+            let names = match node.cluster.scene_names().await {
+                Ok(names) => names,
+                Err(e) => {
+                    tracing::warn!(error = %e, "cannot list the cluster's scenes");
+                    continue;
+                }
+            };
+            for name in names {
+                if self.scene(&name).is_none()
+                    && let Err(e) = self.add_cluster_scene(name.clone()).await
+                {
+                    tracing::warn!(scene = %name, error = %format!("{e:#}"), "cannot serve a scene of the cluster");
+                }
+            }
+        }
+    }
+
+    /// This node's name in a cluster.
+    pub fn node_name(&self) -> Option<&str> {
+        self.node.as_ref().map(|n| n.name.as_str())
     }
 
     /// Takes one spooled scene: store it, serve it, remove the file. On failure the file stays
@@ -179,8 +276,9 @@ impl App {
             if app.scene(&name).is_some() {
                 anyhow::bail!("scene {name} already exists on this server: import under another name, or stop the server and import with --replace");
             }
-            app.store.create_scene(&name, &map)?;
-            let loaded = app.store.load_scene(&name)?;
+            let store = app.store.clone().context("no redb store on a cluster node")?;
+            store.create_scene(&name, &map)?;
+            let loaded = store.load_scene(&name)?;
             Ok((name, loaded))
         })
         .await;
@@ -237,8 +335,12 @@ pub struct Server {
 
 impl Server {
     /// Opens the store (creating the demo scene if it holds none), recovers every scene, starts
-    /// their owners and binds the listener.
+    /// their owners and binds the listener. With `config.cluster`, joins the cluster instead:
+    /// every scene of the cluster is loaded from NATS and followed.
     pub async fn bind(config: ServerConfig) -> anyhow::Result<Server> {
+        if config.cluster.is_some() {
+            return Server::bind_cluster(config).await;
+        }
         let store = Arc::new(Store::open(&config.data)?);
         let demo_size = config.demo_size;
         let store2 = store.clone();
@@ -265,7 +367,8 @@ impl Server {
         let app = Arc::new(App {
             scenes: RwLock::new(BTreeMap::new()),
             owners: Mutex::new(Vec::new()),
-            store,
+            store: Some(store),
+            node: None,
             owner_config: config.owner,
             data: config.data,
             metrics: Arc::new(Metrics::default()),
@@ -281,6 +384,67 @@ impl Server {
         });
         for (name, scene) in loaded {
             app.add_scene(name, scene)?;
+        }
+        Ok(Server {
+            listener,
+            app,
+            shutdown,
+            http: http_config,
+        })
+    }
+
+    async fn bind_cluster(config: ServerConfig) -> anyhow::Result<Server> {
+        let cc = config.cluster.clone().context("no cluster configured")?;
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .with_context(|| format!("listening on {}", config.listen))?;
+        let listen = listener.local_addr()?;
+        let cluster = cluster::Cluster::connect(&cc.url).await?;
+        let name = cc.node.unwrap_or_else(|| default_node_name(listen));
+        let registration = cluster.register_node(&name, &listen.to_string()).await?;
+        tracing::info!(node = %name, nats = %cc.url, "joined the cluster");
+        if cluster.scene_names().await?.is_empty() {
+            let demo_size = config.demo_size;
+            let map = tokio::task::spawn_blocking(move || {
+                brickcast_protocol::demo::demo_scene(demo_size)
+            })
+            .await??;
+            match cluster.create_scene("demo", &map, false).await {
+                Ok(()) => tracing::info!(
+                    bricks = map.brick_count(),
+                    "created the built-in demo scene in the cluster"
+                ),
+                // Another node created it first.
+                Err(cluster::ClusterError::SceneExists(_)) => {}
+                Err(e) => return Err(e.into()),
+            }
+        }
+        let (shutdown, shutdown_rx) = watch::channel(false);
+        let http_config = config.http.clone();
+        let app = Arc::new(App {
+            scenes: RwLock::new(BTreeMap::new()),
+            owners: Mutex::new(Vec::new()),
+            store: None,
+            node: Some(Node {
+                cluster: cluster.clone(),
+                name,
+                registration,
+            }),
+            owner_config: config.owner,
+            data: config.data,
+            metrics: Arc::new(Metrics::default()),
+            auth: config.auth,
+            shutdown: shutdown_rx,
+            next_id: AtomicU64::new(1),
+            sessions: watch::channel(0).0,
+            queued_total: Arc::default(),
+            stall_timeout: config.stall_timeout,
+            connections: Arc::default(),
+            connection_limits: config.connections,
+            thumbnails: web::Thumbnails::default(),
+        });
+        for name in cluster.scene_names().await? {
+            app.add_cluster_scene(name).await?;
         }
         Ok(Server {
             listener,
@@ -307,7 +471,11 @@ impl Server {
             shutdown,
             http: http_config,
         } = self;
-        let spool = tokio::spawn(app.clone().watch_spool());
+        let spool = if app.node.is_some() {
+            tokio::spawn(app.clone().watch_cluster_scenes())
+        } else {
+            tokio::spawn(app.clone().watch_spool())
+        };
         let router = router(app.clone());
         let stop = shutdown.clone();
         // TCP_NODELAY, the header timeout and ConnectInfo: see `http`. Waits out requests in
@@ -331,6 +499,12 @@ impl Server {
         // Owners have dropped their outboxes: writers send what is left and close.
         let mut sessions = app.sessions.subscribe();
         let _ = tokio::time::timeout(Duration::from_secs(5), sessions.wait_for(|&n| n == 0)).await;
+        if let Some(node) = &app.node {
+            // The name is free for a restart at once; leases expire by themselves.
+            node.registration.abort();
+            let _ = node.cluster.nodes.delete(&node.name).await;
+            let _ = node.cluster.client.flush().await;
+        }
         if crashed > 0 {
             anyhow::bail!(
                 "{crashed} scene owner(s) crashed; their last acknowledged edits are in the log"
@@ -392,6 +566,10 @@ async fn metrics_text(State(app): State<Arc<App>>) -> Response {
             ("scene_history_users", info.history_users.load(Relaxed)),
             ("scene_history_bytes", info.history_bytes.load(Relaxed)),
             ("scene_present", scene.presence.len() as u64),
+            (
+                "scene_owned_here",
+                u64::from(scene.info.leading.load(Relaxed)),
+            ),
         ] {
             text.push_str(&format!("brickcast_{metric}{{scene=\"{name}\"}} {value}\n"));
         }
@@ -412,6 +590,8 @@ async fn scene_list(State(app): State<Arc<App>>) -> Response {
                 "voxels": s.info.voxels.load(Relaxed),
                 "clients": s.info.clients.load(Relaxed),
                 "gpu_bytes": s.info.gpu_bytes.load(Relaxed),
+                "node": app.node_name(),
+                "owned_here": s.info.leading.load(Relaxed),
             })
         })
         .collect();

@@ -58,6 +58,11 @@ enum Cmd {
     ///
     /// With a server running on the same store, the scene is handed to it and served at once.
     Import(import_cli::Args),
+    /// Ask a cluster what it holds.
+    Cluster {
+        #[command(subcommand)]
+        command: ClusterCmd,
+    },
     /// Export a scene as a MagicaVoxel .vox file (models of at most 256³, 255 colours).
     Export {
         #[arg(long)]
@@ -68,6 +73,19 @@ enum Cmd {
         #[arg(long, default_value = "./brickcast-data")]
         data: PathBuf,
         /// Print the summary as one JSON object.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum ClusterCmd {
+    /// Nodes, scenes, each scene's owner, log length and snapshot sequence.
+    Status {
+        /// The cluster's NATS URL.
+        #[arg(long, value_name = "URL")]
+        nats: String,
+        /// Print one JSON object instead of a table.
         #[arg(long)]
         json: bool,
     },
@@ -134,6 +152,23 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Cmd::Import(args) => import_cli::run(args),
+        Cmd::Cluster {
+            command: ClusterCmd::Status { nats, json },
+        } => {
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()?;
+            let status = runtime.block_on(async {
+                let cluster = brickcast_server::cluster::Cluster::connect(&nats).await?;
+                anyhow::Ok(brickcast_server::cluster::status::status(&cluster).await?)
+            })?;
+            if json {
+                println!("{}", serde_json::to_string(&status)?);
+            } else {
+                print!("{}", status.render());
+            }
+            Ok(())
+        }
         Cmd::Export {
             scene,
             out,
@@ -220,6 +255,13 @@ struct ServeArgs {
     /// resync once they catch up) and syncs pause.
     #[arg(long, default_value_t = 1 << 30)]
     max_queued_bytes: usize,
+    /// Join a cluster through this NATS server (JetStream on) instead of serving the redb
+    /// store in --data: scenes, logs and snapshots live in NATS (README, "Running a cluster").
+    #[arg(long, value_name = "URL")]
+    nats: Option<String>,
+    /// This node's name in the cluster (unique; default: host name and port).
+    #[arg(long, requires = "nats")]
+    node: Option<String>,
 }
 
 /// A clap parser for a positive, finite number of seconds.
@@ -244,6 +286,10 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
         config.connections.max_total = args.max_connections;
         config.connections.max_per_ip = args.max_connections_per_ip;
         config.stall_timeout = Duration::from_secs_f64(args.stall_timeout);
+        config.cluster = args.nats.map(|url| brickcast_server::ClusterConfig {
+            url,
+            node: args.node,
+        });
         if let Some(path) = args.auth {
             config.auth = Auth::from_file(&path)?;
         }

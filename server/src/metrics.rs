@@ -159,6 +159,12 @@ pub struct Metrics {
     pub undo_voxels_kept: AtomicU64,
     pub commits: AtomicU64,
     pub snapshots: AtomicU64,
+    /// Cluster: edits and undos this node's sessions forwarded to scene owners and got an
+    /// answer for; turns applied from another owner's log; leases taken and lost.
+    pub edits_forwarded: AtomicU64,
+    pub turns_replicated: AtomicU64,
+    pub takeovers: AtomicU64,
+    pub stepdowns: AtomicU64,
     commit_buckets: [AtomicU64; COMMIT_BUCKETS_US.len()],
     commit_sum_us: AtomicU64,
     /// Owner turns (one group commit each, when they carried edits).
@@ -309,6 +315,26 @@ impl Metrics {
             get(&self.camera_updates),
         );
         for (name, help, value) in [
+            (
+                "cluster_edits_forwarded_total",
+                "Edits and undos forwarded to the scene's owner and answered (cluster).",
+                &self.edits_forwarded,
+            ),
+            (
+                "cluster_turns_replicated_total",
+                "Turns applied from another node's log (cluster).",
+                &self.turns_replicated,
+            ),
+            (
+                "cluster_takeovers_total",
+                "Scene leases this node took and claimed the log with (cluster).",
+                &self.takeovers,
+            ),
+            (
+                "cluster_stepdowns_total",
+                "Scene leases this node lost (cluster).",
+                &self.stepdowns,
+            ),
             (
                 "presence_frames_total",
                 "Presence frames queued to clients.",

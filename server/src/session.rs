@@ -94,6 +94,11 @@ pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
                 };
                 read_loop(&mut stream, session).await;
                 let _ = scene.send(Command::Leave { session: id }).await;
+                if let Some(cluster) = &scene.cluster
+                    && !who.stable
+                {
+                    crate::cluster::forward::forget(cluster, who.user).await;
+                }
             } else {
                 out.close(ErrorCode::ShuttingDown, "the scene is shutting down");
             }
@@ -287,6 +292,17 @@ async fn read_loop(
     let mut camera: Option<[f32; 3]> = None;
     let mut camera_at = tokio::time::Instant::now();
     let mut shutdown = app.shutdown.clone();
+    // In a cluster, edits and undos go to the scene's owner over NATS, one at a time, in
+    // order (`crate::cluster::forward`).
+    let forwarder = scene.cluster.as_ref().map(|c| {
+        crate::cluster::forward::SessionForwarder::start(
+            c.clone(),
+            session.who.user,
+            role == Role::Editor,
+            out.clone(),
+            app.metrics.clone(),
+        )
+    });
     let reject = |code: ErrorCode, text: String| {
         app.metrics.rejected_frames.fetch_add(1, Relaxed);
         tracing::debug!(session = id, ?code, %text, "closing a session");
@@ -385,15 +401,21 @@ async fn read_loop(
                     );
                     continue;
                 }
-                if scene
-                    .send(Command::Edit {
-                        session: id,
-                        client_seq,
-                        ops,
-                    })
-                    .await
-                    .is_err()
-                {
+                let sent = match &forwarder {
+                    Some(f) => {
+                        f.send(client_seq, crate::cluster::forward::ForwardKind::Edit(ops))
+                            .await
+                    }
+                    None => scene
+                        .send(Command::Edit {
+                            session: id,
+                            client_seq,
+                            ops,
+                        })
+                        .await
+                        .is_ok(),
+                };
+                if !sent {
                     return reject(ErrorCode::ShuttingDown, "the scene is shutting down".into());
                 }
             }
@@ -444,12 +466,24 @@ async fn read_loop(
                     );
                     continue;
                 }
-                let cmd = Command::Undo {
-                    session: id,
-                    client_seq,
-                    redo,
+                let sent = match &forwarder {
+                    Some(f) => {
+                        f.send(
+                            client_seq,
+                            crate::cluster::forward::ForwardKind::Undo { redo },
+                        )
+                        .await
+                    }
+                    None => {
+                        let cmd = Command::Undo {
+                            session: id,
+                            client_seq,
+                            redo,
+                        };
+                        scene.send(cmd).await.is_ok()
+                    }
                 };
-                if scene.send(cmd).await.is_err() {
+                if !sent {
                     return reject(ErrorCode::ShuttingDown, "the scene is shutting down".into());
                 }
             }

@@ -59,6 +59,13 @@ pub enum StoreError {
     /// reorder acknowledged edits, so the scene is not served until someone looks.
     #[error("scene {scene}: the edit log does not fit the snapshot: {detail}")]
     Inconsistent { scene: String, detail: String },
+    /// The cluster's NATS server failed a request (see `crate::cluster`).
+    #[error("cluster: {0}")]
+    Cluster(String),
+    /// Another node appended to the scene's log (or this node's lease ran out): this node is
+    /// no longer the scene's owner, and what it applied since its last append is not logged.
+    #[error("scene {scene}: this node is no longer the scene's owner: {detail}")]
+    Deposed { scene: String, detail: String },
 }
 
 impl StoreError {
@@ -144,7 +151,7 @@ fn bincode_config() -> bincode::config::Configuration {
 }
 
 /// One brick row: 64 mask bytes then the colours as u16 LE.
-fn encode_brick(mask: &Mask, colours: &[Colour], out: &mut Vec<u8>) {
+pub(crate) fn encode_brick(mask: &Mask, colours: &[Colour], out: &mut Vec<u8>) {
     out.clear();
     for word in mask {
         out.extend_from_slice(&word.to_le_bytes());
@@ -154,7 +161,7 @@ fn encode_brick(mask: &Mask, colours: &[Colour], out: &mut Vec<u8>) {
     }
 }
 
-fn decode_brick(cell: [u32; 3], bytes: &[u8]) -> Option<BrickData> {
+pub(crate) fn decode_brick(cell: [u32; 3], bytes: &[u8]) -> Option<BrickData> {
     if bytes.len() < 64 || !(bytes.len() - 64).is_multiple_of(2) {
         return None;
     }

@@ -302,8 +302,10 @@ impl Stacks {
     }
 }
 
-/// What a turn changed in the history, written in the turn's commit.
-#[derive(Default)]
+/// What a turn changed in the history, written in the turn's commit (a redb transaction, or
+/// the turn's message in the cluster's log, which every node applies with
+/// [`History::apply_committed`]).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct HistoryWrites {
     /// New steps: id → (user, index entry, stored bytes).
     pub steps: BTreeMap<u64, (UserId, StepMeta, Vec<u8>)>,
@@ -477,6 +479,66 @@ impl History {
             self.pending.removed.insert(dropped.id, user);
             self.pending.steps.remove(&dropped.id);
         }
+    }
+
+    /// Applies a turn's changes committed by another node (the scene's owner in a cluster):
+    /// steps dropped leave their stacks, new steps go on top of theirs (ids grow with every
+    /// push, so appending keeps each stack in id order, as [`Stacks::from_rows`] builds it).
+    /// Writes nothing of its own.
+    pub fn apply_committed(&mut self, writes: &HistoryWrites) {
+        for (id, user) in &writes.removed {
+            if let Some(stacks) = self.users.get_mut(user) {
+                let before = stacks.bytes();
+                stacks.undo.retain(|s| s.id != *id);
+                stacks.redo.retain(|s| s.id != *id);
+                self.bytes -= before - stacks.bytes();
+                if stacks.steps() == 0 {
+                    self.users.remove(user);
+                }
+            }
+        }
+        for (id, (user, meta, _)) in &writes.steps {
+            let entry = StepRef {
+                id: *id,
+                bytes: meta.bytes,
+                bricks: meta.bricks,
+            };
+            let stacks = self.users.entry(*user).or_default();
+            if meta.redo {
+                stacks.redo.push(entry);
+            } else {
+                stacks.undo.push_back(entry);
+            }
+            self.bytes += meta.bytes;
+            self.next_id = self.next_id.max(id + 1);
+        }
+    }
+
+    /// Every stored step as the store's index names it: (user, step id, meta).
+    pub fn rows(&self) -> Vec<(UserId, u64, StepMeta)> {
+        let mut rows = Vec::new();
+        for (user, stacks) in &self.users {
+            for (s, redo) in stacks
+                .undo
+                .iter()
+                .map(|s| (s, false))
+                .chain(stacks.redo.iter().map(|s| (s, true)))
+            {
+                let meta = StepMeta {
+                    redo,
+                    bytes: s.bytes,
+                    bricks: s.bricks,
+                };
+                rows.push((*user, s.id, meta));
+            }
+        }
+        rows.sort_unstable_by_key(|r| (r.0, r.1));
+        rows
+    }
+
+    /// The highest step id given out (0: none).
+    pub fn last_id(&self) -> u64 {
+        self.next_id - 1
     }
 
     /// This turn's changes, for the commit; the history starts the next turn with none.

@@ -18,11 +18,16 @@
 //! * `outbox.rs`: a session's byte-counted outgoing queue.
 //! * `cells.rs`: the set of bricks the next snapshot writes.
 //! * `history.rs`: per-user undo and redo stacks and what undoing a step does.
+//! * `backend.rs`: where turns are made durable (redb, or the cluster's JetStream log).
+//! * `follow.rs`: the owner in a cluster: forwarded edits, following another owner's log,
+//!   taking the scene over and losing it.
 //!
 //! This file holds what sessions see (commands, the handle) and the thread that feeds commands
 //! to the owner.
 
+mod backend;
 mod cells;
+mod follow;
 pub mod history;
 mod outbox;
 mod owner;
@@ -38,6 +43,7 @@ use tokio::sync::{mpsc, oneshot};
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
 use crate::store::Store;
 
+pub use backend::Backend;
 pub use outbox::{Outbox, OutboxReceiver};
 pub use owner::Owner;
 
@@ -103,6 +109,26 @@ pub enum Command {
     },
     /// Apply what is queued, commit, snapshot, and stop.
     Shutdown,
+    /// Cluster: an edit, undo or history drop another node (or this one) forwarded to the
+    /// scene's owner; answered on `reply` after the commit, or at once with "not the owner".
+    Forwarded {
+        reply: Option<String>,
+        request: crate::cluster::forward::Forwarded,
+    },
+    /// Cluster: the turn at stream position `pos` of the scene's log.
+    Replicate {
+        pos: u64,
+        turn: Box<crate::cluster::Turn>,
+    },
+    /// Cluster: this node took the lease; catch up to the log's end and claim it. Answers
+    /// whether this owner now orders edits.
+    TakeOver {
+        done: oneshot::Sender<bool>,
+    },
+    /// Cluster: the lease is gone; stop appending.
+    StepDown {
+        why: String,
+    },
 }
 
 /// Who a joining session is.
@@ -144,6 +170,8 @@ pub struct SceneInfo {
     /// Users with undo history, and the bytes of their stored steps.
     pub history_users: AtomicU64,
     pub history_bytes: AtomicU64,
+    /// In a cluster: whether this node owns the scene now.
+    pub leading: std::sync::atomic::AtomicBool,
 }
 
 /// What one connection may ask of the owner in edit work (voxels visited, `EditOp::work`):
@@ -220,7 +248,20 @@ pub struct SceneHandle {
     pub info: Arc<SceneInfo>,
     /// Who is here and what they look at (lives beside the owner, see `crate::presence`).
     pub presence: Arc<crate::presence::Hub>,
+    /// In a cluster: where this scene's edits go (sessions forward them, see
+    /// `crate::cluster::forward`). `None` on a single node: edits go to the owner thread.
+    pub cluster: Option<SceneCluster>,
     tx: mpsc::Sender<Command>,
+}
+
+/// How a session reaches a clustered scene's owner.
+#[derive(Clone)]
+pub struct SceneCluster {
+    pub client: async_nats::Client,
+    /// The scene's edit subject; the owner listens on it plus `.<node>`.
+    pub subject: String,
+    /// The node the scene's lease names now (`None`: nobody holds it).
+    pub owner: tokio::sync::watch::Receiver<Option<String>>,
 }
 
 impl SceneHandle {
@@ -259,7 +300,7 @@ pub(crate) struct Subscriber {
     syncing: bool,
 }
 
-/// Starts the owner thread for a loaded scene.
+/// Starts the owner thread for a scene loaded from the redb store.
 pub fn spawn(
     name: String,
     loaded: crate::store::Loaded,
@@ -268,14 +309,31 @@ pub fn spawn(
     config: OwnerConfig,
     runtime: tokio::runtime::Handle,
 ) -> std::io::Result<(SceneHandle, std::thread::JoinHandle<()>)> {
+    let backend = Backend::Redb {
+        store,
+        scene: name.clone(),
+    };
+    spawn_with(name, loaded, backend, None, metrics, config, runtime)
+}
+
+/// Starts the owner thread for a loaded scene over any backend.
+pub fn spawn_with(
+    name: String,
+    loaded: crate::store::Loaded,
+    backend: Backend,
+    cluster: Option<SceneCluster>,
+    metrics: Arc<Metrics>,
+    config: OwnerConfig,
+    runtime: tokio::runtime::Handle,
+) -> std::io::Result<(SceneHandle, std::thread::JoinHandle<()>)> {
     let (tx, rx) = mpsc::channel(1024);
     let limits = config.limits.clone();
     let budget = config.budget.clone();
     let max_queue_bytes = config.max_queue_bytes;
-    let mut owner = Owner::new(
+    let mut owner = Owner::with_backend(
         name.clone(),
         loaded,
-        store,
+        backend,
         metrics,
         config,
         Arc::new(Instant::now),
@@ -293,6 +351,7 @@ pub fn spawn(
         max_queue_bytes,
         info: owner.info(),
         presence: presence.clone(),
+        cluster,
         tx,
     };
     let thread = std::thread::Builder::new()

@@ -25,6 +25,7 @@ use brickcast_protocol::wire::{
 };
 use bytes::Bytes;
 
+use super::backend::Backend;
 use super::cells::CellSet;
 use super::history::{Direction, History, Step, plan_revert, write_bricks};
 use super::{Clock, Command, OwnerConfig, SceneInfo, SessionId, Subscriber};
@@ -60,7 +61,7 @@ pub struct Owner {
     pub(super) map: BrickMap,
     /// The last sequence number given to a batch that applied something.
     pub(super) seq: u64,
-    pub(super) store: Arc<Store>,
+    pub(super) backend: Backend,
     pub(super) metrics: Arc<Metrics>,
     pub(super) info: Arc<SceneInfo>,
     pub(super) config: OwnerConfig,
@@ -68,15 +69,15 @@ pub struct Owner {
     pub(super) subs: BTreeMap<SessionId, Subscriber>,
     pub(super) encoder: BlobEncoder,
     /// The sequence of the last delta broadcast (its successor's `from_seq`).
-    broadcast_seq: u64,
+    pub(super) broadcast_seq: u64,
     /// The last session whose sync got frames: the next turn serves those after it first.
     pub(super) sync_cursor: SessionId,
     /// Cells touched since the last snapshot.
-    unsnapshotted: CellSet,
-    log_entries: u64,
+    pub(super) unsnapshotted: CellSet,
+    pub(super) log_entries: u64,
     /// Ops in the log since the snapshot, and the work replaying them costs (voxels visited,
     /// `EditOp::work`): what recovery would spend.
-    log_ops: u64,
+    pub(super) log_ops: u64,
     log_work: u64,
     /// How long the last snapshot took (see [`SNAPSHOT_SPACING`]).
     last_snapshot_took: Duration,
@@ -86,27 +87,34 @@ pub struct Owner {
     pub(super) history: History,
     /// Undo work each user may still ask for (voxels compared), and when it was counted: undo
     /// and redo are charged like edits, by what they cost, on the owner's clock.
-    undo_budget: HashMap<u64, (f64, Instant)>,
+    pub(super) undo_budget: HashMap<u64, (f64, Instant)>,
 }
 
 /// A reply (`Ack` or `Undone`) waiting for the commit of what it reports.
-struct PendingAck {
-    session: SessionId,
-    msg: ServerMsg,
+pub(super) struct PendingAck {
+    pub(super) to: AckTo,
+    pub(super) msg: ServerMsg,
+}
+
+/// Who a reply goes to: a session on this node, or (in a cluster) the reply subject of an
+/// edit another node forwarded.
+pub(super) enum AckTo {
+    Session(SessionId),
+    Remote(String),
 }
 
 /// What this turn logs, in order.
-type Log = Vec<(u64, LogRecord)>;
+pub(super) type Log = Vec<(u64, LogRecord)>;
 
 fn ack(
-    session: SessionId,
+    to: AckTo,
     client_seq: u64,
     seq: Option<u64>,
     applied: u32,
     rejected: Vec<OpRejection>,
 ) -> PendingAck {
     PendingAck {
-        session,
+        to,
         msg: ServerMsg::Ack {
             client_seq,
             seq,
@@ -123,6 +131,22 @@ impl Owner {
         name: String,
         loaded: Loaded,
         store: Arc<Store>,
+        metrics: Arc<Metrics>,
+        config: OwnerConfig,
+        clock: Clock,
+    ) -> std::io::Result<Owner> {
+        let backend = Backend::Redb {
+            store,
+            scene: name.clone(),
+        };
+        Owner::with_backend(name, loaded, backend, metrics, config, clock)
+    }
+
+    /// An owner over any [`Backend`]: the cluster's JetStream log, or redb.
+    pub fn with_backend(
+        name: String,
+        loaded: Loaded,
+        backend: Backend,
         metrics: Arc<Metrics>,
         config: OwnerConfig,
         clock: Clock,
@@ -149,7 +173,7 @@ impl Owner {
             name,
             map,
             seq,
-            store,
+            backend,
             metrics,
             info: Arc::new(SceneInfo::default()),
             config,
@@ -258,16 +282,35 @@ impl Owner {
                         .get(&session)
                         .filter(|s| s.role == Role::Editor)
                         .map(|s| s.user);
-                    acks.push(self.apply_batch(session, client_seq, ops, editor, &mut log));
+                    let to = AckTo::Session(session);
+                    acks.push(self.apply_batch(to, client_seq, ops, editor, &mut log));
                 }
                 Command::Undo {
                     session,
                     client_seq,
                     redo,
                 } => {
-                    if let Some(ack) = self.undo(session, client_seq, redo, &mut log) {
-                        acks.push(ack);
+                    if let Some(sub) = self.subs.get(&session) {
+                        let (user, editor) = (sub.user, sub.role == Role::Editor);
+                        let to = AckTo::Session(session);
+                        acks.push(self.undo(to, user, editor, client_seq, redo, &mut log));
                     }
+                }
+                Command::Forwarded { reply, request } => {
+                    self.forwarded(reply, request, &mut acks, &mut log);
+                }
+                Command::Replicate { pos, turn } => {
+                    // What is already applied was published; apply the rest in order.
+                    self.publish(&mut log, &mut acks, clock)?;
+                    self.replicate(pos, *turn);
+                }
+                Command::TakeOver { done } => {
+                    self.publish(&mut log, &mut acks, clock)?;
+                    let _ = done.send(self.take_over());
+                }
+                Command::StepDown { why } => {
+                    self.publish(&mut log, &mut acks, clock)?;
+                    self.step_down(&why);
                 }
                 Command::Join {
                     session,
@@ -284,7 +327,8 @@ impl Owner {
                 }
                 Command::Leave { session } => {
                     if let Some(sub) = self.subs.remove(&session) {
-                        if !sub.stable {
+                        // In a cluster the session asks the owner to forget (forwarded).
+                        if !sub.stable && !self.backend.clustered() {
                             self.history.forget(sub.user);
                         }
                         if !self.subs.values().any(|s| s.user == sub.user) {
@@ -342,17 +386,22 @@ impl Owner {
         if !log.is_empty() || self.history.has_writes() {
             let started = Instant::now();
             let history = self.history.take_writes();
-            self.store.append(&self.name, log, &history)?;
+            if let Err(e) = self.backend.append(log, &history) {
+                if self.backend.jet().is_none() {
+                    return Err(e);
+                }
+                // A cluster owner that lost the scene: nothing of this turn is acknowledged,
+                // and the map goes back to what the log holds.
+                log.clear();
+                self.lost_lead(acks, &e);
+                return Ok(());
+            }
             self.metrics.observe_commit(started.elapsed());
             self.log_entries += log.len() as u64;
             log.clear();
         }
         clock.mark(&self.metrics, OwnerPhase::Commit);
-        for ack in acks.drain(..) {
-            if let Some(sub) = self.subs.get(&ack.session) {
-                sub.out.send(&ack.msg, &self.metrics);
-            }
-        }
+        self.send_replies(acks);
         clock.mark(&self.metrics, OwnerPhase::Ack);
         self.broadcast_delta(clock);
         Ok(())
@@ -364,9 +413,9 @@ impl Owner {
     /// they were.
     ///
     /// `editor` is the user whose history records the batch (`None`: the session may not edit).
-    fn apply_batch(
+    pub(super) fn apply_batch(
         &mut self,
-        session: SessionId,
+        to: AckTo,
         client_seq: u64,
         ops: Vec<EditOp>,
         editor: Option<u64>,
@@ -381,7 +430,7 @@ impl Owner {
                 })
                 .collect();
             Metrics::add(&self.metrics.ops_rejected, ops.len() as u64);
-            return ack(session, client_seq, None, 0, rejected);
+            return ack(to, client_seq, None, 0, rejected);
         };
         let seq = self.seq + 1;
         self.map.begin_journal();
@@ -425,23 +474,23 @@ impl Owner {
             log.push((seq, LogRecord::Ops { user, ops: applied }));
             Some(seq)
         };
-        ack(session, client_seq, seq, count, rejected)
+        ack(to, client_seq, seq, count, rejected)
     }
 
     /// Undoes (or redoes) the session's user's latest step: see `history.rs` for the rule. The
     /// bricks it writes take the next sequence number and are logged as a `Restore` record;
-    /// the history change commits with them. `None` when the session is gone.
-    fn undo(
+    /// the history change commits with them. `editor`: whether the user may edit.
+    pub(super) fn undo(
         &mut self,
-        session: SessionId,
+        to: AckTo,
+        user: u64,
+        editor: bool,
         client_seq: u64,
         redo: bool,
         log: &mut Log,
-    ) -> Option<PendingAck> {
-        let sub = self.subs.get(&session)?;
-        let user = sub.user;
+    ) -> PendingAck {
         let reply = |seq, restored, kept, refused| PendingAck {
-            session,
+            to,
             msg: ServerMsg::Undone {
                 client_seq,
                 redo,
@@ -456,15 +505,15 @@ impl Owner {
         } else {
             (Direction::Undo, Refusal::NothingToUndo)
         };
-        if sub.role != Role::Editor {
+        if !editor {
             Metrics::add(&self.metrics.history_refused, 1);
-            return Some(reply(None, 0, 0, Some(Refusal::NotAllowed)));
+            return reply(None, 0, 0, Some(Refusal::NotAllowed));
         }
         // Charged by the bricks the step changed (each compared voxel by voxel), against the
         // same per-second work budget as edits, refilled on the owner's clock.
         let Some(top) = self.history.peek(user, direction) else {
             Metrics::add(&self.metrics.history_refused, 1);
-            return Some(reply(None, 0, 0, Some(nothing)));
+            return reply(None, 0, 0, Some(nothing));
         };
         let cost = f64::from(top.bricks) * 512.0;
         let budget = &self.config.budget;
@@ -479,25 +528,24 @@ impl Owner {
         // A step bigger than the whole burst still goes when the bucket is full.
         if *tokens < cost.min(burst) {
             Metrics::add(&self.metrics.history_refused, 1);
-            return Some(reply(None, 0, 0, Some(Refusal::RateLimited)));
+            return reply(None, 0, 0, Some(Refusal::RateLimited));
         }
         *tokens -= cost.min(burst);
-        let store = self.store.clone();
-        let name = self.name.clone();
+        let backend = &self.backend;
         let popped = self.history.pop(user, direction, |id| {
-            store.history_step(&name, id).map_err(|e| e.to_string())
+            backend.history_step(id).map_err(|e| e.to_string())
         });
         let step = match popped {
             Ok(Some(step)) => step,
             Ok(None) => {
                 Metrics::add(&self.metrics.history_refused, 1);
-                return Some(reply(None, 0, 0, Some(nothing)));
+                return reply(None, 0, 0, Some(nothing));
             }
             Err(e) => {
                 // The step is gone from the stack either way; say so rather than stop the scene.
                 tracing::error!(scene = %self.name, user, error = %e, "an undo step could not be read; it is dropped");
                 Metrics::add(&self.metrics.history_refused, 1);
-                return Some(reply(None, 0, 0, Some(nothing)));
+                return reply(None, 0, 0, Some(nothing));
             }
         };
         let revert = plan_revert(&self.map, &step);
@@ -530,7 +578,7 @@ impl Owner {
         Metrics::add(counter, 1);
         Metrics::add(&self.metrics.undo_voxels_restored, revert.restored);
         Metrics::add(&self.metrics.undo_voxels_kept, revert.kept);
-        Some(reply(seq, revert.restored, revert.kept, None))
+        reply(seq, revert.restored, revert.kept, None)
     }
 
     /// Sends everything touched this turn to every subscriber that keeps up. A turn that
@@ -612,7 +660,10 @@ impl Owner {
         }
         let cells = self.unsnapshotted.take_sorted();
         let started = Instant::now();
-        if let Err(e) = self.store.snapshot(&self.name, &self.map, &cells, self.seq) {
+        if let Err(e) = self
+            .backend
+            .snapshot(&self.map, &cells, self.seq, &self.history)
+        {
             // The cells are still unsnapshotted: a later snapshot must write them.
             self.unsnapshotted.insert_all(&cells);
             return Err(e);
@@ -646,6 +697,9 @@ impl Owner {
             .history_bytes
             .store(self.history.total_bytes(), Relaxed);
         self.info.seq.store(self.seq, Relaxed);
+        self.info
+            .leading
+            .store(self.backend.clustered() && self.backend.leading(), Relaxed);
         self.info.bricks.store(self.map.brick_count(), Relaxed);
         self.info.voxels.store(self.map.solid_voxels(), Relaxed);
         self.info.clients.store(self.subs.len() as u64, Relaxed);

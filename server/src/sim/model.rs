@@ -103,6 +103,11 @@ impl Model {
                 }
                 // Both publish what is queued before they are served.
                 Command::Resume { .. } | Command::Thumbnail { .. } => self.commit_point(),
+                // Cluster commands: the simulation runs one node on redb.
+                Command::Forwarded { .. }
+                | Command::Replicate { .. }
+                | Command::TakeOver { .. }
+                | Command::StepDown { .. } => {}
                 Command::Undo {
                     session,
                     client_seq,

@@ -1,0 +1,246 @@
+//! Edits travel to the scene's owner, wherever it runs.
+//!
+//! **Why every edit goes over NATS, even on the owner's own node:** the owner can change at
+//! any moment (a lease lost, a node killed). A session that sent its edits straight to its
+//! local scene thread would have to notice that and re-route, with edits in flight on both
+//! paths. Instead each session forwards its edits as requests to the owner's own subject
+//! (`brickcast.edit.<scene>.<node>`, the node the lease names), **one request at a time**, and
+//! whatever queued up meanwhile goes in the next request together: a client's edits stay in
+//! order and still reach the owner in batches, as they would its channel on one node.
+//!
+//! Only the named node listens on its subject, so a request reaches at most one owner.
+//! "No responders" and [`ForwardReply::NotOwner`] both mean *not applied*: the session waits
+//! for the lease to name another node and sends the same request there (through a failover,
+//! for up to [`PATIENCE`]). A request that times out may or may not have applied, so the
+//! session is closed and its client resumes from what is durable.
+//!
+//! The other nodes are trusted: the forwarding node has checked the client's role, rate and
+//! edit budget; the owner applies what it is sent as that user.
+
+use std::time::Duration;
+
+use brickcast_protocol::wire::{EditOp, ErrorCode, UserId};
+use bytes::Bytes;
+use serde::{Deserialize, Serialize};
+use tokio::sync::mpsc;
+
+use crate::metrics::Metrics;
+use crate::scene::{Outbox, SceneCluster};
+
+/// How long a session keeps retrying an edit nobody owns (a failover in progress).
+pub const PATIENCE: Duration = Duration::from_secs(15);
+/// How long one forwarded edit may take before its outcome counts as unknown.
+const REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
+/// Edit messages a session may have queued for forwarding before its reader waits.
+const QUEUE: usize = 256;
+/// Ops one request carries at most (about 40 bytes each: well under NATS's 1 MB payload).
+const MAX_OPS_PER_REQUEST: usize = 8192;
+/// How often a request nobody took is tried again while the lease names nobody new.
+const RETRY_EVERY: Duration = Duration::from_millis(100);
+
+/// A session's queued edits and undos, forwarded to the owner together.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Forwarded {
+    pub user: UserId,
+    /// Whether the user may edit (checked again by the owner, as for local sessions).
+    pub editor: bool,
+    /// In the order the client sent them: client sequence, what to do.
+    pub items: Vec<(u64, ForwardKind)>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ForwardKind {
+    Edit(Vec<EditOp>),
+    Undo {
+        redo: bool,
+    },
+    /// A user without a stable id left: its history goes (no reply is expected).
+    Forget,
+}
+
+/// The owner's answer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ForwardReply {
+    /// One encoded `ServerMsg` (`Ack` or `Undone`) per item, sent after the commit.
+    Done(Vec<Vec<u8>>),
+    /// This node does not own the scene (any more): nothing was applied.
+    NotOwner,
+}
+
+fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, String> {
+    bincode::serde::encode_to_vec(value, bincode::config::standard()).map_err(|e| e.to_string())
+}
+
+fn decode<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Result<T, String> {
+    let config = bincode::config::standard().with_limit::<{ 64 << 20 }>();
+    bincode::serde::decode_from_slice(bytes, config)
+        .map(|(v, _)| v)
+        .map_err(|e| e.to_string())
+}
+
+impl Forwarded {
+    pub fn encode(&self) -> Result<Vec<u8>, String> {
+        encode(self)
+    }
+    pub fn decode(bytes: &[u8]) -> Result<Forwarded, String> {
+        decode(bytes)
+    }
+}
+
+impl ForwardReply {
+    pub fn encode(&self) -> Result<Vec<u8>, String> {
+        encode(self)
+    }
+    pub fn decode(bytes: &[u8]) -> Result<ForwardReply, String> {
+        decode(bytes)
+    }
+}
+
+/// Why a forwarded edit got no answer.
+#[derive(Debug, thiserror::Error)]
+pub enum ForwardError {
+    #[error("no node took the scene's edits for {0:?}")]
+    NoOwner(Duration),
+    #[error("the scene's owner did not answer in time; the edit may or may not have applied")]
+    Unknown,
+    #[error("cannot forward the edit: {0}")]
+    Other(String),
+}
+
+/// The subject a scene's owner `node` takes edits on.
+pub fn owner_subject(scene_subject: &str, node: &str) -> String {
+    format!("{scene_subject}.{}", super::log::token(node))
+}
+
+/// Sends one request to whichever node owns the scene, waiting for one while nobody does.
+pub async fn request(
+    link: &SceneCluster,
+    request: &Forwarded,
+) -> Result<Vec<Vec<u8>>, ForwardError> {
+    let payload = Bytes::from(request.encode().map_err(ForwardError::Other)?);
+    let started = tokio::time::Instant::now();
+    let deadline = started + PATIENCE;
+    let mut owner = link.owner.clone();
+    loop {
+        let current = owner.borrow_and_update().clone();
+        // Nobody named, or the named node refused or is gone: not applied, wait and retry.
+        if let Some(node) = current {
+            let subject = owner_subject(&link.subject, &node);
+            let sent = tokio::time::timeout(
+                REQUEST_TIMEOUT,
+                link.client.request(subject, payload.clone()),
+            )
+            .await;
+            match sent {
+                Err(_) => return Err(ForwardError::Unknown),
+                Ok(Ok(message)) => match ForwardReply::decode(&message.payload) {
+                    Ok(ForwardReply::Done(msgs)) => return Ok(msgs),
+                    Ok(ForwardReply::NotOwner) => {}
+                    Err(e) => return Err(ForwardError::Other(format!("a bad reply: {e}"))),
+                },
+                Ok(Err(e)) if e.kind() == async_nats::RequestErrorKind::TimedOut => {
+                    return Err(ForwardError::Unknown);
+                }
+                // No responders (the node is gone), or NATS is away: not applied.
+                Ok(Err(_)) => {}
+            }
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return Err(ForwardError::NoOwner(PATIENCE));
+        }
+        // Wait for the lease to name someone (else) or a short while, then try again.
+        let _ = tokio::time::timeout_at(
+            (tokio::time::Instant::now() + RETRY_EVERY).min(deadline),
+            owner.changed(),
+        )
+        .await;
+    }
+}
+
+/// A session's edits on their way to the owner: a queue, and the task that sends what is
+/// queued as one request, waits for its answer, and queues the replies to the client.
+pub struct SessionForwarder {
+    tx: mpsc::Sender<(u64, ForwardKind)>,
+}
+
+impl SessionForwarder {
+    pub fn start(
+        link: SceneCluster,
+        user: UserId,
+        editor: bool,
+        out: Outbox,
+        metrics: std::sync::Arc<Metrics>,
+    ) -> SessionForwarder {
+        let (tx, mut rx) = mpsc::channel::<(u64, ForwardKind)>(QUEUE);
+        tokio::spawn(async move {
+            while let Some(first) = rx.recv().await {
+                let mut ops = item_ops(&first.1);
+                let mut items = vec![first];
+                while ops < MAX_OPS_PER_REQUEST {
+                    match rx.try_recv() {
+                        Ok(item) => {
+                            ops += item_ops(&item.1);
+                            items.push(item);
+                        }
+                        Err(_) => break,
+                    }
+                }
+                let req = Forwarded {
+                    user,
+                    editor,
+                    items,
+                };
+                match request(&link, &req).await {
+                    Ok(replies) => {
+                        Metrics::add(&metrics.edits_forwarded, req.items.len() as u64);
+                        for reply in replies {
+                            out.push(Bytes::from(reply));
+                        }
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "closing a session whose edits were not answered");
+                        out.close(
+                            ErrorCode::ShuttingDown,
+                            format!("{e}; reconnect to continue"),
+                        );
+                        return;
+                    }
+                }
+            }
+        });
+        SessionForwarder { tx }
+    }
+
+    /// Queues an edit or undo; false when the forwarding task is gone (the session closed).
+    pub async fn send(&self, client_seq: u64, kind: ForwardKind) -> bool {
+        self.tx.send((client_seq, kind)).await.is_ok()
+    }
+}
+
+fn item_ops(kind: &ForwardKind) -> usize {
+    match kind {
+        ForwardKind::Edit(ops) => ops.len().max(1),
+        _ => 1,
+    }
+}
+
+/// Asks the owner to drop the history of a user without a stable id, who left. Nobody waits
+/// for it: lost in a failover, the history stays until the owner's bounds drop it.
+pub async fn forget(link: &SceneCluster, user: UserId) {
+    let request = Forwarded {
+        user,
+        editor: false,
+        items: vec![(0, ForwardKind::Forget)],
+    };
+    let Some(node) = link.owner.borrow().clone() else {
+        return;
+    };
+    if let Ok(bytes) = request.encode()
+        && let Err(e) = link
+            .client
+            .publish(owner_subject(&link.subject, &node), bytes.into())
+            .await
+    {
+        tracing::debug!(error = %e, "a history could not be dropped");
+    }
+}

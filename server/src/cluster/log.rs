@@ -1,0 +1,793 @@
+//! A scene's log in the cluster: one JetStream stream per scene, and its snapshots in an
+//! object store.
+//!
+//! **Why one stream per scene:** the owner fences its appends with the stream's expected last
+//! sequence (`Nats-Expected-Last-Sequence`), which is the sequence of the stream's last
+//! message; with one scene per stream, that is exactly "the last message of this scene", so a
+//! deposed owner's append is refused the moment anyone else appended, and a scene's log can be
+//! trimmed below its snapshot on its own.
+//!
+//! **A message is a turn** ([`Turn`]): the log records of one group commit (the same versioned
+//! [`LogRecord`] bytes the redb store writes, replayed through the same
+//! [`LogRecord::replay`]) and the turn's undo-history changes, zstd-compressed. One message per
+//! turn makes the records and their history durable together, as one redb transaction does.
+//! A turn larger than the server's `max_payload` is split between messages at record
+//! boundaries (history in the last). A turn with no records is a lease marker: a new owner
+//! appends one first, so an owner that lost its lease finds its next append refused.
+//!
+//! **Snapshots** are whole: bricks, the scene sequence and stream position they cover, every
+//! user's undo stacks and step bodies. The owner encodes one on its thread, a task uploads it
+//! and only then purges the stream below it.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::time::{Duration, Instant};
+
+use async_nats::jetstream::{self, object_store::ObjectStore, stream::Stream};
+use brickcast_protocol::wire::{Limits, UserId};
+use brickcast_protocol::{BrickMap, brick::BrickData};
+use bytes::Bytes;
+use serde::{Deserialize, Serialize};
+use tokio::io::AsyncReadExt;
+use tokio::sync::mpsc;
+
+use super::forward::ForwardReply;
+use crate::record::LogRecord;
+use crate::scene::history::{History, HistoryWrites, Stacks, StepMeta};
+use crate::store::{Loaded, SceneMeta, StoreError, decode_brick, encode_brick};
+
+/// First bytes of a turn message: a tag and the format version.
+const TURN_MAGIC: [u8; 2] = [b'T', 1];
+/// First bytes of a snapshot object.
+const SNAPSHOT_MAGIC: [u8; 2] = [b'S', 1];
+/// The most a turn or snapshot may decompress to: bounds what a corrupt message can allocate.
+const MAX_RAW: usize = 4 << 30;
+/// Room left in a message for headers and framing.
+const HEADER_ROOM: usize = 4096;
+/// How long an append keeps retrying a NATS server that does not answer (restarting, a
+/// network blip) before the owner gives the scene up. The same message id is sent each time,
+/// so JetStream's duplicate window keeps a retried append from landing twice.
+const APPEND_PATIENCE: Duration = Duration::from_secs(20);
+
+/// One group commit of a scene, as the log stream holds it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Turn {
+    /// The node that appended it.
+    pub node: String,
+    /// Scene sequence → [`LogRecord`] bytes, in order.
+    pub records: Vec<(u64, Vec<u8>)>,
+    /// The turn's undo-history changes.
+    pub history: HistoryWrites,
+}
+
+impl Turn {
+    pub fn encode(&self) -> Result<Vec<u8>, String> {
+        let raw = bincode::serde::encode_to_vec(self, bincode::config::standard())
+            .map_err(|e| e.to_string())?;
+        pack(TURN_MAGIC, &raw)
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Turn, String> {
+        let raw = unpack(TURN_MAGIC, bytes, "turn")?;
+        let (turn, read): (Turn, usize) =
+            bincode::serde::decode_from_slice(&raw, bincode::config::standard())
+                .map_err(|e| format!("turn: {e}"))?;
+        if read != raw.len() {
+            return Err(format!("turn: {} bytes after it", raw.len() - read));
+        }
+        Ok(turn)
+    }
+}
+
+/// `magic`, raw length (u64 LE), zstd of `raw`.
+fn pack(magic: [u8; 2], raw: &[u8]) -> Result<Vec<u8>, String> {
+    let packed = zstd::bulk::compress(raw, 1).map_err(|e| e.to_string())?;
+    let mut out = Vec::with_capacity(packed.len() + 10);
+    out.extend_from_slice(&magic);
+    out.extend_from_slice(&(raw.len() as u64).to_le_bytes());
+    out.extend_from_slice(&packed);
+    Ok(out)
+}
+
+fn unpack(magic: [u8; 2], bytes: &[u8], what: &str) -> Result<Vec<u8>, String> {
+    if bytes.len() < 10 || bytes[..2] != magic {
+        return Err(format!(
+            "{what}: not a brickcast {what} (format {:?})",
+            bytes.get(..2)
+        ));
+    }
+    let len = u64::from_le_bytes(bytes[2..10].try_into().expect("8 bytes"));
+    if len > MAX_RAW as u64 {
+        return Err(format!("{what}: claims {len} bytes"));
+    }
+    let raw =
+        zstd::bulk::decompress(&bytes[10..], len as usize).map_err(|e| format!("{what}: {e}"))?;
+    if raw.len() as u64 != len {
+        return Err(format!("{what}: {} bytes, {len} declared", raw.len()));
+    }
+    Ok(raw)
+}
+
+/// A whole scene at one sequence, as the object store holds it.
+#[derive(Serialize, Deserialize)]
+struct SnapshotBody {
+    size: [u32; 3],
+    /// The scene sequence the bricks reflect.
+    seq: u64,
+    /// The stream sequence of the last turn the snapshot holds.
+    pos: u64,
+    /// Undo stacks: (user, step id, meta), and the step bodies.
+    history: Vec<(UserId, u64, StepMeta)>,
+    steps: Vec<(u64, Vec<u8>)>,
+    last_step_id: u64,
+    /// Linear cells, and their bricks as the redb store's rows, back to back (a row's length
+    /// follows from its mask).
+    cells: Vec<u32>,
+    rows: Vec<u8>,
+}
+
+/// NATS names for a scene: streams allow letters, digits, `-` and `_`; scene names also allow
+/// `.` (a subject separator). `_` → `__`, `.` → `_d`: one-to-one.
+pub fn token(scene: &str) -> String {
+    scene.replace('_', "__").replace('.', "_d")
+}
+
+pub fn stream_name(scene: &str) -> String {
+    format!("BRICKCAST_LOG_{}", token(scene))
+}
+
+pub fn log_subject(scene: &str) -> String {
+    format!("brickcast.log.{}", token(scene))
+}
+
+pub fn edit_subject(scene: &str) -> String {
+    format!("brickcast.edit.{}", token(scene))
+}
+
+/// Until when this node may append: the lease task moves it on every renewal (the time the
+/// renewal was *sent* plus the lease's life, less a margin), and revokes it when the lease is
+/// lost. A node stopped past its lease (SIGSTOP, a long pause) reads a passed deadline when it
+/// wakes and appends nothing, before JetStream's own fence is even needed.
+#[derive(Debug)]
+pub struct LeaseClock {
+    base: Instant,
+    deadline_ns: AtomicU64,
+}
+
+impl Default for LeaseClock {
+    fn default() -> Self {
+        LeaseClock {
+            base: Instant::now(),
+            deadline_ns: AtomicU64::new(0),
+        }
+    }
+}
+
+impl LeaseClock {
+    pub fn extend_to(&self, until: Instant) {
+        let ns = until.saturating_duration_since(self.base).as_nanos() as u64;
+        self.deadline_ns.store(ns, Relaxed);
+    }
+
+    pub fn revoke(&self) {
+        self.deadline_ns.store(0, Relaxed);
+    }
+
+    pub fn valid(&self) -> bool {
+        (self.base.elapsed().as_nanos() as u64) < self.deadline_ns.load(Relaxed)
+    }
+}
+
+/// Replays with no brush limits: every logged op was validated when it was accepted.
+fn replay_limits() -> Limits {
+    Limits {
+        max_brush_radius: f32::MAX,
+        max_box_extent: u32::MAX,
+        ..Limits::hard_caps()
+    }
+}
+
+/// What a node needs to reach a scene's log.
+#[derive(Clone)]
+pub struct LogHandles {
+    pub js: jetstream::Context,
+    pub snapshots: ObjectStore,
+    pub rt: tokio::runtime::Handle,
+    pub node: String,
+}
+
+/// A scene as loaded from the cluster: the map and history, plus where in the stream it is.
+pub struct ClusterLoaded {
+    pub loaded: Loaded,
+    pub pos: u64,
+    pub steps: HashMap<u64, Vec<u8>>,
+}
+
+/// The stream and the snapshot object of a scene, created for a new scene.
+pub async fn create(h: &LogHandles, scene: &str, map: &BrickMap) -> Result<(), StoreError> {
+    let cluster = |e: String| StoreError::Cluster(format!("scene {scene}: {e}"));
+    h.js.get_or_create_stream(jetstream::stream::Config {
+        name: stream_name(scene),
+        subjects: vec![log_subject(scene)],
+        storage: jetstream::stream::StorageType::File,
+        duplicate_window: Duration::from_secs(120),
+        ..Default::default()
+    })
+    .await
+    .map_err(|e| cluster(format!("creating the log stream: {e}")))?;
+    let body = snapshot_body(
+        map,
+        map.sequence(),
+        0,
+        &History::new(Vec::new(), 0, 1, 0),
+        &HashMap::new(),
+    );
+    let bytes = encode_snapshot(&body).map_err(cluster)?;
+    put_snapshot(&h.snapshots, scene, &body, bytes)
+        .await
+        .map_err(cluster)
+}
+
+fn snapshot_body(
+    map: &BrickMap,
+    seq: u64,
+    pos: u64,
+    history: &History,
+    steps: &HashMap<u64, Vec<u8>>,
+) -> SnapshotBody {
+    let mut cells = Vec::with_capacity(map.brick_count() as usize);
+    let mut rows = Vec::new();
+    let mut row = Vec::new();
+    for (brick, _) in map.bricks() {
+        cells.push(map.cell_index(brick.cell));
+        encode_brick(&brick.mask, &brick.colours, &mut row);
+        rows.extend_from_slice(&row);
+    }
+    let history_rows = history.rows();
+    let steps = history_rows
+        .iter()
+        .filter_map(|(_, id, _)| steps.get(id).map(|b| (*id, b.clone())))
+        .collect();
+    SnapshotBody {
+        size: map.size(),
+        seq,
+        pos,
+        history: history_rows,
+        steps,
+        last_step_id: history.last_id(),
+        cells,
+        rows,
+    }
+}
+
+fn encode_snapshot(body: &SnapshotBody) -> Result<Vec<u8>, String> {
+    let raw = bincode::serde::encode_to_vec(body, bincode::config::standard())
+        .map_err(|e| e.to_string())?;
+    pack(SNAPSHOT_MAGIC, &raw)
+}
+
+async fn put_snapshot(
+    store: &ObjectStore,
+    scene: &str,
+    body: &SnapshotBody,
+    bytes: Vec<u8>,
+) -> Result<(), String> {
+    let meta = jetstream::object_store::ObjectMetadata {
+        name: scene.to_string(),
+        description: Some(format!("seq={} pos={}", body.seq, body.pos)),
+        ..Default::default()
+    };
+    store
+        .put(meta, &mut bytes.as_slice())
+        .await
+        .map(|_| ())
+        .map_err(|e| format!("writing the snapshot: {e}"))
+}
+
+/// The snapshot's scene sequence and stream position, from its description (for `cluster
+/// status`, without downloading it).
+pub fn parse_description(description: &str) -> Option<(u64, u64)> {
+    let mut seq = None;
+    let mut pos = None;
+    for part in description.split_whitespace() {
+        if let Some(v) = part.strip_prefix("seq=") {
+            seq = v.parse().ok();
+        } else if let Some(v) = part.strip_prefix("pos=") {
+            pos = v.parse().ok();
+        }
+    }
+    Some((seq?, pos?))
+}
+
+/// Loads a scene: its newest snapshot, then every turn after it, checked for gaps.
+pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreError> {
+    let corrupt = |detail: String| StoreError::Corrupt {
+        scene: scene.into(),
+        detail,
+    };
+    let inconsistent = |detail: String| StoreError::Inconsistent {
+        scene: scene.into(),
+        detail,
+    };
+    let cluster = |e: String| StoreError::Cluster(format!("scene {scene}: {e}"));
+    let mut object = match h.snapshots.get(scene).await {
+        Ok(o) => o,
+        Err(e) if matches!(e.kind(), jetstream::object_store::GetErrorKind::NotFound) => {
+            return Err(StoreError::UnknownScene(scene.into()));
+        }
+        Err(e) => return Err(cluster(format!("reading the snapshot: {e}"))),
+    };
+    let mut bytes = Vec::new();
+    object
+        .read_to_end(&mut bytes)
+        .await
+        .map_err(|e| cluster(format!("reading the snapshot: {e}")))?;
+    let raw = unpack(SNAPSHOT_MAGIC, &bytes, "snapshot").map_err(corrupt)?;
+    let (body, _): (SnapshotBody, usize) =
+        bincode::serde::decode_from_slice(&raw, bincode::config::standard())
+            .map_err(|e| corrupt(format!("snapshot: {e}")))?;
+    drop(raw);
+    let mut map = BrickMap::new(body.size).map_err(|e| corrupt(e.to_string()))?;
+    map.set_sequence(body.seq);
+    let mut at = 0usize;
+    for &cell in &body.cells {
+        let mask_end = at + 64;
+        let Some(mask_bytes) = body.rows.get(at..mask_end) else {
+            return Err(corrupt(format!("snapshot brick {cell} is cut short")));
+        };
+        let solid: usize = mask_bytes.iter().map(|b| b.count_ones() as usize).sum();
+        let end = mask_end + 2 * solid;
+        let row = body
+            .rows
+            .get(at..end)
+            .ok_or_else(|| corrupt(format!("snapshot brick {cell} is cut short")))?;
+        if u64::from(cell)
+            >= map
+                .cell_dims()
+                .iter()
+                .map(|&d| u64::from(d))
+                .product::<u64>()
+        {
+            return Err(corrupt(format!(
+                "snapshot brick {cell} is outside the scene"
+            )));
+        }
+        let coords = map.cell_coords(cell);
+        let brick: BrickData =
+            decode_brick(coords, row).ok_or_else(|| corrupt(format!("snapshot brick {cell}")))?;
+        map.put_brick(&brick).map_err(|e| corrupt(e.to_string()))?;
+        at = end;
+    }
+    map.prune_tombstones(body.seq);
+    let mut rows: BTreeMap<u64, (UserId, StepMeta)> = body
+        .history
+        .iter()
+        .map(|(u, id, m)| (*id, (*u, *m)))
+        .collect();
+    let mut steps: HashMap<u64, Vec<u8>> = body.steps.into_iter().collect();
+    let mut last_step_id = body.last_step_id;
+
+    // Every turn after the snapshot, in order.
+    let stream =
+        h.js.get_stream(stream_name(scene))
+            .await
+            .map_err(|e| cluster(format!("opening the log stream: {e}")))?;
+    let info = stream
+        .get_info()
+        .await
+        .map_err(|e| cluster(format!("reading the log stream: {e}")))?;
+    let (first, last) = (info.state.first_sequence, info.state.last_sequence);
+    let mut pos = body.pos;
+    let mut seq = body.seq;
+    let mut replayed = 0;
+    if last > pos && first > pos + 1 {
+        return Err(inconsistent(format!(
+            "the snapshot holds the log up to message {pos} but the stream starts at {first}: messages {}..{first} are missing",
+            pos + 1
+        )));
+    }
+    let limits = replay_limits();
+    map.record_touched(true);
+    while pos < last {
+        let next = pos + 1;
+        let message = stream
+            .get_raw_message(next)
+            .await
+            .map_err(|e| cluster(format!("reading log message {next}: {e}")))?;
+        let turn = Turn::decode(&message.payload)
+            .map_err(|e| corrupt(format!("log message {next}: {e}")))?;
+        for (s, bytes) in &turn.records {
+            if *s != seq + 1 {
+                return Err(inconsistent(format!(
+                    "log message {next} holds sequence {s} after {seq}: the log has a gap or repeats"
+                )));
+            }
+            let record =
+                LogRecord::decode(bytes).map_err(|e| corrupt(format!("log entry {s}: {e}")))?;
+            map.set_sequence(*s);
+            record
+                .replay(&mut map, &limits)
+                .map_err(|e| corrupt(format!("log entry {s} no longer applies: {e}")))?;
+            seq = *s;
+            replayed += 1;
+        }
+        for (id, user) in &turn.history.removed {
+            if rows.get(id).is_some_and(|(u, _)| u == user) {
+                rows.remove(id);
+                steps.remove(id);
+            }
+        }
+        for (id, (user, meta, body)) in &turn.history.steps {
+            rows.insert(*id, (*user, *meta));
+            steps.insert(*id, body.clone());
+            last_step_id = last_step_id.max(*id);
+        }
+        pos = next;
+    }
+    map.rebuild_clearance();
+    let replay_touched = map.take_touched();
+    map.record_touched(false);
+    let mut by_user: BTreeMap<UserId, Vec<(u64, StepMeta)>> = BTreeMap::new();
+    for (id, (user, meta)) in rows {
+        by_user.entry(user).or_default().push((id, meta));
+    }
+    let history = by_user
+        .into_iter()
+        .map(|(u, rows)| (u, Stacks::from_rows(rows)))
+        .collect();
+    Ok(ClusterLoaded {
+        loaded: Loaded {
+            map,
+            meta: SceneMeta {
+                size: body.size,
+                snapshot_seq: body.seq,
+            },
+            seq,
+            replayed,
+            replay_touched,
+            history,
+            last_step_id,
+        },
+        pos,
+        steps,
+    })
+}
+
+/// A scene's log as its owner thread uses it: append while leading, follow otherwise.
+///
+/// Every call blocks the owner thread on the node's tokio runtime (the owner is a plain
+/// thread, like the redb store's fsyncs block it).
+pub struct JetLog {
+    scene: String,
+    h: LogHandles,
+    stream: Stream,
+    subject: String,
+    max_payload: usize,
+    /// The stream sequence of the last turn this replica holds.
+    pos: u64,
+    leading: bool,
+    lease: Arc<LeaseClock>,
+    /// Undo step bodies (the redb store's `history/` table).
+    steps: HashMap<u64, Vec<u8>>,
+    /// Replies to forwarded edits, published in order by a task.
+    replies: mpsc::UnboundedSender<(String, Bytes)>,
+    /// Set when the log cannot be followed (corrupt, a gap): the node neither applies nor
+    /// leads this scene until restarted.
+    pub broken: Arc<std::sync::atomic::AtomicBool>,
+    appends: u64,
+    /// The snapshot being uploaded: one at a time, so an older one can never land after (and
+    /// over) a newer one whose trim already happened.
+    uploading: Option<tokio::task::JoinHandle<()>>,
+}
+
+impl JetLog {
+    pub async fn open(
+        h: LogHandles,
+        scene: &str,
+        loaded: &mut ClusterLoaded,
+        lease: Arc<LeaseClock>,
+        replies: mpsc::UnboundedSender<(String, Bytes)>,
+    ) -> Result<JetLog, StoreError> {
+        let stream = h.js.get_stream(stream_name(scene)).await.map_err(|e| {
+            StoreError::Cluster(format!("scene {scene}: opening the log stream: {e}"))
+        })?;
+        let max_payload = h.js.client().server_info().max_payload;
+        Ok(JetLog {
+            scene: scene.to_string(),
+            stream,
+            subject: log_subject(scene),
+            max_payload,
+            pos: loaded.pos,
+            leading: false,
+            lease,
+            steps: std::mem::take(&mut loaded.steps),
+            replies,
+            broken: Arc::default(),
+            appends: 0,
+            uploading: None,
+            h,
+        })
+    }
+
+    pub fn scene(&self) -> &str {
+        &self.scene
+    }
+
+    pub fn node(&self) -> &str {
+        &self.h.node
+    }
+
+    pub fn pos(&self) -> u64 {
+        self.pos
+    }
+
+    pub fn set_pos(&mut self, pos: u64) {
+        self.pos = pos;
+    }
+
+    pub fn leading(&self) -> bool {
+        self.leading
+    }
+
+    /// Stops appending (the lease is gone, or another node appended).
+    pub fn follow(&mut self) {
+        self.leading = false;
+    }
+
+    pub fn history_step(&self, id: u64) -> Option<Vec<u8>> {
+        self.steps.get(&id).cloned()
+    }
+
+    /// Keeps the step bodies of a turn another node committed.
+    pub fn apply_committed(&mut self, writes: &HistoryWrites) {
+        for id in writes.removed.keys() {
+            self.steps.remove(id);
+        }
+        for (id, (_, _, body)) in &writes.steps {
+            self.steps.insert(*id, body.clone());
+        }
+    }
+
+    /// Queues a reply to a forwarded edit.
+    pub fn reply(&self, subject: String, reply: &ForwardReply) {
+        match reply.encode() {
+            Ok(bytes) => {
+                let _ = self.replies.send((subject, Bytes::from(bytes)));
+            }
+            Err(e) => {
+                tracing::error!(scene = %self.scene, error = %e, "cannot encode a reply to a forwarded edit")
+            }
+        }
+    }
+
+    /// Appends a turn, fenced on this replica's position. Refused (`Deposed`) when the lease
+    /// has run out or another node appended since.
+    pub fn append(
+        &mut self,
+        records: &[(u64, LogRecord)],
+        history: &HistoryWrites,
+    ) -> Result<(), StoreError> {
+        let mut encoded = Vec::with_capacity(records.len());
+        let mut buf = Vec::new();
+        for (seq, record) in records {
+            record
+                .encode(&mut buf)
+                .map_err(|e| StoreError::Cluster(format!("encoding log entry {seq}: {e}")))?;
+            encoded.push((*seq, buf.clone()));
+        }
+        let turn = Turn {
+            node: self.h.node.clone(),
+            records: encoded,
+            history: history.clone(),
+        };
+        for part in self.split(turn)? {
+            self.append_message(part)?;
+        }
+        for (id, (_, _, body)) in &history.steps {
+            self.steps.insert(*id, body.clone());
+        }
+        for id in history.removed.keys() {
+            self.steps.remove(id);
+        }
+        Ok(())
+    }
+
+    /// Appends the empty turn that claims the log for this node: after it, an owner that lost
+    /// its lease finds its next append refused.
+    pub fn claim(&mut self) -> Result<(), StoreError> {
+        self.leading = true;
+        let marker = Turn {
+            node: self.h.node.clone(),
+            ..Default::default()
+        };
+        let bytes = marker
+            .encode()
+            .map_err(|e| StoreError::Cluster(format!("encoding a lease marker: {e}")))?;
+        if let Err(e) = self.append_message(bytes) {
+            self.leading = false;
+            return Err(e);
+        }
+        Ok(())
+    }
+
+    /// A turn cut into messages under `max_payload`, at record boundaries.
+    fn split(&self, turn: Turn) -> Result<Vec<Vec<u8>>, StoreError> {
+        let limit = self.max_payload.saturating_sub(HEADER_ROOM);
+        let encode = |t: &Turn| {
+            t.encode()
+                .map_err(|e| StoreError::Cluster(format!("encoding a turn: {e}")))
+        };
+        let whole = encode(&turn)?;
+        if whole.len() <= limit {
+            return Ok(vec![whole]);
+        }
+        if turn.records.len() <= 1 {
+            return Err(StoreError::Cluster(format!(
+                "scene {}: one log entry needs {} bytes compressed, over the NATS server's max_payload of {} bytes; raise max_payload (8MB is recommended)",
+                self.scene,
+                whole.len(),
+                self.max_payload
+            )));
+        }
+        let mid = turn.records.len() / 2;
+        let mut first = Turn {
+            node: turn.node.clone(),
+            records: turn.records,
+            history: HistoryWrites::default(),
+        };
+        let rest = first.records.split_off(mid);
+        let second = Turn {
+            node: turn.node,
+            records: rest,
+            history: turn.history,
+        };
+        let mut out = self.split(first)?;
+        out.extend(self.split(second)?);
+        Ok(out)
+    }
+
+    fn append_message(&mut self, bytes: Vec<u8>) -> Result<(), StoreError> {
+        let deposed = |detail: String| StoreError::Deposed {
+            scene: self.scene.clone(),
+            detail,
+        };
+        if !self.leading {
+            return Err(deposed("it does not hold the lease".into()));
+        }
+        if !self.lease.valid() {
+            self.leading = false;
+            return Err(deposed("its lease ran out before the append".into()));
+        }
+        let expected = self.pos;
+        self.appends += 1;
+        // Unique per node, scene position and attempt series: a retry after a lost ack is a
+        // duplicate JetStream drops, never a second copy.
+        let id = format!("{}:{}:{}", self.h.node, expected, self.appends);
+        let payload = Bytes::from(bytes);
+        let started = Instant::now();
+        let result = self.h.rt.clone().block_on(async {
+            loop {
+                let publish = jetstream::message::PublishMessage::build()
+                    .payload(payload.clone())
+                    .message_id(id.clone())
+                    .expected_last_sequence(expected);
+                let sent = self
+                    .h
+                    .js
+                    .send_publish(self.subject.clone(), publish)
+                    .await;
+                let outcome = match sent {
+                    Ok(ack) => ack.await,
+                    Err(e) => Err(e),
+                };
+                match outcome {
+                    Ok(ack) => return Ok(ack.sequence),
+                    Err(e)
+                        if matches!(
+                            e.kind(),
+                            jetstream::context::PublishErrorKind::WrongLastSequence
+                        ) =>
+                    {
+                        return Err(deposed(format!(
+                            "another node appended after message {expected}"
+                        )));
+                    }
+                    Err(e) if started.elapsed() < APPEND_PATIENCE && self.lease.valid() => {
+                        tracing::warn!(scene = %self.scene, error = %e, "log append failed; retrying");
+                        tokio::time::sleep(Duration::from_millis(200)).await;
+                    }
+                    Err(e) => {
+                        return Err(deposed(format!("the log append failed: {e}")));
+                    }
+                }
+            }
+        });
+        match result {
+            Ok(seq) => {
+                self.pos = seq;
+                Ok(())
+            }
+            Err(e) => {
+                self.leading = false;
+                Err(e)
+            }
+        }
+    }
+
+    /// The turns after this replica's position, up to the stream's end (a new owner catches
+    /// up before it claims the log). `Err` when one is gone (trimmed below a snapshot): the
+    /// caller reloads.
+    pub fn tail(&self) -> Result<Vec<(u64, Turn)>, StoreError> {
+        let cluster = |e: String| StoreError::Cluster(format!("scene {}: {e}", self.scene));
+        self.h.rt.clone().block_on(async {
+            let info = self
+                .stream
+                .get_info()
+                .await
+                .map_err(|e| cluster(format!("reading the log stream: {e}")))?;
+            let mut out = Vec::new();
+            for next in self.pos + 1..=info.state.last_sequence {
+                let message = self
+                    .stream
+                    .get_raw_message(next)
+                    .await
+                    .map_err(|e| cluster(format!("reading log message {next}: {e}")))?;
+                let turn = Turn::decode(&message.payload).map_err(|e| StoreError::Corrupt {
+                    scene: self.scene.clone(),
+                    detail: format!("log message {next}: {e}"),
+                })?;
+                out.push((next, turn));
+            }
+            Ok(out)
+        })
+    }
+
+    /// Loads the scene again from the cluster (after a gap, or an append that lost the lease).
+    pub fn reload(&mut self) -> Result<Loaded, StoreError> {
+        let mut loaded = self.h.rt.clone().block_on(load(&self.h, &self.scene))?;
+        self.pos = loaded.pos;
+        self.steps = std::mem::take(&mut loaded.steps);
+        self.leading = false;
+        Ok(loaded.loaded)
+    }
+
+    /// Writes a whole snapshot at `seq` (this replica's position) in the background and trims
+    /// the stream below it once it is stored. Only the owner snapshots; one at a time.
+    pub fn snapshot(
+        &mut self,
+        map: &BrickMap,
+        seq: u64,
+        history: &History,
+    ) -> Result<(), StoreError> {
+        if !self.leading || self.uploading.as_ref().is_some_and(|t| !t.is_finished()) {
+            return Ok(());
+        }
+        if map.sequence() != seq {
+            return Err(StoreError::Inconsistent {
+                scene: self.scene.clone(),
+                detail: format!(
+                    "refusing a snapshot at sequence {seq} of a map stamped {}",
+                    map.sequence()
+                ),
+            });
+        }
+        let body = snapshot_body(map, seq, self.pos, history, &self.steps);
+        let bytes = encode_snapshot(&body).map_err(StoreError::Cluster)?;
+        let store = self.h.snapshots.clone();
+        let stream = self.stream.clone();
+        let scene = self.scene.clone();
+        self.uploading = Some(self.h.rt.spawn(async move {
+            if let Err(e) = put_snapshot(&store, &scene, &body, bytes).await {
+                tracing::warn!(scene = %scene, error = %e, "snapshot not written; the log keeps everything");
+                return;
+            }
+            // Messages after the snapshot stay; the ones it holds go.
+            match stream.purge().sequence(body.pos + 1).await {
+                Ok(_) => tracing::debug!(scene = %scene, seq = body.seq, pos = body.pos, "snapshot written, log trimmed"),
+                Err(e) => tracing::warn!(scene = %scene, error = %e, "snapshot written, log not trimmed"),
+            }
+        }));
+        Ok(())
+    }
+}

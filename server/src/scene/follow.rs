@@ -1,0 +1,296 @@
+//! The owner in a cluster: who may order edits, and how a replica keeps up.
+//!
+//! **Why the owner thread does this itself:** following the log, taking the scene over and
+//! losing it all change the map, the sequence and the history, which only this thread
+//! touches. The tasks in `crate::cluster::lease` only feed it commands.
+//!
+//! * A forwarded edit is applied like a local one when this node leads, and answered "not the
+//!   owner" (nothing applied, the sender retries) otherwise.
+//! * A turn from the log is applied with [`LogRecord::replay`], the function recovery uses,
+//!   unless this node appended it. A turn after a gap (trimmed below a snapshot before this
+//!   node read it) reloads the scene from the snapshot.
+//! * Taking over: apply every turn up to the log's end, then append a marker; from then on the
+//!   log's expected-sequence fence refuses any other node's append.
+//! * Losing the lease mid-turn (an append refused): nothing of the turn is acknowledged, the
+//!   senders are told "not the owner" (they retry on the new owner), and the scene is loaded
+//!   again from the log, so the map never holds an edit the log does not.
+
+use brickcast_protocol::wire::{Limits, encode_server};
+
+use super::history::History;
+use super::owner::{AckTo, Log, Owner, PendingAck};
+use crate::cluster::Turn;
+use crate::cluster::forward::{ForwardKind, ForwardReply, Forwarded};
+use crate::metrics::Metrics;
+use crate::record::LogRecord;
+use crate::store::{Loaded, StoreError};
+
+/// Replays with no brush limits: every logged op was validated when it was accepted.
+fn replay_limits() -> Limits {
+    Limits {
+        max_brush_radius: f32::MAX,
+        max_box_extent: u32::MAX,
+        ..Limits::hard_caps()
+    }
+}
+
+impl Owner {
+    /// Sends the turn's replies, once it is durable: to local sessions, and to each forwarded
+    /// request one answer holding its items' replies, in order.
+    pub(super) fn send_replies(&self, acks: &mut Vec<PendingAck>) {
+        let mut remote: Vec<(String, Vec<Vec<u8>>)> = Vec::new();
+        for ack in acks.drain(..) {
+            match ack.to {
+                AckTo::Session(id) => {
+                    if let Some(sub) = self.subs.get(&id) {
+                        sub.out.send(&ack.msg, &self.metrics);
+                    }
+                }
+                AckTo::Remote(subject) => match encode_server(&ack.msg) {
+                    Ok(bytes) => match remote.last_mut() {
+                        Some((s, msgs)) if *s == subject => msgs.push(bytes),
+                        _ => remote.push((subject, vec![bytes])),
+                    },
+                    Err(e) => {
+                        tracing::error!(scene = %self.name, error = %e, "cannot encode a reply to a forwarded edit");
+                        self.metrics.count_unencodable(ack.msg.kind());
+                    }
+                },
+            }
+        }
+        if let Some(jet) = self.backend.jet_ref() {
+            for (subject, msgs) in remote {
+                jet.reply(subject, &ForwardReply::Done(msgs));
+            }
+        }
+    }
+
+    /// A request another node (or a session on this one) forwarded.
+    pub(super) fn forwarded(
+        &mut self,
+        reply: Option<String>,
+        request: Forwarded,
+        acks: &mut Vec<PendingAck>,
+        log: &mut Log,
+    ) {
+        if !self.backend.leading() {
+            if let (Some(subject), Some(jet)) = (reply, self.backend.jet_ref()) {
+                jet.reply(subject, &ForwardReply::NotOwner);
+            }
+            return;
+        }
+        let Forwarded {
+            user,
+            editor,
+            items,
+        } = request;
+        for (client_seq, kind) in items {
+            match (kind, &reply) {
+                (ForwardKind::Edit(ops), Some(subject)) => {
+                    let to = AckTo::Remote(subject.clone());
+                    let ack = self.apply_batch(to, client_seq, ops, editor.then_some(user), log);
+                    acks.push(ack);
+                }
+                (ForwardKind::Undo { redo }, Some(subject)) => {
+                    let to = AckTo::Remote(subject.clone());
+                    let ack = self.undo(to, user, editor, client_seq, redo, log);
+                    acks.push(ack);
+                }
+                (ForwardKind::Forget, _) => {
+                    self.history.forget(user);
+                    self.undo_budget.remove(&user);
+                }
+                // An edit nobody waits for is not applied: its sender could not learn the
+                // outcome.
+                (_, None) => {}
+            }
+        }
+    }
+
+    /// A turn of the log at stream position `pos`.
+    pub(super) fn replicate(&mut self, pos: u64, turn: Turn) {
+        let Some(jet) = self.backend.jet() else {
+            return;
+        };
+        if jet.broken.load(std::sync::atomic::Ordering::Relaxed) || pos <= jet.pos() {
+            return;
+        }
+        if jet.leading() {
+            // Someone else appended: this node's own appends all landed before it (the log is
+            // one sequence), so the map is still the log's, up to here.
+            tracing::warn!(scene = %self.name, pos, node = %turn.node, "another node appended to the scene's log; this node stops ordering edits");
+            jet.follow();
+            Metrics::add(&self.metrics.stepdowns, 1);
+        }
+        if pos != jet.pos() + 1 {
+            tracing::info!(scene = %self.name, pos, at = jet.pos(), "the log was trimmed past this replica; loading the newest snapshot");
+            self.reload();
+            return;
+        }
+        self.apply_turn(pos, turn);
+    }
+
+    /// Applies one turn another node appended. False (and the scene stops here) when it does
+    /// not fit: a gap in the scene's sequence, or a record that does not decode or apply.
+    fn apply_turn(&mut self, pos: u64, turn: Turn) -> bool {
+        let limits = replay_limits();
+        for (s, bytes) in &turn.records {
+            let fault = if *s != self.seq + 1 {
+                Some(format!(
+                    "log message {pos} holds sequence {s} after {}: the log has a gap or repeats",
+                    self.seq
+                ))
+            } else {
+                match LogRecord::decode(bytes) {
+                    Err(e) => Some(format!("log entry {s} does not decode: {e}")),
+                    Ok(record) => {
+                        self.map.set_sequence(*s);
+                        match record.replay(&mut self.map, &limits) {
+                            Err(e) => Some(format!("log entry {s} does not apply: {e}")),
+                            Ok(()) => {
+                                self.seq = *s;
+                                self.log_entries += 1;
+                                self.log_ops += record.op_count() as u64;
+                                None
+                            }
+                        }
+                    }
+                }
+            };
+            if let Some(fault) = fault {
+                self.refuse_log(&fault);
+                return false;
+            }
+        }
+        self.history.apply_committed(&turn.history);
+        if let Some(jet) = self.backend.jet() {
+            jet.apply_committed(&turn.history);
+            jet.set_pos(pos);
+        }
+        Metrics::add(&self.metrics.turns_replicated, 1);
+        true
+    }
+
+    /// The log cannot be followed: say so loudly, stop serving the scene from this node
+    /// rather than show (or order edits on) a scene that forked from it.
+    fn refuse_log(&mut self, fault: &str) {
+        tracing::error!(scene = %self.name, fault, "the scene's log does not fit this replica; this node stops serving the scene until restarted");
+        if let Some(jet) = self.backend.jet() {
+            jet.broken.store(true, std::sync::atomic::Ordering::Relaxed);
+            jet.follow();
+        }
+        self.fail_all(&format!("the scene's log is inconsistent: {fault}"));
+    }
+
+    /// This node took the lease: catch up to the log's end, then claim it.
+    pub(super) fn take_over(&mut self) -> bool {
+        for attempt in 0..2 {
+            let Some(jet) = self.backend.jet() else {
+                return false;
+            };
+            if jet.broken.load(std::sync::atomic::Ordering::Relaxed) {
+                return false;
+            }
+            match jet.tail() {
+                Ok(turns) => {
+                    for (pos, turn) in turns {
+                        if !self.apply_turn(pos, turn) {
+                            return false;
+                        }
+                    }
+                    break;
+                }
+                Err(e) if attempt == 0 => {
+                    tracing::info!(scene = %self.name, error = %e, "catching up by loading the newest snapshot");
+                    self.reload();
+                }
+                Err(e) => {
+                    tracing::warn!(scene = %self.name, error = %e, "cannot catch up with the log; not taking the scene");
+                    return false;
+                }
+            }
+        }
+        let Some(jet) = self.backend.jet() else {
+            return false;
+        };
+        match jet.claim() {
+            Ok(()) => {
+                tracing::info!(scene = %self.name, node = %jet.node(), seq = self.seq, pos = jet.pos(), "this node owns the scene");
+                true
+            }
+            Err(e) => {
+                tracing::info!(scene = %self.name, error = %e, "another node claimed the scene first");
+                false
+            }
+        }
+    }
+
+    /// The lease is gone: stop ordering edits (the map is the log's: every append landed).
+    pub(super) fn step_down(&mut self, why: &str) {
+        if let Some(jet) = self.backend.jet()
+            && jet.leading()
+        {
+            jet.follow();
+            tracing::warn!(scene = %self.name, why, "this node no longer owns the scene");
+        }
+    }
+
+    /// An append failed: this turn's edits are not durable. Their senders hear "not the
+    /// owner" (nothing applied; they retry on whichever node leads), and the map is loaded
+    /// again from the log.
+    pub(super) fn lost_lead(&mut self, acks: &mut Vec<PendingAck>, error: &StoreError) {
+        tracing::warn!(scene = %self.name, %error, "a turn could not be logged; its edits are dropped and the scene is reloaded from the log");
+        if let Some(jet) = self.backend.jet_ref() {
+            for ack in acks.drain(..) {
+                match ack.to {
+                    AckTo::Remote(subject) => jet.reply(subject, &ForwardReply::NotOwner),
+                    AckTo::Session(_) => {}
+                }
+            }
+        }
+        acks.clear();
+        self.reload();
+    }
+
+    /// Replaces the map, sequence and history with the log's (snapshot + turns). Sessions
+    /// resync from what they were last sent.
+    pub(super) fn reload(&mut self) {
+        let Some(jet) = self.backend.jet() else {
+            return;
+        };
+        match jet.reload() {
+            Ok(loaded) => self.reset_from(loaded),
+            Err(e) => {
+                let fault = format!("the scene could not be loaded from the cluster: {e}");
+                self.refuse_log(&fault);
+            }
+        }
+    }
+
+    fn reset_from(&mut self, loaded: Loaded) {
+        let Loaded {
+            mut map,
+            seq,
+            replay_touched,
+            history,
+            last_step_id,
+            ..
+        } = loaded;
+        map.set_sequence(seq);
+        map.record_touched(true);
+        self.map = map;
+        self.seq = seq;
+        self.broadcast_seq = seq;
+        self.history = History::new(
+            history,
+            last_step_id,
+            self.config.limits.max_undo_steps,
+            self.config.limits.max_undo_bytes,
+        );
+        self.unsnapshotted = super::cells::CellSet::from_cells(&replay_touched);
+        for sub in self.subs.values_mut() {
+            sub.delivered = sub.delivered.min(seq);
+            sub.lagging = true;
+        }
+    }
+}
