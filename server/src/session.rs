@@ -297,6 +297,7 @@ async fn read_loop(
     let forwarder = scene.cluster.as_ref().map(|c| {
         crate::cluster::forward::SessionForwarder::start(
             c.clone(),
+            id,
             session.who.user,
             role == Role::Editor,
             out.clone(),

@@ -8,11 +8,12 @@
 //! whatever queued up meanwhile goes in the next request together: a client's edits stay in
 //! order and still reach the owner in batches, as they would its channel on one node.
 //!
-//! Only the named node listens on its subject, so a request reaches at most one owner.
-//! "No responders" and [`ForwardReply::NotOwner`] both mean *not applied*: the session waits
-//! for the lease to name another node and sends the same request there (through a failover,
-//! for up to [`PATIENCE`]). A request that times out may or may not have applied, so the
-//! session is closed and its client resumes from what is durable.
+//! Only the named node listens on its subject. Any failure (no responders, "not the owner",
+//! a timeout, an owner that lost the scene while logging) is retried with the same request,
+//! on whichever node the lease names, for up to [`PATIENCE`]: the owner answers a request it
+//! (or a previous owner) already applied with the replies it logged (`answered.rs`), so a
+//! retry never applies an edit twice, and a failover costs the client a delay, not its
+//! connection.
 //!
 //! The other nodes are trusted: the forwarding node has checked the client's role, rate and
 //! edit budget; the owner applies what it is sent as that user.
@@ -29,8 +30,9 @@ use crate::scene::{Outbox, SceneCluster};
 
 /// How long a session keeps retrying an edit nobody owns (a failover in progress).
 pub const PATIENCE: Duration = Duration::from_secs(15);
-/// How long one forwarded edit may take before its outcome counts as unknown.
-const REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long one attempt waits for its answer before the request is sent again (a slow owner
+/// answers the copy from its record).
+const ATTEMPT_TIMEOUT: Duration = Duration::from_secs(3);
 /// Edit messages a session may have queued for forwarding before its reader waits.
 const QUEUE: usize = 256;
 /// Ops one request carries at most (about 40 bytes each: well under NATS's 1 MB payload).
@@ -41,6 +43,10 @@ const RETRY_EVERY: Duration = Duration::from_millis(100);
 /// A session's queued edits and undos, forwarded to the owner together.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Forwarded {
+    /// The forwarding process and session, and this request's number among its requests
+    /// (see `answered.rs`: a retried request is answered, not applied again).
+    pub origin: String,
+    pub number: u64,
     pub user: UserId,
     /// Whether the user may edit (checked again by the owner, as for local sessions).
     pub editor: bool,
@@ -65,6 +71,8 @@ pub enum ForwardReply {
     Done(Vec<Vec<u8>>),
     /// This node does not own the scene (any more): nothing was applied.
     NotOwner,
+    /// The owner lost the scene while logging the request: it may or may not have applied.
+    Unknown,
 }
 
 fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, String> {
@@ -99,10 +107,8 @@ impl ForwardReply {
 /// Why a forwarded edit got no answer.
 #[derive(Debug, thiserror::Error)]
 pub enum ForwardError {
-    #[error("no node took the scene's edits for {0:?}")]
+    #[error("no node answered the scene's edits for {0:?}; they may or may not have applied")]
     NoOwner(Duration),
-    #[error("the scene's owner did not answer in time; the edit may or may not have applied")]
-    Unknown,
     #[error("cannot forward the edit: {0}")]
     Other(String),
 }
@@ -123,26 +129,35 @@ pub async fn request(
     let mut owner = link.owner.clone();
     loop {
         let current = owner.borrow_and_update().clone();
-        // Nobody named, or the named node refused or is gone: not applied, wait and retry.
         if let Some(node) = current {
             let subject = owner_subject(&link.subject, &node);
-            let sent = tokio::time::timeout(
-                REQUEST_TIMEOUT,
-                link.client.request(subject, payload.clone()),
-            )
-            .await;
-            match sent {
-                Err(_) => return Err(ForwardError::Unknown),
-                Ok(Ok(message)) => match ForwardReply::decode(&message.payload) {
-                    Ok(ForwardReply::Done(msgs)) => return Ok(msgs),
-                    Ok(ForwardReply::NotOwner) => {}
-                    Err(e) => return Err(ForwardError::Other(format!("a bad reply: {e}"))),
-                },
-                Ok(Err(e)) if e.kind() == async_nats::RequestErrorKind::TimedOut => {
-                    return Err(ForwardError::Unknown);
+            // Until the answer, a timeout, or the lease naming another node (the one asked
+            // died or lost the scene: ask the new one at once).
+            let moved = async {
+                let mut watch = link.owner.clone();
+                loop {
+                    if watch.changed().await.is_err() {
+                        return std::future::pending().await;
+                    }
+                    if watch.borrow().as_deref().is_some_and(|n| n != node) {
+                        return;
+                    }
                 }
-                // No responders (the node is gone), or NATS is away: not applied.
-                Ok(Err(_)) => {}
+            };
+            let sent = tokio::select! {
+                sent = tokio::time::timeout(
+                    ATTEMPT_TIMEOUT,
+                    link.client.request(subject, payload.clone()),
+                ) => sent.ok(),
+                () = moved => None,
+            };
+            // Anything but an answer is retried: see the module doc.
+            if let Some(Ok(message)) = sent {
+                match ForwardReply::decode(&message.payload) {
+                    Ok(ForwardReply::Done(msgs)) => return Ok(msgs),
+                    Ok(ForwardReply::NotOwner | ForwardReply::Unknown) => {}
+                    Err(e) => return Err(ForwardError::Other(format!("a bad reply: {e}"))),
+                }
             }
         }
         if tokio::time::Instant::now() >= deadline {
@@ -163,17 +178,33 @@ pub struct SessionForwarder {
     tx: mpsc::Sender<(u64, ForwardKind)>,
 }
 
+/// This process, told apart from an earlier one with the same node name (session ids start
+/// again at 1 after a restart).
+fn instance() -> &'static str {
+    static INSTANCE: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    INSTANCE.get_or_init(|| {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos());
+        format!("{}-{nanos:x}", std::process::id())
+    })
+}
+
 impl SessionForwarder {
     pub fn start(
         link: SceneCluster,
+        session: u64,
         user: UserId,
         editor: bool,
         out: Outbox,
         metrics: std::sync::Arc<Metrics>,
     ) -> SessionForwarder {
         let (tx, mut rx) = mpsc::channel::<(u64, ForwardKind)>(QUEUE);
+        let origin = format!("{}/{session}", instance());
         tokio::spawn(async move {
+            let mut number = 0;
             while let Some(first) = rx.recv().await {
+                number += 1;
                 let mut ops = item_ops(&first.1);
                 let mut items = vec![first];
                 while ops < MAX_OPS_PER_REQUEST {
@@ -186,6 +217,8 @@ impl SessionForwarder {
                     }
                 }
                 let req = Forwarded {
+                    origin: origin.clone(),
+                    number,
                     user,
                     editor,
                     items,
@@ -228,6 +261,8 @@ fn item_ops(kind: &ForwardKind) -> usize {
 /// for it: lost in a failover, the history stays until the owner's bounds drop it.
 pub async fn forget(link: &SceneCluster, user: UserId) {
     let request = Forwarded {
+        origin: format!("{}/forget", instance()),
+        number: 0,
         user,
         editor: false,
         items: vec![(0, ForwardKind::Forget)],

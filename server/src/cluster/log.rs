@@ -32,6 +32,7 @@ use serde::{Deserialize, Serialize};
 use tokio::io::AsyncReadExt;
 use tokio::sync::mpsc;
 
+use super::answered::{Answered, AnsweredEntry};
 use super::forward::ForwardReply;
 use crate::record::LogRecord;
 use crate::scene::history::{History, HistoryWrites, Stacks, StepMeta};
@@ -59,9 +60,17 @@ pub struct Turn {
     pub records: Vec<(u64, Vec<u8>)>,
     /// The turn's undo-history changes.
     pub history: HistoryWrites,
+    /// The forwarded requests the turn applied, with the replies their senders got
+    /// (`answered.rs`).
+    pub requests: Vec<AnsweredEntry>,
 }
 
 impl Turn {
+    /// A lease marker: what a new owner appends first (no records, no history, no requests).
+    pub fn is_marker(&self) -> bool {
+        self.records.is_empty() && self.history.is_empty() && self.requests.is_empty()
+    }
+
     pub fn encode(&self) -> Result<Vec<u8>, String> {
         let raw = bincode::serde::encode_to_vec(self, bincode::config::standard())
             .map_err(|e| e.to_string())?;
@@ -121,6 +130,8 @@ struct SnapshotBody {
     history: Vec<(UserId, u64, StepMeta)>,
     steps: Vec<(u64, Vec<u8>)>,
     last_step_id: u64,
+    /// The answered forwarded requests (`answered.rs`).
+    answered: Vec<AnsweredEntry>,
     /// Linear cells, and their bricks as the redb store's rows, back to back (a row's length
     /// follows from its mask).
     cells: Vec<u32>,
@@ -202,6 +213,7 @@ pub struct ClusterLoaded {
     pub loaded: Loaded,
     pub pos: u64,
     pub steps: HashMap<u64, Vec<u8>>,
+    pub answered: Answered,
 }
 
 /// The stream and the snapshot object of a scene, created for a new scene.
@@ -222,6 +234,7 @@ pub async fn create(h: &LogHandles, scene: &str, map: &BrickMap) -> Result<(), S
         0,
         &History::new(Vec::new(), 0, 1, 0),
         &HashMap::new(),
+        Vec::new(),
     );
     let bytes = encode_snapshot(&body).map_err(cluster)?;
     put_snapshot(&h.snapshots, scene, &body, bytes)
@@ -235,6 +248,7 @@ fn snapshot_body(
     pos: u64,
     history: &History,
     steps: &HashMap<u64, Vec<u8>>,
+    answered: Vec<AnsweredEntry>,
 ) -> SnapshotBody {
     let mut cells = Vec::with_capacity(map.brick_count() as usize);
     let mut rows = Vec::new();
@@ -256,6 +270,7 @@ fn snapshot_body(
         history: history_rows,
         steps,
         last_step_id: history.last_id(),
+        answered,
         cells,
         rows,
     }
@@ -367,6 +382,7 @@ pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreErr
         .collect();
     let mut steps: HashMap<u64, Vec<u8>> = body.steps.into_iter().collect();
     let mut last_step_id = body.last_step_id;
+    let mut answered = Answered::from_entries(body.answered);
 
     // Every turn after the snapshot, in order.
     let stream =
@@ -423,6 +439,9 @@ pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreErr
             steps.insert(*id, body.clone());
             last_step_id = last_step_id.max(*id);
         }
+        for (origin, number, replies) in turn.requests {
+            answered.record(origin, number, replies);
+        }
         pos = next;
     }
     map.rebuild_clearance();
@@ -451,6 +470,7 @@ pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreErr
         },
         pos,
         steps,
+        answered,
     })
 }
 
@@ -470,6 +490,10 @@ pub struct JetLog {
     lease: Arc<LeaseClock>,
     /// Undo step bodies (the redb store's `history/` table).
     steps: HashMap<u64, Vec<u8>>,
+    /// Forwarded requests answered, so a retry is not applied twice.
+    pub answered: Answered,
+    /// The requests (and replies) of the turn being appended.
+    staged: Vec<AnsweredEntry>,
     /// Replies to forwarded edits, published in order by a task.
     replies: mpsc::UnboundedSender<(String, Bytes)>,
     /// Set when the log cannot be followed (corrupt, a gap): the node neither applies nor
@@ -502,6 +526,8 @@ impl JetLog {
             leading: false,
             lease,
             steps: std::mem::take(&mut loaded.steps),
+            answered: std::mem::take(&mut loaded.answered),
+            staged: Vec::new(),
             replies,
             broken: Arc::default(),
             appends: 0,
@@ -549,6 +575,11 @@ impl JetLog {
         }
     }
 
+    /// The requests (with their replies) the next append logs.
+    pub fn stage(&mut self, requests: Vec<AnsweredEntry>) {
+        self.staged = requests;
+    }
+
     /// Queues a reply to a forwarded edit.
     pub fn reply(&self, subject: String, reply: &ForwardReply) {
         match reply.encode() {
@@ -580,9 +611,20 @@ impl JetLog {
             node: self.h.node.clone(),
             records: encoded,
             history: history.clone(),
+            requests: std::mem::take(&mut self.staged),
         };
-        for part in self.split(turn)? {
-            self.append_message(part)?;
+        for (i, part) in self.split(turn)?.into_iter().enumerate() {
+            match self.append_message(part) {
+                Ok(()) => {}
+                // Part of the turn is in the log: its edits may replay; not "not applied".
+                Err(StoreError::Deposed { detail, .. }) if i > 0 => {
+                    return Err(StoreError::Cluster(format!(
+                        "scene {}: a turn was logged in part ({detail}); its outcome is unknown",
+                        self.scene
+                    )));
+                }
+                Err(e) => return Err(e),
+            }
         }
         for (id, (_, _, body)) in &history.steps {
             self.steps.insert(*id, body.clone());
@@ -635,12 +677,14 @@ impl JetLog {
             node: turn.node.clone(),
             records: turn.records,
             history: HistoryWrites::default(),
+            requests: Vec::new(),
         };
         let rest = first.records.split_off(mid);
         let second = Turn {
             node: turn.node,
             records: rest,
             history: turn.history,
+            requests: turn.requests,
         };
         let mut out = self.split(first)?;
         out.extend(self.split(second)?);
@@ -667,6 +711,9 @@ impl JetLog {
         let payload = Bytes::from(bytes);
         let started = Instant::now();
         let result = self.h.rt.clone().block_on(async {
+            // Whether an attempt may have landed (its ack was lost): then a later refusal
+            // does not mean "not appended".
+            let mut maybe_landed = false;
             loop {
                 let publish = jetstream::message::PublishMessage::build()
                     .payload(payload.clone())
@@ -684,10 +731,11 @@ impl JetLog {
                 match outcome {
                     Ok(ack) => return Ok(ack.sequence),
                     Err(e)
-                        if matches!(
-                            e.kind(),
-                            jetstream::context::PublishErrorKind::WrongLastSequence
-                        ) =>
+                        if !maybe_landed
+                            && matches!(
+                                e.kind(),
+                                jetstream::context::PublishErrorKind::WrongLastSequence
+                            ) =>
                     {
                         return Err(deposed(format!(
                             "another node appended after message {expected}"
@@ -695,10 +743,17 @@ impl JetLog {
                     }
                     Err(e) if started.elapsed() < APPEND_PATIENCE && self.lease.valid() => {
                         tracing::warn!(scene = %self.scene, error = %e, "log append failed; retrying");
+                        maybe_landed = true;
                         tokio::time::sleep(Duration::from_millis(200)).await;
                     }
-                    Err(e) => {
+                    Err(e) if !maybe_landed => {
                         return Err(deposed(format!("the log append failed: {e}")));
+                    }
+                    Err(e) => {
+                        return Err(StoreError::Cluster(format!(
+                            "scene {}: the log append's outcome is unknown: {e}",
+                            self.scene
+                        )));
                     }
                 }
             }
@@ -748,6 +803,8 @@ impl JetLog {
         let mut loaded = self.h.rt.clone().block_on(load(&self.h, &self.scene))?;
         self.pos = loaded.pos;
         self.steps = std::mem::take(&mut loaded.steps);
+        self.answered = std::mem::take(&mut loaded.answered);
+        self.staged.clear();
         self.leading = false;
         Ok(loaded.loaded)
     }
@@ -772,7 +829,14 @@ impl JetLog {
                 ),
             });
         }
-        let body = snapshot_body(map, seq, self.pos, history, &self.steps);
+        let body = snapshot_body(
+            map,
+            seq,
+            self.pos,
+            history,
+            &self.steps,
+            self.answered.entries(),
+        );
         let bytes = encode_snapshot(&body).map_err(StoreError::Cluster)?;
         let store = self.h.snapshots.clone();
         let stream = self.stream.clone();

@@ -11,6 +11,7 @@
 //! * `lease.rs` — per scene on each node: the lease loop (claim, renew, lose), the intake of
 //!   forwarded edits while leading, the log follower, and the reply publisher.
 //! * `forward.rs` — sessions send edits to whichever node owns the scene.
+//! * `answered.rs` — which forwarded requests were answered, so a retry applies once.
 //! * `status.rs` — `brickcast-server cluster status`.
 //!
 //! NATS layout (names in [`log`]): key-value buckets `brickcast_owners` (scene → owner node,
@@ -20,6 +21,7 @@
 //! stream `BRICKCAST_LOG_<scene>` per scene; core subjects `brickcast.edit.<scene>` for
 //! forwarded edits.
 
+mod answered;
 pub mod forward;
 mod lease;
 pub mod log;
@@ -31,6 +33,7 @@ use async_nats::jetstream::{self, kv, object_store::ObjectStore};
 use brickcast_protocol::BrickMap;
 use serde::{Deserialize, Serialize};
 
+pub use answered::{Answered, Lookup};
 pub use lease::start_scene;
 pub use log::{JetLog, LeaseClock, LogHandles, Turn};
 

@@ -18,12 +18,15 @@
 use brickcast_protocol::wire::{Limits, encode_server};
 
 use super::history::History;
-use super::owner::{AckTo, Log, Owner, PendingAck};
-use crate::cluster::Turn;
+use super::owner::{AckTo, Log, Owner, PendingAck, Remote};
 use crate::cluster::forward::{ForwardKind, ForwardReply, Forwarded};
+use crate::cluster::{Lookup, Turn};
 use crate::metrics::Metrics;
 use crate::record::LogRecord;
 use crate::store::{Loaded, StoreError};
+
+/// How long a scene waits for NATS to come back before it gives up on this node.
+const RELOAD_PATIENCE: std::time::Duration = std::time::Duration::from_secs(300);
 
 /// Replays with no brush limits: every logged op was validated when it was accepted.
 fn replay_limits() -> Limits {
@@ -35,34 +38,62 @@ fn replay_limits() -> Limits {
 }
 
 impl Owner {
-    /// Sends the turn's replies, once it is durable: to local sessions, and to each forwarded
-    /// request one answer holding its items' replies, in order.
-    pub(super) fn send_replies(&self, acks: &mut Vec<PendingAck>) {
-        let mut remote: Vec<(String, Vec<Vec<u8>>)> = Vec::new();
+    /// Takes the forwarded requests' replies out of `acks`, encoded, one entry per request
+    /// in the order they were applied.
+    pub(super) fn take_remote(&self, acks: &mut Vec<PendingAck>) -> Vec<(Remote, Vec<Vec<u8>>)> {
+        let mut remote: Vec<(Remote, Vec<Vec<u8>>)> = Vec::new();
+        let mut rest = Vec::with_capacity(acks.len());
         for ack in acks.drain(..) {
-            match ack.to {
-                AckTo::Session(id) => {
-                    if let Some(sub) = self.subs.get(&id) {
-                        sub.out.send(&ack.msg, &self.metrics);
-                    }
+            let AckTo::Remote(to) = ack.to else {
+                rest.push(ack);
+                continue;
+            };
+            let bytes = match encode_server(&ack.msg) {
+                Ok(bytes) => bytes,
+                Err(e) => {
+                    tracing::error!(scene = %self.name, error = %e, "cannot encode a reply to a forwarded edit");
+                    self.metrics.count_unencodable(ack.msg.kind());
+                    continue;
                 }
-                AckTo::Remote(subject) => match encode_server(&ack.msg) {
-                    Ok(bytes) => match remote.last_mut() {
-                        Some((s, msgs)) if *s == subject => msgs.push(bytes),
-                        _ => remote.push((subject, vec![bytes])),
-                    },
-                    Err(e) => {
-                        tracing::error!(scene = %self.name, error = %e, "cannot encode a reply to a forwarded edit");
-                        self.metrics.count_unencodable(ack.msg.kind());
-                    }
-                },
+            };
+            match remote.last_mut() {
+                Some((r, msgs)) if *r == to => msgs.push(bytes),
+                _ => remote.push((to, vec![bytes])),
             }
         }
-        if let Some(jet) = self.backend.jet_ref() {
-            for (subject, msgs) in remote {
-                jet.reply(subject, &ForwardReply::Done(msgs));
-            }
+        *acks = rest;
+        remote
+    }
+
+    /// Hands the turn's requests to the cluster's log, which writes them with the turn.
+    pub(super) fn stage_remote(&mut self, remote: &[(Remote, Vec<Vec<u8>>)]) {
+        if let Some(jet) = self.backend.jet() {
+            jet.stage(
+                remote
+                    .iter()
+                    .map(|(r, m)| (r.origin.clone(), r.number, m.clone()))
+                    .collect(),
+            );
         }
+    }
+
+    /// Records and sends the replies of a committed turn's requests.
+    pub(super) fn answer_remote(&mut self, remote: Vec<(Remote, Vec<Vec<u8>>)>) {
+        let Some(jet) = self.backend.jet() else {
+            return;
+        };
+        for (to, msgs) in remote {
+            jet.answered.record(to.origin, to.number, msgs.clone());
+            jet.reply(to.subject, &ForwardReply::Done(msgs));
+        }
+    }
+
+    /// Whether a forwarded request was applied in this turn and is not committed yet (its
+    /// retry must wait for the commit, then gets the recorded replies).
+    pub(super) fn pending_request(&self, request: &Forwarded) -> bool {
+        self.backend
+            .jet_ref()
+            .is_some_and(|j| j.answered.lookup(&request.origin, request.number) == Lookup::Pending)
     }
 
     /// A request another node (or a session on this one) forwarded.
@@ -80,29 +111,64 @@ impl Owner {
             return;
         }
         let Forwarded {
+            origin,
+            number,
             user,
             editor,
             items,
         } = request;
-        for (client_seq, kind) in items {
-            match (kind, &reply) {
-                (ForwardKind::Edit(ops), Some(subject)) => {
-                    let to = AckTo::Remote(subject.clone());
-                    let ack = self.apply_batch(to, client_seq, ops, editor.then_some(user), log);
-                    acks.push(ack);
-                }
-                (ForwardKind::Undo { redo }, Some(subject)) => {
-                    let to = AckTo::Remote(subject.clone());
-                    let ack = self.undo(to, user, editor, client_seq, redo, log);
-                    acks.push(ack);
-                }
-                (ForwardKind::Forget, _) => {
+        let Some(subject) = reply else {
+            // Nobody waits for an answer: only a history drop goes this way.
+            for (_, kind) in items {
+                if kind == ForwardKind::Forget {
                     self.history.forget(user);
                     self.undo_budget.remove(&user);
                 }
-                // An edit nobody waits for is not applied: its sender could not learn the
-                // outcome.
-                (_, None) => {}
+            }
+            return;
+        };
+        if let Some(jet) = self.backend.jet() {
+            match jet.answered.lookup(&origin, number) {
+                // A retry of a request already applied (here or by an earlier owner).
+                Lookup::Done(replies) => return jet.reply(subject, &ForwardReply::Done(replies)),
+                // A copy its sender no longer waits for; or (cannot happen: the turn commits
+                // before such a retry is taken) one still being committed.
+                Lookup::Stale | Lookup::Pending => return,
+                Lookup::New => jet.answered.begin(&origin, number),
+            }
+        }
+        let to = Remote {
+            subject,
+            origin,
+            number,
+        };
+        for (client_seq, kind) in items {
+            match kind {
+                ForwardKind::Edit(ops) => {
+                    let ack = self.apply_batch(
+                        AckTo::Remote(to.clone()),
+                        client_seq,
+                        ops,
+                        editor.then_some(user),
+                        log,
+                    );
+                    acks.push(ack);
+                }
+                ForwardKind::Undo { redo } => {
+                    let ack = self.undo(
+                        AckTo::Remote(to.clone()),
+                        user,
+                        editor,
+                        client_seq,
+                        redo,
+                        log,
+                    );
+                    acks.push(ack);
+                }
+                ForwardKind::Forget => {
+                    self.history.forget(user);
+                    self.undo_budget.remove(&user);
+                }
             }
         }
     }
@@ -165,6 +231,9 @@ impl Owner {
         self.history.apply_committed(&turn.history);
         if let Some(jet) = self.backend.jet() {
             jet.apply_committed(&turn.history);
+            for (origin, number, replies) in turn.requests {
+                jet.answered.record(origin, number, replies);
+            }
             jet.set_pos(pos);
         }
         Metrics::add(&self.metrics.turns_replicated, 1);
@@ -236,34 +305,51 @@ impl Owner {
     }
 
     /// An append failed: this turn's edits are not durable. Their senders hear "not the
-    /// owner" (nothing applied; they retry on whichever node leads), and the map is loaded
-    /// again from the log.
-    pub(super) fn lost_lead(&mut self, acks: &mut Vec<PendingAck>, error: &StoreError) {
+    /// owner" (nothing applied) or "unknown" (an append may have landed); either way they
+    /// retry, and the owner then answers from the log. The map is loaded again from the log.
+    pub(super) fn lost_lead(&mut self, remote: &[(Remote, Vec<Vec<u8>>)], error: &StoreError) {
         tracing::warn!(scene = %self.name, %error, "a turn could not be logged; its edits are dropped and the scene is reloaded from the log");
+        let answer = if matches!(error, StoreError::Deposed { .. }) {
+            ForwardReply::NotOwner
+        } else {
+            ForwardReply::Unknown
+        };
         if let Some(jet) = self.backend.jet_ref() {
-            for ack in acks.drain(..) {
-                match ack.to {
-                    AckTo::Remote(subject) => jet.reply(subject, &ForwardReply::NotOwner),
-                    AckTo::Session(_) => {}
-                }
+            for (to, _) in remote {
+                jet.reply(to.subject.clone(), &answer);
             }
         }
-        acks.clear();
         self.reload();
     }
 
     /// Replaces the map, sequence and history with the log's (snapshot + turns). Sessions
     /// resync from what they were last sent.
+    ///
+    /// NATS being away (restarting, a network blip) is waited out, blocking this scene's
+    /// thread: nothing can be ordered or made durable meanwhile anyway. A log that does not
+    /// fit its snapshot stops the scene on this node.
     pub(super) fn reload(&mut self) {
-        let Some(jet) = self.backend.jet() else {
-            return;
-        };
-        match jet.reload() {
-            Ok(loaded) => self.reset_from(loaded),
-            Err(e) => {
-                let fault = format!("the scene could not be loaded from the cluster: {e}");
-                self.refuse_log(&fault);
-            }
+        let started = std::time::Instant::now();
+        loop {
+            let Some(jet) = self.backend.jet() else {
+                return;
+            };
+            let fault = match jet.reload() {
+                Ok(loaded) => return self.reset_from(loaded),
+                Err(
+                    e @ (StoreError::Corrupt { .. }
+                    | StoreError::Inconsistent { .. }
+                    | StoreError::UnknownScene(_)),
+                ) => e,
+                Err(e) if started.elapsed() < RELOAD_PATIENCE => {
+                    tracing::warn!(scene = %self.name, error = %e, "cannot load the scene from the cluster yet; trying again");
+                    std::thread::sleep(std::time::Duration::from_millis(500));
+                    continue;
+                }
+                Err(e) => e,
+            };
+            let fault = format!("the scene could not be loaded from the cluster: {fault}");
+            return self.refuse_log(&fault);
         }
     }
 

@@ -100,7 +100,16 @@ pub(super) struct PendingAck {
 /// edit another node forwarded.
 pub(super) enum AckTo {
     Session(SessionId),
-    Remote(String),
+    Remote(Remote),
+}
+
+/// A forwarded request waiting for its turn's commit: where its answer goes, and its origin
+/// and number (recorded with the turn, `crate::cluster::Answered`).
+#[derive(Clone, Debug, PartialEq)]
+pub(super) struct Remote {
+    pub(super) subject: String,
+    pub(super) origin: String,
+    pub(super) number: u64,
 }
 
 /// What this turn logs, in order.
@@ -297,6 +306,9 @@ impl Owner {
                     }
                 }
                 Command::Forwarded { reply, request } => {
+                    if self.pending_request(&request) {
+                        self.publish(&mut log, &mut acks, clock)?;
+                    }
                     self.forwarded(reply, request, &mut acks, &mut log);
                 }
                 Command::Replicate { pos, turn } => {
@@ -383,9 +395,12 @@ impl Owner {
         clock: &mut PhaseClock,
     ) -> Result<(), StoreError> {
         clock.mark(&self.metrics, OwnerPhase::Apply);
+        // Forwarded requests' replies, encoded now: the cluster logs them with the turn.
+        let remote = self.take_remote(acks);
         if !log.is_empty() || self.history.has_writes() {
             let started = Instant::now();
             let history = self.history.take_writes();
+            self.stage_remote(&remote);
             if let Err(e) = self.backend.append(log, &history) {
                 if self.backend.jet().is_none() {
                     return Err(e);
@@ -393,7 +408,8 @@ impl Owner {
                 // A cluster owner that lost the scene: nothing of this turn is acknowledged,
                 // and the map goes back to what the log holds.
                 log.clear();
-                self.lost_lead(acks, &e);
+                acks.clear();
+                self.lost_lead(&remote, &e);
                 return Ok(());
             }
             self.metrics.observe_commit(started.elapsed());
@@ -401,7 +417,14 @@ impl Owner {
             log.clear();
         }
         clock.mark(&self.metrics, OwnerPhase::Commit);
-        self.send_replies(acks);
+        for ack in acks.drain(..) {
+            if let AckTo::Session(id) = ack.to
+                && let Some(sub) = self.subs.get(&id)
+            {
+                sub.out.send(&ack.msg, &self.metrics);
+            }
+        }
+        self.answer_remote(remote);
         clock.mark(&self.metrics, OwnerPhase::Ack);
         self.broadcast_delta(clock);
         Ok(())

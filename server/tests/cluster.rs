@@ -1,0 +1,726 @@
+//! The cluster, end to end: a real `nats-server` with JetStream on a free loopback port and
+//! several `brickcast-server serve --nats` processes, driven by raw-protocol clients.
+//!
+//! * clients on three nodes edit one scene; every client's copy and every node's scene hash
+//!   equal;
+//! * SIGKILL of the owner under load: nothing acknowledged is lost, a new owner acknowledges
+//!   within the failover target, every node converges;
+//! * SIGSTOP of the owner past its lease, a takeover, SIGCONT: its append is refused, it steps
+//!   down, no edit is applied twice or lost;
+//! * SIGKILL and restart of `nats-server` under load: nothing acknowledged is lost;
+//! * a node joining late syncs from the snapshot and the rest of the log;
+//! * bad input: an unreachable NATS, one without JetStream, a node name in use, a corrupt log
+//!   message.
+
+mod common;
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+use std::time::{Duration, Instant};
+
+use brickcast_protocol::Colour;
+use brickcast_protocol::wire::{EditOp, ServerMsg};
+use common::{Client, colour, http_get};
+
+fn free_port() -> u16 {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    listener.local_addr().unwrap().port()
+}
+
+/// Debian puts `nats-server` in /usr/sbin, which is not on every user's PATH.
+fn nats_binary() -> PathBuf {
+    for dir in std::env::var("PATH").unwrap_or_default().split(':') {
+        let p = Path::new(dir).join("nats-server");
+        if p.is_file() {
+            return p;
+        }
+    }
+    for p in ["/usr/sbin/nats-server", "/usr/local/bin/nats-server"] {
+        if Path::new(p).is_file() {
+            return p.into();
+        }
+    }
+    panic!("nats-server is not installed (scripts/setup installs it)");
+}
+
+/// A `nats-server` with JetStream, killed on drop.
+struct Nats {
+    child: Option<Child>,
+    port: u16,
+    dir: tempfile::TempDir,
+    jetstream: bool,
+}
+
+impl Nats {
+    fn start(jetstream: bool) -> Nats {
+        let mut nats = Nats {
+            child: None,
+            port: free_port(),
+            dir: tempfile::tempdir().unwrap(),
+            jetstream,
+        };
+        nats.spawn();
+        nats
+    }
+
+    fn spawn(&mut self) {
+        let mut cmd = Command::new(nats_binary());
+        cmd.args(["-a", "127.0.0.1", "-p", &self.port.to_string()]);
+        if self.jetstream {
+            cmd.arg("-js").arg("-sd").arg(self.dir.path());
+        }
+        let child = cmd
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("nats-server starts");
+        self.child = Some(child);
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while std::net::TcpStream::connect(("127.0.0.1", self.port)).is_err() {
+            assert!(Instant::now() < deadline, "nats-server did not come up");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    fn url(&self) -> String {
+        format!("nats://127.0.0.1:{}", self.port)
+    }
+
+    fn kill(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+impl Drop for Nats {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// One `brickcast-server serve --nats` process, killed on drop. Its log goes to a file.
+struct Node {
+    child: Option<Child>,
+    addr: SocketAddr,
+    name: String,
+    log: PathBuf,
+    _data: tempfile::TempDir,
+}
+
+fn signal(child: &Child, sig: i32) {
+    // SAFETY: kill(2) on our own child's pid.
+    unsafe {
+        libc::kill(child.id() as i32, sig);
+    }
+}
+
+impl Node {
+    /// Starts a node and waits until it answers HTTP.
+    async fn start(nats: &str, name: &str, extra: &[&str]) -> Node {
+        let node = Node::spawn(nats, name, extra);
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            if tokio::net::TcpStream::connect(node.addr).await.is_ok()
+                && http_get(node.addr, "/healthz").await.0 == 200
+            {
+                return node;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "node {name} did not come up: {}",
+                node.log_text()
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    fn spawn(nats: &str, name: &str, extra: &[&str]) -> Node {
+        let data = tempfile::tempdir().unwrap();
+        let addr: SocketAddr = format!("127.0.0.1:{}", free_port()).parse().unwrap();
+        let log = data.path().join("node.log");
+        let file = std::fs::File::create(&log).unwrap();
+        let child = Command::new(env!("CARGO_BIN_EXE_brickcast-server"))
+            .args(["serve", "--listen", &addr.to_string(), "--nats", nats])
+            .args(["--node", name, "--data"])
+            .arg(data.path())
+            .args(extra)
+            .env("RUST_LOG", "warn,brickcast_server=info")
+            .env("NO_COLOR", "1")
+            .stdout(file.try_clone().unwrap())
+            .stderr(file)
+            .spawn()
+            .expect("node starts");
+        Node {
+            child: Some(child),
+            addr,
+            name: name.into(),
+            log,
+            _data: data,
+        }
+    }
+
+    fn url(&self) -> String {
+        format!("ws://{}/scenes/demo/ws", self.addr)
+    }
+
+    fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Waits for the process to exit by itself; its status.
+    fn wait_exit(&mut self, within: Duration) -> Option<std::process::ExitStatus> {
+        let deadline = Instant::now() + within;
+        let child = self.child.as_mut()?;
+        loop {
+            if let Ok(Some(status)) = child.try_wait() {
+                return Some(status);
+            }
+            if Instant::now() >= deadline {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    fn kill(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+
+    fn stop(&self) {
+        signal(self.child.as_ref().unwrap(), libc::SIGSTOP);
+    }
+
+    fn cont(&self) {
+        signal(self.child.as_ref().unwrap(), libc::SIGCONT);
+    }
+
+    /// Whether this node owns the demo scene now (from `/scenes`).
+    async fn owns(&self) -> bool {
+        let (status, body) = http_get(self.addr, "/scenes").await;
+        if status != 200 {
+            return false;
+        }
+        let list: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
+        list.as_array()
+            .into_iter()
+            .flatten()
+            .any(|s| s["name"] == "demo" && s["owned_here"] == true)
+    }
+
+    /// A counter from `/metrics`.
+    async fn metric(&self, name: &str) -> u64 {
+        let (_, text) = http_get(self.addr, "/metrics").await;
+        text.lines()
+            .find_map(|l| l.strip_prefix(&format!("brickcast_{name} ")))
+            .and_then(|v| v.trim().parse().ok())
+            .unwrap_or(0)
+    }
+}
+
+impl Drop for Node {
+    fn drop(&mut self) {
+        if let Some(c) = &self.child {
+            signal(c, libc::SIGCONT);
+        }
+        self.kill();
+    }
+}
+
+/// Waits until one of `nodes` owns the demo scene; its index.
+async fn owner_of(nodes: &[&Node], within: Duration) -> usize {
+    let deadline = Instant::now() + within;
+    loop {
+        for (i, n) in nodes.iter().enumerate() {
+            if n.owns().await {
+                return i;
+            }
+        }
+        assert!(Instant::now() < deadline, "no node took the scene");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// The voxel edit `k` of writer `w`: a spot of its own above the demo terrain.
+fn spot(w: u32, k: u32) -> [u32; 3] {
+    [8 + (k % 480), 440 + w, 8 + (k / 480) * 2]
+}
+
+/// What a writer had acknowledged: voxel → (colour, sequence), and when each ack came.
+#[derive(Default, Debug)]
+struct Acked {
+    voxels: BTreeMap<[u32; 3], (Colour, u64)>,
+    ack_times: Vec<(Instant, u64)>,
+    closed: bool,
+}
+
+/// Writes one voxel per edit message, waiting for each ack, until `stop` (or its connection
+/// closes, e.g. its node was killed). Edits that were not acknowledged are not counted.
+async fn writer(url: String, w: u32, stop: Arc<AtomicBool>) -> Acked {
+    let mut out = Acked::default();
+    let mut c = match Client::connect(&url, None).await {
+        Ok(c) => c,
+        Err(_) => {
+            out.closed = true;
+            return out;
+        }
+    };
+    c.sync().await;
+    let mut k = 0;
+    while !stop.load(Relaxed) {
+        let pos = spot(w, k);
+        let col = colour(w * 100_000 + k);
+        let client_seq = c.send_edit(vec![EditOp::Set { pos, colour: col }]).await;
+        loop {
+            match c.next().await {
+                Some(ServerMsg::Ack {
+                    client_seq: s, seq, ..
+                }) if s == client_seq => {
+                    let seq = seq.expect("a Set above the terrain applies");
+                    out.voxels.insert(pos, (col, seq));
+                    out.ack_times.push((Instant::now(), seq));
+                    break;
+                }
+                Some(_) => {}
+                None => {
+                    out.closed = true;
+                    return out;
+                }
+            }
+        }
+        k += 1;
+    }
+    out
+}
+
+/// A fresh client's copy of the scene from `node`, once it has caught up to `seq`.
+async fn copy_at(node: &Node, seq: u64) -> Client {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let mut c = Client::connect(&node.url(), None).await.expect("connects");
+        c.sync().await;
+        if c.seq >= seq {
+            return c;
+        }
+        // The node is still catching up with the log: read its deltas.
+        while c.seq < seq && Instant::now() < deadline {
+            if tokio::time::timeout(Duration::from_secs(1), c.next())
+                .await
+                .ok()
+                .flatten()
+                .is_none()
+            {
+                break;
+            }
+        }
+        if c.seq >= seq {
+            return c;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "node {} did not reach sequence {seq} (at {})",
+            node.name,
+            c.seq
+        );
+    }
+}
+
+/// The first scene sequence a node other than `old` ordered: the first record after the
+/// last lease marker (a turn without records) of another node, read from the log stream.
+async fn first_seq_after_takeover(nats: &str, old: &str) -> u64 {
+    let client = async_nats::connect(nats).await.unwrap();
+    let js = async_nats::jetstream::new(client);
+    let stream = js
+        .get_stream(brickcast_server::cluster::log::stream_name("demo"))
+        .await
+        .unwrap();
+    let info = stream.get_info().await.unwrap();
+    let mut marker_seen = false;
+    let mut first = None;
+    for pos in info.state.first_sequence..=info.state.last_sequence {
+        let msg = stream.get_raw_message(pos).await.unwrap();
+        let turn = brickcast_server::cluster::Turn::decode(&msg.payload).unwrap();
+        if turn.is_marker() && turn.node != old {
+            marker_seen = true;
+            first = None;
+        } else if marker_seen && first.is_none() && turn.node != old {
+            first = turn.records.first().map(|r| r.0);
+        }
+    }
+    first.expect("the new owner ordered edits")
+}
+
+/// Every acknowledged voxel is in `client`'s copy with its colour.
+fn assert_has_all(client: &Client, acked: &[Acked], what: &str) {
+    let mut n = 0;
+    for a in acked {
+        for (pos, (col, seq)) in &a.voxels {
+            assert_eq!(
+                client.map.get(*pos),
+                Some(*col),
+                "{what}: the edit acknowledged at sequence {seq} ({pos:?}) is missing"
+            );
+            n += 1;
+        }
+    }
+    assert!(n > 0, "{what}: nothing was acknowledged");
+}
+
+async fn run_writers(urls: &[String], for_how_long: Duration) -> Vec<Acked> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let tasks: Vec<_> = urls
+        .iter()
+        .enumerate()
+        .map(|(w, u)| tokio::spawn(writer(u.clone(), w as u32, stop.clone())))
+        .collect();
+    tokio::time::sleep(for_how_long).await;
+    stop.store(true, Relaxed);
+    let mut out = Vec::new();
+    for t in tasks {
+        out.push(t.await.unwrap());
+    }
+    out
+}
+
+fn last_seq(acked: &[Acked]) -> u64 {
+    acked
+        .iter()
+        .flat_map(|a| a.voxels.values().map(|v| v.1))
+        .max()
+        .unwrap_or(0)
+}
+
+/// Every node's copy (through a fresh client) hashes the same and holds every acked edit.
+async fn assert_converged(nodes: &[&Node], acked: &[Acked], what: &str) {
+    let seq = last_seq(acked);
+    let mut hashes = Vec::new();
+    for n in nodes {
+        let c = copy_at(n, seq).await;
+        assert_has_all(&c, acked, &format!("{what}, node {}", n.name));
+        hashes.push((n.name.clone(), c.seq, c.map.content_hash()));
+    }
+    // Copies taken at the same sequence must be equal.
+    let top = hashes.iter().map(|h| h.1).max().unwrap();
+    let at_top: Vec<_> = hashes.iter().filter(|h| h.1 == top).collect();
+    assert!(
+        at_top.windows(2).all(|w| w[0].2 == w[1].2),
+        "{what}: nodes differ at sequence {top}: {hashes:?}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn clients_on_three_nodes_edit_one_scene_and_every_copy_agrees() {
+    let nats = Nats::start(true);
+    let a = Node::start(&nats.url(), "a", &[]).await;
+    let b = Node::start(&nats.url(), "b", &[]).await;
+    let c = Node::start(&nats.url(), "c", &[]).await;
+    let nodes = [&a, &b, &c];
+    owner_of(&nodes, Duration::from_secs(20)).await;
+    // Two writers per node, and a watcher per node that must end with the same scene.
+    let mut watchers = Vec::new();
+    for n in &nodes {
+        let mut w = Client::connect(&n.url(), None).await.unwrap();
+        w.sync().await;
+        watchers.push(w);
+    }
+    let urls: Vec<String> = nodes.iter().flat_map(|n| [n.url(), n.url()]).collect();
+    let acked = run_writers(&urls, Duration::from_secs(4)).await;
+    assert!(acked.iter().all(|a| !a.closed && !a.voxels.is_empty()));
+    let seq = last_seq(&acked);
+    let mut hashes = Vec::new();
+    for w in &mut watchers {
+        w.catch_up(seq).await;
+        assert_has_all(w, &acked, "watcher");
+        hashes.push(w.map.content_hash());
+    }
+    assert!(hashes.windows(2).all(|h| h[0] == h[1]), "{hashes:?}");
+    assert_converged(&nodes, &acked, "after editing on three nodes").await;
+    // Every acked edit took its own sequence number: none was applied twice.
+    let seqs: std::collections::BTreeSet<u64> = acked
+        .iter()
+        .flat_map(|a| a.voxels.values().map(|v| v.1))
+        .collect();
+    let count: usize = acked.iter().map(|a| a.voxels.len()).sum();
+    assert_eq!(seqs.len(), count, "two acks named one sequence");
+    // `cluster status` sees the three nodes and the owner.
+    let out = Command::new(env!("CARGO_BIN_EXE_brickcast-server"))
+        .args(["cluster", "status", "--nats", &nats.url()])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("nodes (3)"), "{text}");
+    assert!(
+        text.lines()
+            .any(|l| l.contains("demo")
+                && (l.contains(" a ") || l.contains(" b ") || l.contains(" c "))),
+        "{text}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn sigkill_of_the_owner_under_load_loses_no_acknowledged_edit() {
+    let nats = Nats::start(true);
+    let mut nodes = [
+        Node::start(&nats.url(), "a", &[]).await,
+        Node::start(&nats.url(), "b", &[]).await,
+        Node::start(&nats.url(), "c", &[]).await,
+    ];
+    let owner = owner_of(&nodes.iter().collect::<Vec<_>>(), Duration::from_secs(20)).await;
+    let others: Vec<usize> = (0..3).filter(|&i| i != owner).collect();
+    // Writers on the two other nodes keep editing through the kill; one on the owner's node
+    // loses its connection with it.
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut tasks = Vec::new();
+    for (w, i) in [others[0], others[1], owner].into_iter().enumerate() {
+        tasks.push(tokio::spawn(writer(nodes[i].url(), w as u32, stop.clone())));
+    }
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let killed_at = Instant::now();
+    nodes[owner].kill();
+    tokio::time::sleep(Duration::from_secs(8)).await;
+    stop.store(true, Relaxed);
+    let mut acked = Vec::new();
+    for t in tasks {
+        acked.push(t.await.unwrap());
+    }
+    assert!(acked[2].closed, "the owner's own client lost its node");
+    assert!(
+        !acked[0].closed && !acked[1].closed,
+        "clients of the other nodes keep their connections"
+    );
+    // Failover: from the kill to the ack of the first edit the new owner ordered (the first
+    // record after its lease marker in the log).
+    let first = first_seq_after_takeover(&nats.url(), &nodes[owner].name).await;
+    let acked_at = acked
+        .iter()
+        .flat_map(|a| a.ack_times.iter())
+        .find(|(_, s)| *s == first)
+        .map(|(t, _)| *t)
+        .expect("the new owner's first edit was acknowledged to a writer");
+    let failover = acked_at - killed_at;
+    eprintln!("failover: {failover:?} (first sequence of the new owner: {first})");
+    assert!(
+        failover <= Duration::from_secs(5),
+        "failover took {failover:?}"
+    );
+    let survivors: Vec<&Node> = others.iter().map(|&i| &nodes[i]).collect();
+    assert!(
+        survivors
+            .iter()
+            .any(|n| n.log_text().contains("this node owns the scene"))
+    );
+    assert_converged(&survivors, &acked, "after the owner was killed").await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn an_owner_stopped_past_its_lease_is_fenced_and_steps_down() {
+    let nats = Nats::start(true);
+    let nodes = [
+        Node::start(&nats.url(), "a", &[]).await,
+        Node::start(&nats.url(), "b", &[]).await,
+    ];
+    let refs: Vec<&Node> = nodes.iter().collect();
+    let owner = owner_of(&refs, Duration::from_secs(20)).await;
+    let other = 1 - owner;
+    // A client on each node; the one on the owner's node has an edit waiting when it stops.
+    let mut on_owner = Client::connect(&nodes[owner].url(), None).await.unwrap();
+    on_owner.sync().await;
+    let mut on_other = Client::connect(&nodes[other].url(), None).await.unwrap();
+    on_other.sync().await;
+    let ServerMsg::Ack { seq: Some(s1), .. } = on_other
+        .edit(vec![EditOp::Set {
+            pos: spot(0, 0),
+            colour: colour(1),
+        }])
+        .await
+    else {
+        panic!("first edit");
+    };
+    nodes[owner].stop();
+    // The edit sits in the stopped node's socket buffer.
+    let waiting = on_owner
+        .send_edit(vec![EditOp::Set {
+            pos: spot(1, 0),
+            colour: colour(2),
+        }])
+        .await;
+    // The other node takes the lease once it expires, and acknowledges edits.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while !nodes[other].owns().await {
+        assert!(
+            Instant::now() < deadline,
+            "the other node did not take over"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let ServerMsg::Ack { seq: Some(s2), .. } = on_other
+        .edit(vec![EditOp::Set {
+            pos: spot(0, 1),
+            colour: colour(3),
+        }])
+        .await
+    else {
+        panic!("edit on the new owner");
+    };
+    assert!(s2 > s1);
+    nodes[owner].cont();
+    // The woken node must not append: its edit is refused there and retried on the new
+    // owner, which acknowledges it once.
+    let ServerMsg::Ack { seq: Some(s3), .. } = on_owner.ack(waiting).await else {
+        panic!("the waiting edit is acknowledged");
+    };
+    assert!(s3 > s2, "the waiting edit was ordered after the takeover");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while nodes[owner].owns().await {
+        assert!(
+            Instant::now() < deadline,
+            "the woken node still claims the scene"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let text = nodes[owner].log_text();
+    assert!(
+        text.contains("no longer the scene's owner")
+            || text.contains("no longer owns the scene")
+            || text.contains("stops ordering edits"),
+        "{text}"
+    );
+    let ServerMsg::Ack { seq: Some(s4), .. } = on_other
+        .edit(vec![EditOp::Set {
+            pos: spot(0, 2),
+            colour: colour(4),
+        }])
+        .await
+    else {
+        panic!("an edit after the wake-up");
+    };
+    // Four edits, four sequence numbers: nothing applied twice, nothing lost.
+    assert_eq!([s1, s2, s3, s4].len(), 4);
+    assert_eq!(
+        s4,
+        s1 + 3,
+        "sequences {s1} {s2} {s3} {s4}: an edit was applied twice or lost"
+    );
+    for n in &nodes {
+        let c = copy_at(n, s4).await;
+        for (pos, col) in [
+            (spot(0, 0), 1),
+            (spot(1, 0), 2),
+            (spot(0, 1), 3),
+            (spot(0, 2), 4),
+        ] {
+            assert_eq!(c.map.get(pos), Some(colour(col)), "node {}", n.name);
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_nats_restart_under_load_loses_no_acknowledged_edit() {
+    let mut nats = Nats::start(true);
+    let a = Node::start(&nats.url(), "a", &[]).await;
+    let b = Node::start(&nats.url(), "b", &[]).await;
+    owner_of(&[&a, &b], Duration::from_secs(20)).await;
+    let stop = Arc::new(AtomicBool::new(false));
+    let tasks: Vec<_> = [a.url(), b.url()]
+        .into_iter()
+        .enumerate()
+        .map(|(w, u)| tokio::spawn(writer(u, w as u32, stop.clone())))
+        .collect();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    nats.kill();
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    nats.spawn();
+    tokio::time::sleep(Duration::from_secs(8)).await;
+    stop.store(true, Relaxed);
+    let mut acked = Vec::new();
+    for t in tasks {
+        acked.push(t.await.unwrap());
+    }
+    let after: usize = acked.iter().map(|a| a.voxels.len()).sum();
+    assert!(after > 0);
+    assert_converged(&[&a, &b], &acked, "after a NATS restart").await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_node_joining_late_syncs_from_the_snapshot_and_the_log() {
+    let nats = Nats::start(true);
+    let a = Node::start(&nats.url(), "a", &["--snapshot-every", "1"]).await;
+    owner_of(&[&a], Duration::from_secs(20)).await;
+    let first = run_writers(&[a.url()], Duration::from_secs(2)).await;
+    // A snapshot trims the log below it.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while a.metric("snapshots_total").await == 0 {
+        assert!(Instant::now() < deadline, "no snapshot");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let mut more = run_writers(&[a.url()], Duration::from_secs(1)).await;
+    let late = Node::start(&nats.url(), "late", &[]).await;
+    let text = late.log_text();
+    assert!(text.contains("scene loaded from the cluster"), "{text}");
+    let mut acked = first;
+    acked.append(&mut more);
+    assert_converged(&[&a, &late], &acked, "a late node").await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_clusters_are_clear_errors() {
+    // Nobody listens.
+    let mut n = Node::spawn(&format!("nats://127.0.0.1:{}", free_port()), "x", &[]);
+    assert!(
+        n.wait_exit(Duration::from_secs(30))
+            .is_some_and(|s| !s.success())
+    );
+    assert!(
+        n.log_text().contains("cannot reach NATS"),
+        "{}",
+        n.log_text()
+    );
+    // NATS without JetStream.
+    let plain = Nats::start(false);
+    let mut n = Node::spawn(&plain.url(), "x", &[]);
+    assert!(
+        n.wait_exit(Duration::from_secs(30))
+            .is_some_and(|s| !s.success())
+    );
+    assert!(
+        n.log_text().contains("has no JetStream"),
+        "{}",
+        n.log_text()
+    );
+    // A node name in use.
+    let nats = Nats::start(true);
+    let first = Node::start(&nats.url(), "same", &[]).await;
+    let mut second = Node::spawn(&nats.url(), "same", &[]);
+    assert!(
+        second
+            .wait_exit(Duration::from_secs(30))
+            .is_some_and(|s| !s.success())
+    );
+    assert!(
+        second.log_text().contains("already in use"),
+        "{}",
+        second.log_text()
+    );
+    // A corrupt message in the log: refused loudly, never applied.
+    let client = async_nats::connect(nats.url()).await.unwrap();
+    let js = async_nats::jetstream::new(client);
+    js.publish("brickcast.log.demo", "not a turn".into())
+        .await
+        .unwrap()
+        .await
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while !first.log_text().contains("cannot read") {
+        assert!(Instant::now() < deadline, "{}", first.log_text());
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
