@@ -71,8 +71,10 @@ enum Command {
     /// Load-test a server: many clients edit one scene; report throughput and latency, and
     /// check that every client's copy ends equal to the server's (non-zero exit if not).
     Load {
-        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/demo
-        url: String,
+        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/demo; several addresses of one scene
+        /// (a cluster's nodes) share the clients out in turn and are reported per server.
+        #[arg(required = true, num_args = 1..)]
+        urls: Vec<String>,
         #[command(flatten)]
         args: brickcast_client::load::LoadArgs,
     },
@@ -87,8 +89,8 @@ fn main() -> Result<()> {
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {
-        Command::Load { url, args } => {
-            let outcome = brickcast_client::load::run_blocking(&url, &args)?;
+        Command::Load { urls, args } => {
+            let outcome = brickcast_client::load::run_blocking_on(&urls, &args)?;
             let table = outcome.table();
             if args.json {
                 eprint!("{table}");

@@ -118,6 +118,28 @@ pub struct LoadReport {
     /// Clients that failed (connection, protocol, unacknowledged batches) plus copies that did
     /// not match the server's: any error makes the run fail.
     pub errors: u64,
+    /// Per server, when the run was given several (a cluster's nodes), in the order given.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub nodes: Vec<NodeReport>,
+}
+
+/// One server's share of a run over several (`brickcast load URL URL …`): clients are dealt
+/// to the servers in turn.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct NodeReport {
+    pub url: String,
+    /// Connections (editors and viewers) on this server.
+    pub clients: u32,
+    pub ops_acked: u64,
+    /// Send to Ack, for this server's editors.
+    pub ack_latency_ms: AckPercentiles,
+    /// Edit→visible, as this server's clients saw other clients' edits.
+    pub latency_ms: AckPercentiles,
+    /// This server's CPU over the edit window (1.0 = one core), from its `/metrics`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub server_cpu_cores: Option<f64>,
+    /// The sequence its fresh copy was at for the final check.
+    pub final_seq: u64,
 }
 
 /// Undo and redo messages acknowledged (with `--undo-ratio`), those refused (nothing to undo),
@@ -177,21 +199,57 @@ pub struct LoadOutcome {
 
 /// Runs a load test against the scene at `url` on a runtime of its own.
 pub fn run_blocking(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
+    run_blocking_on(&[url.to_string()], args)
+}
+
+/// [`run_blocking`] over several servers of one scene (a cluster's nodes).
+pub fn run_blocking_on(urls: &[String], args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     args.check()?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .map_err(LoadError::Runtime)?;
-    runtime.block_on(run(url, args))
+    runtime.block_on(run_on(urls, args))
 }
 
 /// Runs a load test against the scene at `url`.
 pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
+    run_on(&[url.to_string()], args).await
+}
+
+/// Runs a load test against one scene served at several addresses (a cluster's nodes):
+/// client `i` connects to `urls[i % urls.len()]`; figures are reported per server too, and
+/// every server's copy must end equal.
+pub async fn run_on(urls: &[String], args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     args.check()?;
-    let url = link::websocket_url(url)?;
+    let urls: Vec<String> = urls
+        .iter()
+        .map(|u| link::websocket_url(u))
+        .collect::<Result<_, _>>()?;
+    let Some(url) = urls.first().cloned() else {
+        return Err(LoadError::Setup("no server address given".into()));
+    };
     let probe = Link::connect(&url, "brickcast load probe", 0, args.token.as_deref(), None).await?;
     let welcome = probe.welcome.clone();
     probe.close().await;
+    for other in &urls[1..] {
+        let probe = Link::connect(
+            other,
+            "brickcast load probe",
+            0,
+            args.token.as_deref(),
+            None,
+        )
+        .await?;
+        let w = probe.welcome.clone();
+        probe.close().await;
+        if w.scene != welcome.scene || w.size != welcome.size {
+            return Err(LoadError::Setup(format!(
+                "{other} serves scene {} {:?}, {url} serves {} {:?}: give addresses of one scene",
+                w.scene, w.size, welcome.scene, welcome.size
+            )));
+        }
+    }
     if welcome.role != Role::Editor {
         return Err(LoadError::NotEditor(welcome.role));
     }
@@ -223,7 +281,7 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
         });
         let plan = ClientPlan {
             index,
-            url: url.clone(),
+            url: urls[index % urls.len()].clone(),
             token: args.token.clone(),
             editor,
             // The observer of editor 0 also counts the voxels it sees change.
@@ -270,7 +328,10 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     }
     let setup_s = setup_started.elapsed().as_secs_f64();
 
-    let metrics_before = server_metrics(&url).await;
+    let mut metrics_before = Vec::with_capacity(urls.len());
+    for u in &urls {
+        metrics_before.push(server_metrics(u).await);
+    }
     let start = Instant::now();
     let end = start + Duration::from_secs_f64(args.duration);
     let _ = control.send(Phase::Run { start, end });
@@ -315,7 +376,10 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     }
     let window_end = last_ack.map_or(end, |a| a.max(end));
     let duration_s = window_end.duration_since(start).as_secs_f64();
-    let metrics_after = server_metrics(&url).await;
+    let mut metrics_after = Vec::with_capacity(urls.len());
+    for u in &urls {
+        metrics_after.push(server_metrics(u).await);
+    }
     progress.done();
 
     // Every acknowledged edit is in the server's scene now: that scene, fetched afresh, is what
@@ -348,12 +412,50 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
     let mut ack = Histogram::default();
     let mut latency = Histogram::default();
     let mut unseen = 0;
+    let n = urls.len();
+    let mut node_latency = vec![Histogram::default(); n];
+    let mut node_ack = vec![Histogram::default(); n];
+    let mut node_ops = vec![0u64; n];
     for i in 0..connections {
         let log = shared.observer(i);
         latency.merge(&log.latency);
+        node_latency[i % n].merge(&log.latency);
         unseen += log.unseen + log.still_waiting() as u64;
     }
+    for r in &reports {
+        node_ack[r.index % n].merge(&r.ack_latency);
+        node_ops[r.index % n] += r.ops_acked;
+    }
     let mut failures = Vec::new();
+    // Every other server's copy, once it has caught up, must be the same scene.
+    let mut node_seqs = vec![final_seq; n];
+    for (i, u) in urls.iter().enumerate().skip(1) {
+        let deadline = Instant::now() + VERIFY_TIMEOUT;
+        loop {
+            match fetch(u, args.token.as_deref()).await {
+                Ok(copy) if copy.seq >= final_seq || Instant::now() >= deadline => {
+                    node_seqs[i] = copy.seq;
+                    if copy.seq == final_seq && copy.map.content_hash() != hash {
+                        failures.push(format!(
+                            "{u}: its scene at seq {final_seq} (hash {:016x}) differs from {url}'s (hash {hash:016x})",
+                            copy.map.content_hash()
+                        ));
+                    } else if copy.seq < final_seq {
+                        failures.push(format!(
+                            "{u}: still at seq {} after {VERIFY_TIMEOUT:?}, {url} is at {final_seq}",
+                            copy.seq
+                        ));
+                    }
+                    break;
+                }
+                Ok(_) => tokio::time::sleep(Duration::from_millis(200)).await,
+                Err(e) => {
+                    failures.push(format!("{u}: fetching its copy for the final check: {e}"));
+                    break;
+                }
+            }
+        }
+    }
     let (mut ops_acked, mut rejected, mut resyncs, mut voxels_seen) = (0, 0, 0, 0);
     let (mut undos, mut undos_refused, mut undo_voxels) = (0, 0, 0);
     let mut presence_latency = Histogram::default();
@@ -393,9 +495,41 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
         }
     }
     let per = |total: u64, n: usize| if n == 0 { 0 } else { total / n as u64 };
-    let server = match (&metrics_before, &metrics_after) {
-        (Some(a), Some(b)) => Some(ServerTimes::between(a, b)),
-        _ => None,
+    let node_times: Vec<Option<ServerTimes>> = metrics_before
+        .iter()
+        .zip(&metrics_after)
+        .map(|(a, b)| match (a, b) {
+            (Some(a), Some(b)) => Some(ServerTimes::between(a, b)),
+            _ => None,
+        })
+        .collect();
+    let server = node_times
+        .iter()
+        .try_fold(ServerTimes::default(), |sum, t| Some(sum.plus(t.as_ref()?)));
+    let nodes = if n > 1 {
+        urls.iter()
+            .enumerate()
+            .map(|(i, u)| NodeReport {
+                url: u.clone(),
+                clients: (0..connections).filter(|c| c % n == i).count() as u32,
+                ops_acked: node_ops[i],
+                ack_latency_ms: AckPercentiles {
+                    p50: node_ack[i].quantile_ms(0.50),
+                    p99: node_ack[i].quantile_ms(0.99),
+                },
+                latency_ms: AckPercentiles {
+                    p50: node_latency[i].quantile_ms(0.50),
+                    p99: node_latency[i].quantile_ms(0.99),
+                },
+                server_cpu_cores: node_times[i]
+                    .as_ref()
+                    .and_then(|t| t.cpu_s)
+                    .map(|c| c / duration_s),
+                final_seq: node_seqs[i],
+            })
+            .collect()
+    } else {
+        Vec::new()
     };
     let voxels_applied_per_s = server.as_ref().map(|s| s.voxels_changed / duration_s);
     let voxels_seen_per_s = voxels_seen as f64 / duration_s;
@@ -441,6 +575,7 @@ pub async fn run(url: &str, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
             .and_then(|s| s.cpu_s)
             .map(|c| c / duration_s),
         errors: failures.len() as u64,
+        nodes,
     };
     let details = LoadDetails {
         url,
@@ -534,6 +669,29 @@ pub struct ServerTimes {
 }
 
 impl ServerTimes {
+    /// Two servers' figures together (phases added by name).
+    fn plus(mut self, other: &ServerTimes) -> ServerTimes {
+        self.voxels_changed += other.voxels_changed;
+        self.cpu_s = match (self.cpu_s, other.cpu_s) {
+            (Some(a), Some(b)) => Some(a + b),
+            (a, b) => a.or(b),
+        };
+        self.presence_bytes += other.presence_bytes;
+        self.turns += other.turns;
+        for (list, more) in [
+            (&mut self.owner, &other.owner),
+            (&mut self.session, &other.session),
+        ] {
+            for (phase, secs) in more {
+                match list.iter_mut().find(|(p, _)| p == phase) {
+                    Some((_, s)) => *s += secs,
+                    None => list.push((phase.clone(), *secs)),
+                }
+            }
+        }
+        self
+    }
+
     fn between(before: &BTreeMap<String, f64>, after: &BTreeMap<String, f64>) -> ServerTimes {
         let delta = |name: &str| after.get(name).unwrap_or(&0.0) - before.get(name).unwrap_or(&0.0);
         let phases = |family: &str| -> Vec<(String, f64)> {
@@ -595,6 +753,24 @@ impl LoadOutcome {
             let _ = writeln!(t, "  {k:<28} {v}");
         };
         row("scene", format!("{} {:?} at {}", d.scene, d.size, d.url));
+        for node in &r.nodes {
+            row(
+                "  server",
+                format!(
+                    "{}: {} clients, {} ops acked, ack p50 {:.2} p99 {:.2} ms, visible p50 {:.2} p99 {:.2} ms{}",
+                    node.url,
+                    node.clients,
+                    node.ops_acked,
+                    node.ack_latency_ms.p50,
+                    node.ack_latency_ms.p99,
+                    node.latency_ms.p50,
+                    node.latency_ms.p99,
+                    node.server_cpu_cores
+                        .map(|c| format!(", cpu {:.0}% of one core", c * 100.0))
+                        .unwrap_or_default()
+                ),
+            );
+        }
         row(
             "clients",
             format!("{} editing + {} viewers", r.clients, d.viewers),
