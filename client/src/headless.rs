@@ -31,6 +31,23 @@ pub struct RenderReport {
     pub target: [f32; 3],
 }
 
+/// [`fetch`] from the first of `urls` that answers.
+pub async fn fetch_any(urls: &[String], token: Option<&str>) -> Result<(Replica, f64)> {
+    let mut last = anyhow::anyhow!("no scene address given");
+    for url in urls {
+        match fetch(url, token).await {
+            Ok(done) => return Ok(done),
+            Err(e) => {
+                if urls.len() > 1 {
+                    tracing::warn!("{url}: {e:#}; trying the next address");
+                }
+                last = e;
+            }
+        }
+    }
+    Err(last)
+}
+
 /// Connects to `url`, syncs the whole scene and disconnects. Returns the replica and how long
 /// the sync took in milliseconds.
 pub async fn fetch(url: &str, token: Option<&str>) -> Result<(Replica, f64)> {
@@ -144,7 +161,8 @@ pub fn write_png(path: &Path, width: u32, height: u32, pixels: &[[u8; 4]]) -> Re
 
 /// Everything `brickcast render` does after parsing its arguments.
 pub struct RenderJob<'a> {
-    pub url: &'a str,
+    /// Addresses of the scene (several: a cluster's nodes, tried in turn until one syncs).
+    pub urls: &'a [String],
     pub token: Option<&'a str>,
     pub out: &'a Path,
     pub width: u32,
@@ -162,7 +180,7 @@ pub fn run(job: &RenderJob<'_>) -> Result<RenderReport> {
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    let (mut replica, sync_ms) = runtime.block_on(fetch(job.url, job.token))?;
+    let (mut replica, sync_ms) = runtime.block_on(fetch_any(job.urls, job.token))?;
     let camera = camera(&replica.map, job.eye, job.target, job.fov);
     let projection = camera.project(job.width, job.height).with_context(|| {
         format!(

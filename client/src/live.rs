@@ -32,6 +32,18 @@ impl Live {
         user: UserId,
         token: Option<String>,
     ) -> std::io::Result<Live> {
+        Live::start_any(vec![url], name, user, token)
+    }
+
+    /// [`Live::start`] with several addresses of one scene (a cluster's nodes): it connects to
+    /// the first, and after losing a connection (or failing to make one) tries the next, in
+    /// turn, resuming from what it had.
+    pub fn start_any(
+        urls: Vec<String>,
+        name: String,
+        user: UserId,
+        token: Option<String>,
+    ) -> std::io::Result<Live> {
         let state = Arc::new(Mutex::new(Session::default()));
         let (outbox, inbox) = mpsc::unbounded_channel();
         let shared = state.clone();
@@ -40,7 +52,7 @@ impl Live {
             .build()?;
         std::thread::Builder::new()
             .name("brickcast-net".into())
-            .spawn(move || runtime.block_on(run(url, name, user, token, shared, inbox)))?;
+            .spawn(move || runtime.block_on(run(urls, name, user, token, shared, inbox)))?;
         Ok(Live {
             state,
             outbox,
@@ -71,7 +83,7 @@ impl Live {
 }
 
 async fn run(
-    url: String,
+    urls: Vec<String>,
     name: String,
     user: UserId,
     token: Option<String>,
@@ -80,9 +92,12 @@ async fn run(
 ) {
     let lock = || state.lock().unwrap_or_else(|e| e.into_inner());
     let mut backoff = BACKOFF_START;
+    let mut attempt = 0usize;
     loop {
+        let url = &urls[attempt % urls.len().max(1)];
+        attempt += 1;
         let resume = lock().resume_point();
-        let reason = match Link::connect(&url, &name, user, token.as_deref(), resume).await {
+        let reason = match Link::connect(url, &name, user, token.as_deref(), resume).await {
             Ok(mut link) => {
                 backoff = BACKOFF_START;
                 if lock().welcomed(&link.welcome).is_err() {
@@ -103,7 +118,7 @@ async fn run(
             }
             Err(e) => e.to_string(),
         };
-        tracing::warn!("connection lost: {reason}; retrying in {backoff:?}");
+        tracing::warn!("connection to {url} lost: {reason}; retrying in {backoff:?}");
         lock().status = Status::Reconnecting(reason);
         // Edits made while disconnected are dropped rather than replayed against a scene that
         // moved on; the window shows the state, so the user knows.

@@ -23,8 +23,10 @@ struct Cli {
 enum Command {
     /// Open a window on a scene: fly around, edit with the mouse.
     View {
-        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/demo
-        url: String,
+        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/demo; several addresses of one scene
+        /// (a cluster's nodes) are tried in turn when a connection is lost.
+        #[arg(required = true, num_args = 1..)]
+        urls: Vec<String>,
         /// Access token (servers started with --auth).
         #[arg(long)]
         token: Option<String>,
@@ -33,8 +35,10 @@ enum Command {
     },
     /// Sync a scene, render one frame and write it as a PNG.
     Render {
-        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/demo
-        url: String,
+        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/demo; with several (a cluster's
+        /// nodes), the first that answers.
+        #[arg(required = true, num_args = 1..)]
+        urls: Vec<String>,
         #[arg(long)]
         token: Option<String>,
         /// Where to write the PNG.
@@ -109,9 +113,9 @@ fn main() -> Result<()> {
             }
             Ok(())
         }
-        Command::View { url, token, view } => brickcast_client::viewer::run(&url, token, view),
+        Command::View { urls, token, view } => brickcast_client::viewer::run(&urls, token, view),
         Command::Render {
-            url,
+            urls,
             token,
             out,
             width,
@@ -129,7 +133,7 @@ fn main() -> Result<()> {
                 bail!("image size {width}×{height} is out of range (1..=16384 per side)");
             }
             let report = headless::run(&RenderJob {
-                url: &url,
+                urls: &urls,
                 token: token.as_deref(),
                 out: &out,
                 width,

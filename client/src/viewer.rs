@@ -117,12 +117,20 @@ struct App {
 }
 
 /// Opens the window and runs until it is closed.
-pub fn run(url: &str, token: Option<String>, args: ViewArgs) -> Result<()> {
+/// Opens the window on the scene at `urls` (several: a cluster's nodes, tried in turn when a
+/// connection is lost).
+pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()> {
     if args.scale == 0 || args.scale > 16 {
         return Err(anyhow!("--scale must be 1..=16"));
     }
     let (w, h) = parse_size(&args.size)?;
-    let url = websocket_url(url)?;
+    let urls = urls
+        .iter()
+        .map(|u| websocket_url(u))
+        .collect::<Result<Vec<_>, _>>()?;
+    if urls.is_empty() {
+        return Err(anyhow!("no scene address given"));
+    }
     let event_loop =
         EventLoop::new().context("opening a window system connection (is DISPLAY set?)")?;
     let backends = if args.vulkan {
@@ -136,7 +144,7 @@ pub fn run(url: &str, token: Option<String>, args: ViewArgs) -> Result<()> {
         .clone()
         .unwrap_or_else(crate::identity::default_name);
     brickcast_protocol::wire::check_display_name(&name).map_err(|e| anyhow!("--name: {e}"))?;
-    let live = Live::start(url, name, crate::identity::user_id(), token)
+    let live = Live::start_any(urls, name, crate::identity::user_id(), token)
         .context("starting the network thread")?;
     let follow = Follow::by_name(args.follow.clone());
     let lighting = args.light.lighting()?;

@@ -43,6 +43,9 @@ pub struct Args {
     /// Import into a cluster (its NATS URL) instead of the redb store: every node serves it.
     #[arg(long, value_name = "URL")]
     nats: Option<String>,
+    /// Copies JetStream keeps of the new scene's log and snapshot (with --nats).
+    #[arg(long, default_value_t = 1, requires = "nats", value_parser = clap::value_parser!(u8).range(1..=5))]
+    replicas: u8,
     /// No progress bars.
     #[arg(long)]
     quiet: bool,
@@ -140,7 +143,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .enable_all()
             .build()?;
-        let cluster = runtime.block_on(brickcast_server::cluster::Cluster::connect(url))?;
+        let cluster = runtime.block_on(brickcast_server::cluster::Cluster::connect(
+            url,
+            usize::from(args.replicas),
+        ))?;
         let exists = runtime
             .block_on(cluster.scene_names())?
             .contains(&args.scene);

@@ -92,6 +92,8 @@ pub struct ClusterConfig {
     pub url: String,
     /// This node's name (unique in the cluster); default: host name and port.
     pub node: Option<String>,
+    /// Copies JetStream keeps of the streams and buckets this node creates.
+    pub replicas: usize,
 }
 
 impl ServerConfig {
@@ -399,7 +401,7 @@ impl Server {
             .await
             .with_context(|| format!("listening on {}", config.listen))?;
         let listen = listener.local_addr()?;
-        let cluster = cluster::Cluster::connect(&cc.url).await?;
+        let cluster = cluster::Cluster::connect(&cc.url, cc.replicas).await?;
         let name = cc.node.unwrap_or_else(|| default_node_name(listen));
         let registration = cluster.register_node(&name, &listen.to_string()).await?;
         tracing::info!(node = %name, nats = %cc.url, "joined the cluster");
@@ -500,7 +502,15 @@ impl Server {
         let mut sessions = app.sessions.subscribe();
         let _ = tokio::time::timeout(Duration::from_secs(5), sessions.wait_for(|&n| n == 0)).await;
         if let Some(node) = &app.node {
-            // The name is free for a restart at once; leases expire by themselves.
+            // Every owner has stopped appending: hand the scenes this node owned to the others
+            // now rather than when their leases expire, and free the name for a restart.
+            for (name, _) in app.scene_list() {
+                if let Ok(Some(holder)) = node.cluster.owners.get(&name).await
+                    && holder == node.name.as_bytes()
+                {
+                    let _ = node.cluster.owners.delete(&name).await;
+                }
+            }
             node.registration.abort();
             let _ = node.cluster.nodes.delete(&node.name).await;
             let _ = node.cluster.client.flush().await;

@@ -159,7 +159,7 @@ fn main() -> anyhow::Result<()> {
                 .enable_all()
                 .build()?;
             let status = runtime.block_on(async {
-                let cluster = brickcast_server::cluster::Cluster::connect(&nats).await?;
+                let cluster = brickcast_server::cluster::Cluster::connect(&nats, 1).await?;
                 anyhow::Ok(brickcast_server::cluster::status::status(&cluster).await?)
             })?;
             if json {
@@ -262,6 +262,10 @@ struct ServeArgs {
     /// This node's name in the cluster (unique; default: host name and port).
     #[arg(long, requires = "nats")]
     node: Option<String>,
+    /// Copies JetStream keeps of each scene log, snapshot store and bucket this node creates:
+    /// 3 on a JetStream cluster of three servers (README, "Running a cluster").
+    #[arg(long, default_value_t = 1, requires = "nats", value_parser = clap::value_parser!(u8).range(1..=5))]
+    replicas: u8,
 }
 
 /// A clap parser for a positive, finite number of seconds.
@@ -289,6 +293,7 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
         config.cluster = args.nats.map(|url| brickcast_server::ClusterConfig {
             url,
             node: args.node,
+            replicas: usize::from(args.replicas),
         });
         if let Some(path) = args.auth {
             config.auth = Auth::from_file(&path)?;

@@ -195,8 +195,25 @@ impl Node {
         }
     }
 
+    /// SIGSTOP, and wait until the process is stopped (signals are delivered asynchronously:
+    /// until then it may still read its sockets).
     fn stop(&self) {
-        signal(self.child.as_ref().unwrap(), libc::SIGSTOP);
+        let child = self.child.as_ref().unwrap();
+        signal(child, libc::SIGSTOP);
+        let stat = format!("/proc/{}/stat", child.id());
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            let state = std::fs::read_to_string(&stat).unwrap_or_default();
+            // The state follows the command name in parentheses.
+            if state
+                .rsplit_once(") ")
+                .is_some_and(|(_, rest)| rest.starts_with('T'))
+            {
+                return;
+            }
+            assert!(Instant::now() < deadline, "the node did not stop: {state}");
+            std::thread::sleep(Duration::from_millis(5));
+        }
     }
 
     fn cont(&self) {
@@ -723,4 +740,98 @@ async fn bad_clusters_are_clear_errors() {
         assert!(Instant::now() < deadline, "{}", first.log_text());
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
+}
+
+/// A scene imported with `import --nats` into a running cluster is served by every node,
+/// voxel for voxel; a second import of the name is refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_scene_imported_into_a_running_cluster_is_served_by_every_node() {
+    use brickcast_protocol::{BrickMap, BrushMode};
+    let nats = Nats::start(true);
+    let a = Node::start(&nats.url(), "a", &[]).await;
+    let b = Node::start(&nats.url(), "b", &[]).await;
+    let models = tempfile::tempdir().unwrap();
+    let mut map = BrickMap::new([40, 24, 40]).unwrap();
+    map.fill_box([0, 0, 0], [39, 1, 39], BrushMode::Fill, colour(7));
+    map.sphere([20.0, 10.0, 20.0], 6.0, BrushMode::Fill, colour(8));
+    let (bytes, _) = brickcast_server::import::vox::export_vox(&map);
+    let model = models.path().join("m.vox");
+    std::fs::write(&model, bytes).unwrap();
+    let import = |extra: &'static [&'static str]| {
+        let model = model.clone();
+        let url = nats.url();
+        tokio::task::spawn_blocking(move || {
+            Command::new(env!("CARGO_BIN_EXE_brickcast-server"))
+                .arg("import")
+                .arg(&model)
+                .args(["--scene", "imported.one", "--nats", &url, "--quiet"])
+                .args(extra)
+                .env("RUST_LOG", "warn")
+                .output()
+                .unwrap()
+        })
+    };
+    let out = import(&[]).await.unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for n in [&a, &b] {
+        let url = format!("ws://{}/scenes/imported.one/ws", n.addr);
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while !http_get(n.addr, "/scenes").await.1.contains("imported.one") {
+            assert!(
+                Instant::now() < deadline,
+                "node {} does not serve it",
+                n.name
+            );
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+        let mut c = Client::connect(&url, None).await.unwrap();
+        c.sync().await;
+        assert_eq!(c.map.content_hash(), map.content_hash(), "node {}", n.name);
+    }
+    let again = import(&[]).await.unwrap();
+    assert!(!again.status.success());
+    assert!(
+        String::from_utf8_lossy(&again.stderr).contains("already exists"),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+}
+
+/// A log with a gap (messages gone that no snapshot holds) is refused with an error naming
+/// the missing messages: a node does not serve a scene that lost acknowledged edits.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_log_with_a_gap_is_refused() {
+    let nats = Nats::start(true);
+    let mut first = Node::start(&nats.url(), "first", &[]).await;
+    owner_of(&[&first], Duration::from_secs(20)).await;
+    let mut c = Client::connect(&first.url(), None).await.unwrap();
+    c.sync().await;
+    for k in 0..3 {
+        c.edit(vec![EditOp::Set {
+            pos: spot(0, k),
+            colour: colour(k),
+        }])
+        .await;
+    }
+    first.kill();
+    let client = async_nats::connect(nats.url()).await.unwrap();
+    let js = async_nats::jetstream::new(client);
+    let stream = js
+        .get_stream(brickcast_server::cluster::log::stream_name("demo"))
+        .await
+        .unwrap();
+    let last = stream.get_info().await.unwrap().state.last_sequence;
+    // Drop everything before the last message: no snapshot covers it.
+    stream.purge().sequence(last).await.unwrap();
+    let mut late = Node::spawn(&nats.url(), "late", &[]);
+    assert!(
+        late.wait_exit(Duration::from_secs(30))
+            .is_some_and(|s| !s.success())
+    );
+    let text = late.log_text();
+    assert!(text.contains("are missing"), "{text}");
 }

@@ -138,6 +138,40 @@ struct SnapshotBody {
     rows: Vec<u8>,
 }
 
+/// A turn cut into messages of at most `limit` bytes, at record boundaries (the history and
+/// the requests go with the last part). A single record over the limit is an error.
+fn split(turn: Turn, limit: usize, scene: &str) -> Result<Vec<Vec<u8>>, StoreError> {
+    let whole = turn
+        .encode()
+        .map_err(|e| StoreError::Cluster(format!("encoding a turn: {e}")))?;
+    if whole.len() <= limit {
+        return Ok(vec![whole]);
+    }
+    if turn.records.len() <= 1 {
+        return Err(StoreError::Cluster(format!(
+            "scene {scene}: one log entry needs {} bytes compressed, over the NATS server's max_payload; raise max_payload (8MB is recommended)",
+            whole.len(),
+        )));
+    }
+    let mid = turn.records.len() / 2;
+    let mut first = Turn {
+        node: turn.node.clone(),
+        records: turn.records,
+        history: HistoryWrites::default(),
+        requests: Vec::new(),
+    };
+    let rest = first.records.split_off(mid);
+    let second = Turn {
+        node: turn.node,
+        records: rest,
+        history: turn.history,
+        requests: turn.requests,
+    };
+    let mut out = split(first, limit, scene)?;
+    out.extend(split(second, limit, scene)?);
+    Ok(out)
+}
+
 /// NATS names for a scene: streams allow letters, digits, `-` and `_`; scene names also allow
 /// `.` (a subject separator). `_` → `__`, `.` → `_d`: one-to-one.
 pub fn token(scene: &str) -> String {
@@ -206,6 +240,8 @@ pub struct LogHandles {
     pub snapshots: ObjectStore,
     pub rt: tokio::runtime::Handle,
     pub node: String,
+    /// Copies of a new scene's stream (`--replicas`).
+    pub replicas: usize,
 }
 
 /// A scene as loaded from the cluster: the map and history, plus where in the stream it is.
@@ -223,6 +259,7 @@ pub async fn create(h: &LogHandles, scene: &str, map: &BrickMap) -> Result<(), S
         name: stream_name(scene),
         subjects: vec![log_subject(scene)],
         storage: jetstream::stream::StorageType::File,
+        num_replicas: h.replicas,
         duplicate_window: Duration::from_secs(120),
         ..Default::default()
     })
@@ -613,7 +650,8 @@ impl JetLog {
             history: history.clone(),
             requests: std::mem::take(&mut self.staged),
         };
-        for (i, part) in self.split(turn)?.into_iter().enumerate() {
+        let limit = self.max_payload.saturating_sub(HEADER_ROOM);
+        for (i, part) in split(turn, limit, &self.scene)?.into_iter().enumerate() {
             match self.append_message(part) {
                 Ok(()) => {}
                 // Part of the turn is in the log: its edits may replay; not "not applied".
@@ -651,44 +689,6 @@ impl JetLog {
             return Err(e);
         }
         Ok(())
-    }
-
-    /// A turn cut into messages under `max_payload`, at record boundaries.
-    fn split(&self, turn: Turn) -> Result<Vec<Vec<u8>>, StoreError> {
-        let limit = self.max_payload.saturating_sub(HEADER_ROOM);
-        let encode = |t: &Turn| {
-            t.encode()
-                .map_err(|e| StoreError::Cluster(format!("encoding a turn: {e}")))
-        };
-        let whole = encode(&turn)?;
-        if whole.len() <= limit {
-            return Ok(vec![whole]);
-        }
-        if turn.records.len() <= 1 {
-            return Err(StoreError::Cluster(format!(
-                "scene {}: one log entry needs {} bytes compressed, over the NATS server's max_payload of {} bytes; raise max_payload (8MB is recommended)",
-                self.scene,
-                whole.len(),
-                self.max_payload
-            )));
-        }
-        let mid = turn.records.len() / 2;
-        let mut first = Turn {
-            node: turn.node.clone(),
-            records: turn.records,
-            history: HistoryWrites::default(),
-            requests: Vec::new(),
-        };
-        let rest = first.records.split_off(mid);
-        let second = Turn {
-            node: turn.node,
-            records: rest,
-            history: turn.history,
-            requests: turn.requests,
-        };
-        let mut out = self.split(first)?;
-        out.extend(self.split(second)?);
-        Ok(out)
     }
 
     fn append_message(&mut self, bytes: Vec<u8>) -> Result<(), StoreError> {
@@ -810,15 +810,16 @@ impl JetLog {
     }
 
     /// Writes a whole snapshot at `seq` (this replica's position) in the background and trims
-    /// the stream below it once it is stored. Only the owner snapshots; one at a time.
+    /// the stream below it once it is stored. Only the owner snapshots, one at a time: false
+    /// when this call wrote nothing.
     pub fn snapshot(
         &mut self,
         map: &BrickMap,
         seq: u64,
         history: &History,
-    ) -> Result<(), StoreError> {
+    ) -> Result<bool, StoreError> {
         if !self.leading || self.uploading.as_ref().is_some_and(|t| !t.is_finished()) {
-            return Ok(());
+            return Ok(false);
         }
         if map.sequence() != seq {
             return Err(StoreError::Inconsistent {
@@ -852,6 +853,89 @@ impl JetLog {
                 Err(e) => tracing::warn!(scene = %scene, error = %e, "snapshot written, log not trimmed"),
             }
         }));
-        Ok(())
+        Ok(true)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_escape_one_to_one() {
+        assert_eq!(token("demo"), "demo");
+        assert_eq!(token("a.b_c"), "a_db__c");
+        // Distinct scene names never share a stream.
+        assert_ne!(token("a_d"), token("a.")); // "a__d" vs "a_d"
+        assert_eq!(stream_name("x.y"), "BRICKCAST_LOG_x_dy");
+        assert_eq!(log_subject("x.y"), "brickcast.log.x_dy");
+    }
+
+    #[test]
+    fn turns_round_trip_and_garbage_is_refused() {
+        let mut history = HistoryWrites::default();
+        history.removed.insert(3, 9);
+        let turn = Turn {
+            node: "a".into(),
+            records: vec![(7, vec![0, 2, 1]), (8, vec![4])],
+            history,
+            requests: vec![("p/1".into(), 2, vec![vec![1, 2]])],
+        };
+        let bytes = turn.encode().unwrap();
+        assert_eq!(Turn::decode(&bytes).unwrap(), turn);
+        assert!(!turn.is_marker());
+        assert!(Turn::default().is_marker());
+        assert!(Turn::decode(b"not a turn").is_err());
+        // A length claim beyond the bound is refused before anything is allocated.
+        let mut lying = bytes.clone();
+        lying[2..10].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert!(Turn::decode(&lying).unwrap_err().contains("claims"));
+        let mut cut = bytes;
+        cut.truncate(12);
+        assert!(Turn::decode(&cut).is_err());
+    }
+
+    #[test]
+    fn big_turns_split_at_record_boundaries() {
+        // Incompressible records of 3000 bytes each, eight of them, under a 7000-byte limit.
+        let mut x = 1u32;
+        let mut noise = || {
+            (0..3000)
+                .map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 17;
+                    x ^= x << 5;
+                    x as u8
+                })
+                .collect::<Vec<u8>>()
+        };
+        let turn = Turn {
+            node: "a".into(),
+            records: (1..=8).map(|s| (s, noise())).collect(),
+            history: HistoryWrites::default(),
+            requests: vec![("p/1".into(), 1, vec![vec![1]])],
+        };
+        let parts = split(turn.clone(), 7000, "s").unwrap();
+        assert!(parts.len() >= 4, "{} parts", parts.len());
+        let turns: Vec<Turn> = parts.iter().map(|p| Turn::decode(p).unwrap()).collect();
+        assert!(parts.iter().all(|p| p.len() <= 7000));
+        let records: Vec<_> = turns.iter().flat_map(|t| t.records.clone()).collect();
+        assert_eq!(records, turn.records, "every record once, in order");
+        assert_eq!(turns.last().unwrap().requests, turn.requests);
+        assert!(
+            turns[..turns.len() - 1]
+                .iter()
+                .all(|t| t.requests.is_empty())
+        );
+        // One record over the limit cannot be split.
+        let err = split(turn, 2000, "s").unwrap_err().to_string();
+        assert!(err.contains("max_payload"), "{err}");
+    }
+
+    #[test]
+    fn snapshot_descriptions_parse() {
+        assert_eq!(parse_description("seq=12 pos=40"), Some((12, 40)));
+        assert_eq!(parse_description("seq=12"), None);
+        assert_eq!(parse_description(""), None);
     }
 }

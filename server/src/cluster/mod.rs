@@ -103,6 +103,8 @@ pub struct Cluster {
     pub nodes: kv::Store,
     pub scenes: kv::Store,
     pub snapshots: ObjectStore,
+    /// Copies of each stream this node creates (`--replicas`).
+    pub replicas: usize,
 }
 
 /// A key-value bucket, created when missing. The bucket's stream is created here, with the
@@ -112,6 +114,7 @@ async fn bucket(
     js: &jetstream::Context,
     name: &str,
     max_age: Duration,
+    replicas: usize,
 ) -> Result<kv::Store, ClusterError> {
     if let Ok(store) = js.get_key_value(name).await {
         return Ok(store);
@@ -125,7 +128,7 @@ async fn bucket(
         allow_rollup: true,
         deny_delete: true,
         allow_direct: true,
-        num_replicas: 1,
+        num_replicas: replicas,
         discard: jetstream::stream::DiscardPolicy::New,
         ..Default::default()
     })
@@ -139,7 +142,11 @@ async fn bucket(
 impl Cluster {
     /// Connects and makes sure the buckets exist. A URL nobody answers at, or a server
     /// without JetStream, is a clear error.
-    pub async fn connect(url: &str) -> Result<Cluster, ClusterError> {
+    ///
+    /// `replicas`: copies JetStream keeps of each stream and bucket this node creates (1 for a
+    /// single nats-server; 3 for a JetStream cluster of three). Existing ones keep theirs.
+    pub async fn connect(url: &str, replicas: usize) -> Result<Cluster, ClusterError> {
+        let replicas = replicas.max(1);
         let client = async_nats::ConnectOptions::new()
             .name("brickcast")
             .connection_timeout(Duration::from_secs(5))
@@ -169,15 +176,16 @@ impl Cluster {
         if let Some(error) = info.get("error") {
             return Err(no_js(error.to_string()));
         }
-        let owners = bucket(&js, OWNERS_BUCKET, LEASE_TTL).await?;
-        let nodes = bucket(&js, NODES_BUCKET, NODE_TTL).await?;
-        let scenes = bucket(&js, SCENES_BUCKET, Duration::ZERO).await?;
+        let owners = bucket(&js, OWNERS_BUCKET, LEASE_TTL, replicas).await?;
+        let nodes = bucket(&js, NODES_BUCKET, NODE_TTL, replicas).await?;
+        let scenes = bucket(&js, SCENES_BUCKET, Duration::ZERO, replicas).await?;
         let snapshots = match js.get_object_store(SNAPSHOT_BUCKET).await {
             Ok(s) => s,
             Err(_) => js
                 .create_object_store(jetstream::object_store::Config {
                     bucket: SNAPSHOT_BUCKET.to_string(),
                     storage: jetstream::stream::StorageType::File,
+                    num_replicas: replicas,
                     ..Default::default()
                 })
                 .await
@@ -198,6 +206,7 @@ impl Cluster {
             nodes,
             scenes,
             snapshots,
+            replicas,
         })
     }
 
@@ -277,6 +286,7 @@ impl Cluster {
             snapshots: self.snapshots.clone(),
             rt: tokio::runtime::Handle::current(),
             node: node.to_string(),
+            replicas: self.replicas,
         }
     }
 

@@ -49,16 +49,17 @@ impl Backend {
     }
 
     /// Snapshots `map` at `seq` (redb writes `cells`, the bricks touched since the last one;
-    /// the cluster writes the whole scene and its history).
+    /// the cluster writes the whole scene and its history). False when nothing was written:
+    /// in a cluster only the owner snapshots, one upload at a time.
     pub fn snapshot(
         &mut self,
         map: &BrickMap,
         cells: &[u32],
         seq: u64,
         history: &History,
-    ) -> Result<(), StoreError> {
+    ) -> Result<bool, StoreError> {
         match self {
-            Backend::Redb { store, scene } => store.snapshot(scene, map, cells, seq),
+            Backend::Redb { store, scene } => store.snapshot(scene, map, cells, seq).map(|()| true),
             Backend::Jet(log) => log.snapshot(map, seq, history),
         }
     }

@@ -319,7 +319,9 @@ impl Owner {
                 jet.reply(to.subject.clone(), &answer);
             }
         }
-        self.reload();
+        if !self.stopping {
+            self.reload();
+        }
     }
 
     /// Replaces the map, sequence and history with the log's (snapshot + turns). Sessions

@@ -88,6 +88,8 @@ pub struct Owner {
     /// Undo work each user may still ask for (voxels compared), and when it was counted: undo
     /// and redo are charged like edits, by what they cost, on the owner's clock.
     pub(super) undo_budget: HashMap<u64, (f64, Instant)>,
+    /// Shutting down: a lost lease is not followed by a reload.
+    pub(super) stopping: bool,
 }
 
 /// A reply (`Ack` or `Undone`) waiting for the commit of what it reports.
@@ -201,6 +203,7 @@ impl Owner {
             clock,
             history,
             undo_budget: HashMap::new(),
+            stopping: false,
         };
         owner.publish_info();
         Ok(owner)
@@ -678,18 +681,27 @@ impl Owner {
         let due = (self.replay_cost() >= self.config.snapshot_replay_budget
             && since >= self.last_snapshot_took * SNAPSHOT_SPACING)
             || (self.log_entries > 0 && since >= self.config.snapshot_every);
-        if !(force || due) {
+        // In a cluster only the owner snapshots.
+        if !(force || due) || !self.backend.leading() {
             return Ok(());
         }
         let cells = self.unsnapshotted.take_sorted();
         let started = Instant::now();
-        if let Err(e) = self
+        match self
             .backend
             .snapshot(&self.map, &cells, self.seq, &self.history)
         {
-            // The cells are still unsnapshotted: a later snapshot must write them.
-            self.unsnapshotted.insert_all(&cells);
-            return Err(e);
+            Ok(true) => {}
+            Ok(false) => {
+                // Not this node's to write (a cluster replica), or one is still uploading.
+                self.unsnapshotted.insert_all(&cells);
+                return Ok(());
+            }
+            Err(e) => {
+                // The cells are still unsnapshotted: a later snapshot must write them.
+                self.unsnapshotted.insert_all(&cells);
+                return Err(e);
+            }
         }
         let took = started.elapsed();
         tracing::debug!(scene = %self.name, seq = self.seq, entries = self.log_entries, bricks = cells.len(), ?took, "snapshot");
@@ -733,6 +745,7 @@ impl Owner {
 
     /// Applies and commits `rest` (what was still queued), then leaves a snapshot behind.
     pub fn stop(&mut self, rest: Vec<Command>) -> Result<(), StoreError> {
+        self.stopping = true;
         self.turn(rest, &mut PhaseClock::start())?;
         if self.log_entries > 0 {
             self.maybe_snapshot(true)?;
