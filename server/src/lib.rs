@@ -364,13 +364,26 @@ impl Server {
         let listener = tokio::net::TcpListener::bind(config.listen)
             .await
             .with_context(|| format!("listening on {}", config.listen))?;
+        let server = Server::new(listener, config, Some(store), None);
+        for (name, scene) in loaded {
+            server.app.add_scene(name, scene)?;
+        }
+        Ok(server)
+    }
+
+    /// The server around a bound listener: the shared state sessions and handlers see.
+    fn new(
+        listener: tokio::net::TcpListener,
+        config: ServerConfig,
+        store: Option<Arc<Store>>,
+        node: Option<Node>,
+    ) -> Server {
         let (shutdown, shutdown_rx) = watch::channel(false);
-        let http_config = config.http.clone();
         let app = Arc::new(App {
             scenes: RwLock::new(BTreeMap::new()),
             owners: Mutex::new(Vec::new()),
-            store: Some(store),
-            node: None,
+            store,
+            node,
             owner_config: config.owner,
             data: config.data,
             metrics: Arc::new(Metrics::default()),
@@ -384,15 +397,12 @@ impl Server {
             connection_limits: config.connections,
             thumbnails: web::Thumbnails::default(),
         });
-        for (name, scene) in loaded {
-            app.add_scene(name, scene)?;
-        }
-        Ok(Server {
+        Server {
             listener,
             app,
             shutdown,
-            http: http_config,
-        })
+            http: config.http,
+        }
     }
 
     async fn bind_cluster(config: ServerConfig) -> anyhow::Result<Server> {
@@ -421,39 +431,16 @@ impl Server {
                 Err(e) => return Err(e.into()),
             }
         }
-        let (shutdown, shutdown_rx) = watch::channel(false);
-        let http_config = config.http.clone();
-        let app = Arc::new(App {
-            scenes: RwLock::new(BTreeMap::new()),
-            owners: Mutex::new(Vec::new()),
-            store: None,
-            node: Some(Node {
-                cluster: cluster.clone(),
-                name,
-                registration,
-            }),
-            owner_config: config.owner,
-            data: config.data,
-            metrics: Arc::new(Metrics::default()),
-            auth: config.auth,
-            shutdown: shutdown_rx,
-            next_id: AtomicU64::new(1),
-            sessions: watch::channel(0).0,
-            queued_total: Arc::default(),
-            stall_timeout: config.stall_timeout,
-            connections: Arc::default(),
-            connection_limits: config.connections,
-            thumbnails: web::Thumbnails::default(),
-        });
+        let node = Node {
+            cluster: cluster.clone(),
+            name,
+            registration,
+        };
+        let server = Server::new(listener, config, None, Some(node));
         for name in cluster.scene_names().await? {
-            app.add_cluster_scene(name).await?;
+            server.app.add_cluster_scene(name).await?;
         }
-        Ok(Server {
-            listener,
-            app,
-            shutdown,
-            http: http_config,
-        })
+        Ok(server)
     }
 
     pub fn local_addr(&self) -> std::io::Result<SocketAddr> {

@@ -688,45 +688,28 @@ async fn a_node_joining_late_syncs_from_the_snapshot_and_the_log() {
     assert_converged(&[&a, &late], &acked, "a late node").await;
 }
 
+/// The node exits with a failure, and its log says `why`.
+fn assert_refused(node: &mut Node, why: &str) {
+    let status = node.wait_exit(Duration::from_secs(30));
+    assert!(status.is_some_and(|s| !s.success()), "{status:?}");
+    let text = node.log_text();
+    assert!(text.contains(why), "{text}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_clusters_are_clear_errors() {
     // Nobody listens.
     let mut n = Node::spawn(&format!("nats://127.0.0.1:{}", free_port()), "x", &[]);
-    assert!(
-        n.wait_exit(Duration::from_secs(30))
-            .is_some_and(|s| !s.success())
-    );
-    assert!(
-        n.log_text().contains("cannot reach NATS"),
-        "{}",
-        n.log_text()
-    );
+    assert_refused(&mut n, "cannot reach NATS");
     // NATS without JetStream.
     let plain = Nats::start(false);
     let mut n = Node::spawn(&plain.url(), "x", &[]);
-    assert!(
-        n.wait_exit(Duration::from_secs(30))
-            .is_some_and(|s| !s.success())
-    );
-    assert!(
-        n.log_text().contains("has no JetStream"),
-        "{}",
-        n.log_text()
-    );
+    assert_refused(&mut n, "has no JetStream");
     // A node name in use.
     let nats = Nats::start(true);
     let first = Node::start(&nats.url(), "same", &[]).await;
     let mut second = Node::spawn(&nats.url(), "same", &[]);
-    assert!(
-        second
-            .wait_exit(Duration::from_secs(30))
-            .is_some_and(|s| !s.success())
-    );
-    assert!(
-        second.log_text().contains("already in use"),
-        "{}",
-        second.log_text()
-    );
+    assert_refused(&mut second, "already in use");
     // A corrupt message in the log: refused loudly, never applied.
     let client = async_nats::connect(nats.url()).await.unwrap();
     let js = async_nats::jetstream::new(client);
@@ -828,10 +811,5 @@ async fn a_log_with_a_gap_is_refused() {
     // Drop everything before the last message: no snapshot covers it.
     stream.purge().sequence(last).await.unwrap();
     let mut late = Node::spawn(&nats.url(), "late", &[]);
-    assert!(
-        late.wait_exit(Duration::from_secs(30))
-            .is_some_and(|s| !s.success())
-    );
-    let text = late.log_text();
-    assert!(text.contains("are missing"), "{text}");
+    assert_refused(&mut late, "are missing");
 }
