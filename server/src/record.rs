@@ -61,6 +61,17 @@ impl LogRecord {
         }
     }
 
+    /// The limits a replay runs with: no brush limits, since every logged op was validated
+    /// against the server's limits when it was accepted and must apply again even if those
+    /// limits were lowered since. Every store replays with these.
+    pub fn replay_limits() -> Limits {
+        Limits {
+            max_brush_radius: f32::MAX,
+            max_box_extent: u32::MAX,
+            ..Limits::hard_caps()
+        }
+    }
+
     /// Replays the record onto `map` (stamped with the record's sequence by the caller).
     pub fn replay(&self, map: &mut BrickMap, limits: &Limits) -> Result<(), String> {
         match self {

@@ -388,14 +388,7 @@ impl Store {
         map.prune_tombstones(meta.snapshot_seq);
         let log_name = log_table(name);
         let log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
-        // Replay with no brush limits: every logged op was validated against the server's limits
-        // when it was accepted, and must apply again even if those limits were lowered since.
-        let limits = brickcast_protocol::wire::Limits::hard_caps();
-        let unlimited = brickcast_protocol::wire::Limits {
-            max_brush_radius: f32::MAX,
-            max_box_extent: u32::MAX,
-            ..limits
-        };
+        let unlimited = LogRecord::replay_limits();
         let inconsistent = |detail: String| StoreError::Inconsistent {
             scene: name.into(),
             detail,

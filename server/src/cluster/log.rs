@@ -25,7 +25,7 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
 use async_nats::jetstream::{self, object_store::ObjectStore, stream::Stream};
-use brickcast_protocol::wire::{Limits, UserId};
+use brickcast_protocol::wire::UserId;
 use brickcast_protocol::{BrickMap, brick::BrickData};
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
@@ -221,15 +221,6 @@ impl LeaseClock {
 
     pub fn valid(&self) -> bool {
         (self.base.elapsed().as_nanos() as u64) < self.deadline_ns.load(Relaxed)
-    }
-}
-
-/// Replays with no brush limits: every logged op was validated when it was accepted.
-fn replay_limits() -> Limits {
-    Limits {
-        max_brush_radius: f32::MAX,
-        max_box_extent: u32::MAX,
-        ..Limits::hard_caps()
     }
 }
 
@@ -440,7 +431,7 @@ pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreErr
             pos + 1
         )));
     }
-    let limits = replay_limits();
+    let limits = LogRecord::replay_limits();
     map.record_touched(true);
     while pos < last {
         let next = pos + 1;

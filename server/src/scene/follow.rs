@@ -15,7 +15,7 @@
 //!   senders are told "not the owner" (they retry on the new owner), and the scene is loaded
 //!   again from the log, so the map never holds an edit the log does not.
 
-use brickcast_protocol::wire::{Limits, encode_server};
+use brickcast_protocol::wire::encode_server;
 
 use super::history::History;
 use super::owner::{AckTo, Log, Owner, PendingAck, Remote};
@@ -27,15 +27,6 @@ use crate::store::{Loaded, StoreError};
 
 /// How long a scene waits for NATS to come back before it gives up on this node.
 const RELOAD_PATIENCE: std::time::Duration = std::time::Duration::from_secs(300);
-
-/// Replays with no brush limits: every logged op was validated when it was accepted.
-fn replay_limits() -> Limits {
-    Limits {
-        max_brush_radius: f32::MAX,
-        max_box_extent: u32::MAX,
-        ..Limits::hard_caps()
-    }
-}
 
 impl Owner {
     /// Takes the forwarded requests' replies out of `acks`, encoded, one entry per request
@@ -199,7 +190,7 @@ impl Owner {
     /// Applies one turn another node appended. False (and the scene stops here) when it does
     /// not fit: a gap in the scene's sequence, or a record that does not decode or apply.
     fn apply_turn(&mut self, pos: u64, turn: Turn) -> bool {
-        let limits = replay_limits();
+        let limits = LogRecord::replay_limits();
         for (s, bytes) in &turn.records {
             let fault = if *s != self.seq + 1 {
                 Some(format!(
