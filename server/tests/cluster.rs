@@ -813,3 +813,54 @@ async fn a_log_with_a_gap_is_refused() {
     let mut late = Node::spawn(&nats.url(), "late", &[]);
     assert_refused(&mut late, "are missing");
 }
+
+/// Undo and redo travel to the owner like edits, and the history moves with the scene: after
+/// the owner is killed, the node that takes over undoes where the old owner left off.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn undo_goes_through_any_node_and_survives_a_failover() {
+    let nats = Nats::start(true);
+    let mut nodes = [
+        Node::start(&nats.url(), "a", &[]).await,
+        Node::start(&nats.url(), "b", &[]).await,
+    ];
+    let owner = owner_of(&nodes.iter().collect::<Vec<_>>(), Duration::from_secs(20)).await;
+    let other = 1 - owner;
+    let mut c = Client::as_user(&nodes[other].url(), None, 0x5eed, "sam")
+        .await
+        .unwrap();
+    c.sync().await;
+    for (k, col) in [(0, 1), (1, 2)] {
+        let ack = c
+            .edit(vec![EditOp::Set {
+                pos: spot(0, k),
+                colour: colour(col),
+            }])
+            .await;
+        assert!(
+            matches!(ack, ServerMsg::Ack { seq: Some(_), .. }),
+            "{ack:?}"
+        );
+    }
+    let undone = |reply: ServerMsg| match reply {
+        ServerMsg::Undone {
+            seq: Some(seq),
+            restored: 1,
+            refused: None,
+            ..
+        } => seq,
+        other => panic!("{other:?}"),
+    };
+    // Undo the second edit through the node that does not own the scene.
+    let s = undone(c.undo(false).await);
+    c.catch_up(s).await;
+    assert_eq!(c.map.get(spot(0, 1)), None);
+    nodes[owner].kill();
+    // The client's node takes the scene over; the history came with the log.
+    let s = undone(c.undo(false).await);
+    c.catch_up(s).await;
+    assert_eq!(c.map.get(spot(0, 0)), None, "the first edit is undone too");
+    let s = undone(c.undo(true).await);
+    c.catch_up(s).await;
+    assert_eq!(c.map.get(spot(0, 0)), Some(colour(1)), "and redone");
+    assert!(nodes[other].owns().await);
+}

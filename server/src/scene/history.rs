@@ -670,6 +670,49 @@ mod tests {
         );
     }
 
+    /// A replica that applies the owner's committed writes, turn by turn, holds the same
+    /// stacks, byte count and next id as the owner: a new owner undoes where the old left off.
+    #[test]
+    fn a_replica_applying_committed_writes_matches_the_owner() {
+        let mut owner = History::new(Vec::new(), 0, 3, u64::MAX);
+        let mut replica = History::new(Vec::new(), 0, 3, u64::MAX);
+        let mut bodies: HashMap<u64, Vec<u8>> = HashMap::new();
+        let mut map = BrickMap::new([32, 32, 32]).unwrap();
+        // Ends a turn: the owner's writes are "committed" and the replica applies them.
+        let mut commit = |owner: &mut History, bodies: &mut HashMap<u64, Vec<u8>>| {
+            let writes = owner.take_writes();
+            for (id, (_, _, body)) in &writes.steps {
+                bodies.insert(*id, body.clone());
+            }
+            replica.apply_committed(&writes);
+            for user in [1, 2] {
+                assert_eq!(owner.stacks(user), replica.stacks(user), "user {user}");
+            }
+            assert_eq!(owner.total_bytes(), replica.total_bytes());
+            assert_eq!(owner.last_id(), replica.last_id());
+            assert_eq!(owner.rows(), replica.rows());
+            assert!(!replica.has_writes(), "a replica writes nothing of its own");
+            replica.user_count()
+        };
+        owner.record_edit(1, &edit(&mut map, |m| drop(m.set([1, 1, 1], red()))));
+        commit(&mut owner, &mut bodies);
+        owner.record_edit(2, &edit(&mut map, |m| drop(m.set([2, 2, 2], blue()))));
+        commit(&mut owner, &mut bodies);
+        let step = owner
+            .pop(1, Direction::Undo, |id| Ok(bodies.get(&id).cloned()))
+            .unwrap()
+            .unwrap();
+        owner.push_record(1, Direction::Undo, &step);
+        commit(&mut owner, &mut bodies);
+        // Past the bound of 3 steps: user 2's oldest goes.
+        for i in 0..3 {
+            owner.record_edit(2, &edit(&mut map, |m| drop(m.set([3, 3, i], red()))));
+        }
+        commit(&mut owner, &mut bodies);
+        owner.forget(1);
+        assert_eq!(commit(&mut owner, &mut bodies), 1);
+    }
+
     #[test]
     fn garbage_steps_are_errors() {
         for bytes in [&[][..], &[9, 1, 2], &[2, 255, 255, 255, 255, 0], &[1, 200]] {
