@@ -694,9 +694,19 @@ mod tests {
             assert!(!replica.has_writes(), "a replica writes nothing of its own");
             replica.user_count()
         };
-        owner.record_edit(1, &edit(&mut map, |m| drop(m.set([1, 1, 1], red()))));
+        owner.record_edit(
+            1,
+            &edit(&mut map, |m| {
+                m.set([1, 1, 1], red());
+            }),
+        );
         commit(&mut owner, &mut bodies);
-        owner.record_edit(2, &edit(&mut map, |m| drop(m.set([2, 2, 2], blue()))));
+        owner.record_edit(
+            2,
+            &edit(&mut map, |m| {
+                m.set([2, 2, 2], blue());
+            }),
+        );
         commit(&mut owner, &mut bodies);
         let step = owner
             .pop(1, Direction::Undo, |id| Ok(bodies.get(&id).cloned()))
@@ -706,7 +716,12 @@ mod tests {
         commit(&mut owner, &mut bodies);
         // Past the bound of 3 steps: user 2's oldest goes.
         for i in 0..3 {
-            owner.record_edit(2, &edit(&mut map, |m| drop(m.set([3, 3, i], red()))));
+            owner.record_edit(
+                2,
+                &edit(&mut map, |m| {
+                    m.set([3, 3, i], red());
+                }),
+            );
         }
         commit(&mut owner, &mut bodies);
         owner.forget(1);
