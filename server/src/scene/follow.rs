@@ -33,6 +33,10 @@ impl Owner {
     /// in the order they were applied.
     pub(super) fn take_remote(&self, acks: &mut Vec<PendingAck>) -> Vec<(Remote, Vec<Vec<u8>>)> {
         let mut remote: Vec<(Remote, Vec<Vec<u8>>)> = Vec::new();
+        // One node: every reply goes to a local session (nothing to sort, on the hot path).
+        if !self.backend.clustered() {
+            return remote;
+        }
         let mut rest = Vec::with_capacity(acks.len());
         for ack in acks.drain(..) {
             let AckTo::Remote(to) = ack.to else {
