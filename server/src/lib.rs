@@ -58,6 +58,16 @@ pub const SPOOL_POLL: Duration = Duration::from_millis(300);
 /// How often a cluster node looks for scenes added to the cluster.
 pub const CLUSTER_POLL: Duration = Duration::from_secs(1);
 
+/// Waits `period`; false once shutdown was requested (at once, not after the period). The
+/// server's pollers (spool, cluster scene list) loop on it.
+async fn wait_or_shutdown(shutdown: &mut watch::Receiver<bool>, period: Duration) -> bool {
+    tokio::select! {
+        _ = tokio::time::sleep(period) => {}
+        _ = shutdown.changed() => {}
+    }
+    !*shutdown.borrow()
+}
+
 /// A node's name when `--node` is not given: the host's name and the listening port.
 fn default_node_name(listen: SocketAddr) -> String {
     let host = std::fs::read_to_string("/etc/hostname")
@@ -237,14 +247,7 @@ impl App {
     /// Cluster: serves scenes added to the cluster (`import --nats`) while running.
     async fn watch_cluster_scenes(self: Arc<Self>) {
         let mut shutdown = self.shutdown.clone();
-        loop {
-            tokio::select! {
-                _ = tokio::time::sleep(CLUSTER_POLL) => {}
-                _ = shutdown.changed() => {}
-            }
-            if *shutdown.borrow() {
-                return;
-            }
+        while wait_or_shutdown(&mut shutdown, CLUSTER_POLL).await {
             let Some(node) = &self.node else { return };
             let names = match node.cluster.scene_names().await {
                 Ok(names) => names,
@@ -308,14 +311,7 @@ impl App {
     /// Polls the spool until shutdown.
     async fn watch_spool(self: Arc<Self>) {
         let mut shutdown = self.shutdown.clone();
-        loop {
-            tokio::select! {
-                _ = tokio::time::sleep(SPOOL_POLL) => {}
-                _ = shutdown.changed() => {}
-            }
-            if *shutdown.borrow() {
-                return;
-            }
+        while wait_or_shutdown(&mut shutdown, SPOOL_POLL).await {
             let data = self.data.clone();
             let files = tokio::task::spawn_blocking(move || incoming::pending(&data))
                 .await

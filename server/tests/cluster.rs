@@ -318,6 +318,20 @@ async fn writer(url: String, w: u32, stop: Arc<AtomicBool>) -> Acked {
     out
 }
 
+/// Sets one voxel and returns the sequence its ack names (the edit must apply).
+async fn set(c: &mut Client, pos: [u32; 3], col: u32) -> u64 {
+    match c
+        .edit(vec![EditOp::Set {
+            pos,
+            colour: colour(col),
+        }])
+        .await
+    {
+        ServerMsg::Ack { seq: Some(seq), .. } => seq,
+        other => panic!("setting {pos:?}: {other:?}"),
+    }
+}
+
 /// A fresh client's copy of the scene from `node`, once it has caught up to `seq`.
 async fn copy_at(node: &Node, seq: u64) -> Client {
     let deadline = Instant::now() + Duration::from_secs(30);
@@ -553,15 +567,7 @@ async fn an_owner_stopped_past_its_lease_is_fenced_and_steps_down() {
     on_owner.sync().await;
     let mut on_other = Client::connect(&nodes[other].url(), None).await.unwrap();
     on_other.sync().await;
-    let ServerMsg::Ack { seq: Some(s1), .. } = on_other
-        .edit(vec![EditOp::Set {
-            pos: spot(0, 0),
-            colour: colour(1),
-        }])
-        .await
-    else {
-        panic!("first edit");
-    };
+    let s1 = set(&mut on_other, spot(0, 0), 1).await;
     nodes[owner].stop();
     // The edit sits in the stopped node's socket buffer.
     let waiting = on_owner
@@ -579,15 +585,7 @@ async fn an_owner_stopped_past_its_lease_is_fenced_and_steps_down() {
         );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    let ServerMsg::Ack { seq: Some(s2), .. } = on_other
-        .edit(vec![EditOp::Set {
-            pos: spot(0, 1),
-            colour: colour(3),
-        }])
-        .await
-    else {
-        panic!("edit on the new owner");
-    };
+    let s2 = set(&mut on_other, spot(0, 1), 3).await;
     assert!(s2 > s1);
     nodes[owner].cont();
     // The woken node must not append: its edit is refused there and retried on the new
@@ -611,15 +609,7 @@ async fn an_owner_stopped_past_its_lease_is_fenced_and_steps_down() {
             || text.contains("stops ordering edits"),
         "{text}"
     );
-    let ServerMsg::Ack { seq: Some(s4), .. } = on_other
-        .edit(vec![EditOp::Set {
-            pos: spot(0, 2),
-            colour: colour(4),
-        }])
-        .await
-    else {
-        panic!("an edit after the wake-up");
-    };
+    let s4 = set(&mut on_other, spot(0, 2), 4).await;
     // Four edits, four sequence numbers: nothing applied twice, nothing lost.
     assert_eq!([s1, s2, s3, s4].len(), 4);
     assert_eq!(
@@ -794,11 +784,7 @@ async fn a_log_with_a_gap_is_refused() {
     let mut c = Client::connect(&first.url(), None).await.unwrap();
     c.sync().await;
     for k in 0..3 {
-        c.edit(vec![EditOp::Set {
-            pos: spot(0, k),
-            colour: colour(k),
-        }])
-        .await;
+        set(&mut c, spot(0, k), k).await;
     }
     first.kill();
     let client = async_nats::connect(nats.url()).await.unwrap();
@@ -830,16 +816,7 @@ async fn undo_goes_through_any_node_and_survives_a_failover() {
         .unwrap();
     c.sync().await;
     for (k, col) in [(0, 1), (1, 2)] {
-        let ack = c
-            .edit(vec![EditOp::Set {
-                pos: spot(0, k),
-                colour: colour(col),
-            }])
-            .await;
-        assert!(
-            matches!(ack, ServerMsg::Ack { seq: Some(_), .. }),
-            "{ack:?}"
-        );
+        set(&mut c, spot(0, k), col).await;
     }
     let undone = |reply: ServerMsg| match reply {
         ServerMsg::Undone {
