@@ -332,7 +332,7 @@ impl Metrics {
             ),
             (
                 "cluster_stepdowns_total",
-                "Scene leases this node lost (cluster).",
+                "Times this node stopped ordering a scene's edits: lease lost, another node appended, or an append refused (cluster).",
                 &self.stepdowns,
             ),
             (

@@ -220,7 +220,6 @@ impl LeaseTask {
         if let Some(task) = intake.take() {
             task.abort();
         }
-        Metrics::add(&self.metrics.stepdowns, 1);
         let _ = self.scene.send(Command::StepDown { why }).await;
     }
 }

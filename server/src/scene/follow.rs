@@ -295,6 +295,7 @@ impl Owner {
             && jet.leading()
         {
             jet.follow();
+            Metrics::add(&self.metrics.stepdowns, 1);
             tracing::warn!(scene = %self.name, why, "this node no longer owns the scene");
         }
     }
@@ -304,6 +305,7 @@ impl Owner {
     /// retry, and the owner then answers from the log. The map is loaded again from the log.
     pub(super) fn lost_lead(&mut self, remote: &[(Remote, Vec<Vec<u8>>)], error: &StoreError) {
         tracing::warn!(scene = %self.name, %error, "a turn could not be logged; its edits are dropped and the scene is reloaded from the log");
+        Metrics::add(&self.metrics.stepdowns, 1);
         let answer = if matches!(error, StoreError::Deposed { .. }) {
             ForwardReply::NotOwner
         } else {
