@@ -1,6 +1,6 @@
 //! Prints where a frame's rays spend their steps (regions, cells, voxels): a guide for tuning
 //! empty-space skipping. `cargo run --release -p brickcast-protocol --example trace_stats`
-use brickcast_protocol::beam::{Beam, TILE};
+use brickcast_protocol::beam::{TILE, TileStarts};
 use brickcast_protocol::demo::demo_scene;
 use brickcast_protocol::render::trace_frame;
 use brickcast_protocol::trace::{TraceStats, trace_from_with_stats};
@@ -24,7 +24,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         for y in 0..360 {
             for x in 0..640 {
                 let (tx, ty) = (x / TILE * TILE, y / TILE * TILE);
-                let t0 = Beam::tile(&p, tx, ty, tx + TILE, ty + TILE).safe_start(&map);
+                let t0 = TileStarts::new(&p, &map, tx, ty).at(x, y);
                 if x % TILE == 0 && y % TILE == 0 {
                     tiles += 1;
                     skipped_tiles += u32::from(t0 > 0.0);

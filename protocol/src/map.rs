@@ -181,8 +181,9 @@ pub struct BrickMap {
     slot_version: Vec<u64>,
     slot_capacity: Vec<u16>,
     free_slots: Vec<u32>,
-    // Per cell block: how many of its cells hold a brick.
-    block_fill: Vec<u16>,
+    /// Per cell block: which of its 64 cells hold a brick (bit = index in the block). The beam
+    /// pre-pass tests a box of cells against it in one `and`.
+    block_cells: Vec<u64>,
     free_blocks: Vec<u32>,
     /// Free colour chunks, indexed by capacity.
     free_chunks: Vec<Vec<u32>>,
@@ -259,7 +260,7 @@ impl BrickMap {
             slot_version: Vec::new(),
             slot_capacity: Vec::new(),
             free_slots: Vec::new(),
-            block_fill: Vec::new(),
+            block_cells: Vec::new(),
             free_blocks: Vec::new(),
             free_chunks: vec![Vec::new(); 513],
             tombstones: HashMap::new(),
@@ -391,6 +392,11 @@ impl BrickMap {
     }
     pub fn cells(&self) -> &[u32] {
         &self.cells
+    }
+    /// Per cell block (the values of non-empty region entries): a bit per cell that holds a
+    /// brick, indexed like the block's cells (`x + 4·y + 16·z` inside the region).
+    pub fn block_cells(&self) -> &[u64] {
+        &self.block_cells
     }
     pub fn masks(&self) -> &[Mask] {
         &self.masks
@@ -911,7 +917,7 @@ impl BrickMap {
             size: self.size,
             bricks: self.bricks,
             solid_voxels: self.solid_voxels,
-            cell_blocks: (self.block_fill.len() - self.free_blocks.len()) as u64,
+            cell_blocks: (self.block_cells.len() - self.free_blocks.len()) as u64,
             region_bytes,
             cell_bytes,
             mask_bytes,
@@ -970,8 +976,9 @@ impl BrickMap {
         let cell_index = self.cell_index(cell);
         self.slot_cell[s] = cell_index;
         self.colours[base as usize..base as usize + colours.len()].copy_from_slice(colours);
-        self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize] = slot;
-        self.block_fill[block as usize] += 1;
+        let local = Self::cell_in_block(cell);
+        self.cells[(block * CELLS_PER_BLOCK + local) as usize] = slot;
+        self.block_cells[block as usize] |= 1 << local;
         self.lower_cell_clearance_around(cell);
         self.tombstones.remove(&cell_index);
         self.bricks += 1;
@@ -1013,12 +1020,13 @@ impl BrickMap {
         let cell = self.cell_coords(cell_index);
         let region = self.region_index(cell.map(|c| c / REGION_CELLS));
         let block = self.regions[region];
-        self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize] = EMPTY_CELL;
-        self.block_fill[block as usize] -= 1;
+        let local = Self::cell_in_block(cell);
+        self.cells[(block * CELLS_PER_BLOCK + local) as usize] = EMPTY_CELL;
+        self.block_cells[block as usize] &= !(1 << local);
         if let Some(g) = &mut self.gpu {
             g.cell_blocks.push(block);
         }
-        if self.block_fill[block as usize] == 0 {
+        if self.block_cells[block as usize] == 0 {
             // Clearance 0 is always safe; neighbours keep theirs (still conservative).
             self.regions[region] = EMPTY_REGION;
             self.free_blocks.push(block);
@@ -1111,17 +1119,6 @@ impl BrickMap {
     /// 4.9 ms on the 1024³ demo scene, 28 ms on the 2048³ one (`examples/rebuild_time.rs`).
     fn rebuild_cell_clearance(&mut self) {
         const _: () = assert!(CELL_CLEARANCE_CAP == 2 && REGION_CELLS == 4);
-        let occupancy: Vec<u64> = self
-            .cells
-            .chunks_exact(CELLS_PER_BLOCK as usize)
-            .map(|block| {
-                block
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, c)| !cell_is_empty(**c))
-                    .fold(0u64, |bits, (l, _)| bits | 1 << l)
-            })
-            .collect();
         let rd = self.region_dims.map(i64::from);
         for index in 0..self.regions.len() {
             let block = self.regions[index];
@@ -1142,7 +1139,7 @@ impl BrickMap {
                         if region_is_empty(neighbour) {
                             continue;
                         }
-                        let mut bits = occupancy[neighbour as usize];
+                        let mut bits = self.block_cells[neighbour as usize];
                         while bits != 0 {
                             let l = i64::from(bits.trailing_zeros());
                             bits &= bits - 1;
@@ -1263,8 +1260,8 @@ impl BrickMap {
             None => {
                 self.cells
                     .extend(std::iter::repeat_n(EMPTY_CELL, CELLS_PER_BLOCK as usize));
-                self.block_fill.push(0);
-                self.block_fill.len() as u32 - 1
+                self.block_cells.push(0);
+                self.block_cells.len() as u32 - 1
             }
         }
     }
@@ -1340,13 +1337,16 @@ impl BrickMap {
                 self.bricks, self.solid_voxels
             ));
         }
-        for (b, &fill) in self.block_fill.iter().enumerate() {
+        for (b, &bits) in self.block_cells.iter().enumerate() {
             let used = self.cells[b * 64..b * 64 + 64]
                 .iter()
-                .filter(|&&c| !cell_is_empty(c))
-                .count();
-            if used != fill as usize {
-                return Err(format!("block {b} fill {fill} but {used} cells used"));
+                .enumerate()
+                .filter(|(_, c)| !cell_is_empty(**c))
+                .fold(0u64, |used, (l, _)| used | 1 << l);
+            if used != bits {
+                return Err(format!(
+                    "block {b} marks cells {bits:#x} but {used:#x} are used"
+                ));
             }
         }
         // The occupied box holds every allocated region.
@@ -1366,14 +1366,14 @@ impl BrickMap {
             }
         }
         // Cell clearance never claims an occupied cell.
-        let mut region_of_block = vec![None; self.block_fill.len()];
+        let mut region_of_block = vec![None; self.block_cells.len()];
         for (i, &entry) in self.regions.iter().enumerate() {
             if let Some(slot) = region_of_block.get_mut(entry as usize) {
                 *slot = Some(i);
             }
         }
         for (at, &entry) in self.cells.iter().enumerate() {
-            if !cell_is_empty(entry) || self.block_fill[at / 64] == 0 {
+            if !cell_is_empty(entry) || self.block_cells[at / 64] == 0 {
                 continue;
             }
             let Some(region) = region_of_block[at / 64] else {

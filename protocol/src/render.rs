@@ -7,11 +7,11 @@
 
 use std::sync::atomic::{AtomicU32, Ordering};
 
-use crate::beam::{Beam, TILE};
+use crate::beam::{TILE, TileStarts};
 use crate::map::BrickMap;
 pub use crate::shade::{LightUniform, Lighting, LightingError, sky, to_byte};
 use crate::shade::{normalize, shade_hit};
-use crate::trace::{Hit, Ray, trace, trace_from};
+use crate::trace::{Hit, PendingHit, Ray, TraceStats, trace, trace_pending};
 
 /// Marks a pixel whose primary ray missed, in [`Frame::hits`].
 pub const MISS: u32 = u32::MAX;
@@ -162,22 +162,31 @@ pub fn render_pixel(
     pixel_of(map, &ray, trace(map, &ray), lighting, uniform)
 }
 
-/// Calls `f(x, y, ray, t0)` for each pixel of the band of rows `y0..y0 + TILE`, tile by tile:
-/// `t0` is the tile's safe start from the beam pre-pass.
+/// Calls `f(x, y, ray, hit)` for each pixel of the band of rows `y0..y0 + TILE` with its
+/// primary hit, tile by tile: the tile's rays start where the beam pre-pass ([`TileStarts`])
+/// puts them, and their colours are read after all of them are traced ([`PendingHit`]).
 fn for_band(
     map: &BrickMap,
     projection: &Projection,
     y0: u32,
-    mut f: impl FnMut(u32, u32, &Ray, f32),
+    mut f: impl FnMut(u32, u32, &Ray, Option<Hit>),
 ) {
     let y1 = (y0 + TILE).min(projection.height);
+    let mut tile: Vec<(u32, u32, Ray, Option<PendingHit>)> =
+        Vec::with_capacity((TILE * TILE) as usize);
     for x0 in (0..projection.width).step_by(TILE as usize) {
         let x1 = (x0 + TILE).min(projection.width);
-        let t0 = Beam::tile(projection, x0, y0, x1, y1).safe_start(map);
+        let starts = TileStarts::new(projection, map, x0, y0);
+        let mut stats = TraceStats::default();
         for y in y0..y1 {
             for x in x0..x1 {
-                f(x, y, &projection.ray(x, y), t0);
+                let ray = projection.ray(x, y);
+                let hit = trace_pending(map, &ray, starts.at(x, y), &mut stats);
+                tile.push((x, y, ray, hit));
             }
+        }
+        for (x, y, ray, hit) in tile.drain(..) {
+            f(x, y, &ray, hit.map(|h| h.resolve(map)));
         }
     }
 }
@@ -197,8 +206,8 @@ pub fn render(
     let mut hits = vec![MISS; (w * projection.height) as usize];
     let bands = by_bands(projection.height, threads, |y0| {
         let mut band = Vec::with_capacity((w * TILE) as usize);
-        for_band(map, projection, y0, |x, y, ray, t0| {
-            let (p, hit) = pixel_of(map, ray, trace_from(map, ray, t0), lighting, &uniform);
+        for_band(map, projection, y0, |x, y, ray, hit| {
+            let (p, hit) = pixel_of(map, ray, hit, lighting, &uniform);
             band.push(((y * w + x) as usize, p, hit));
         });
         band
@@ -222,8 +231,9 @@ pub fn render(
 pub fn trace_frame(map: &BrickMap, projection: &Projection, threads: usize) -> u64 {
     by_bands(projection.height, threads.max(1), |y0| {
         let mut hits = 0u64;
-        for_band(map, projection, y0, |_, _, ray, t0| {
-            hits += u64::from(trace_from(map, ray, t0).is_some());
+        for_band(map, projection, y0, |_, _, _, hit| {
+            // The colour is part of a primary ray's work: keep its read.
+            hits += u64::from(std::hint::black_box(hit).is_some());
         });
         hits
     })

@@ -27,7 +27,7 @@ use std::sync::LazyLock;
 use crate::brick::{BRICK_EDGE, Mask, mask_get, voxel_bit};
 use crate::colour::Colour;
 use crate::map::BrickMap;
-use crate::trace::{Hit, Ray, trace};
+use crate::trace::{Hit, Ray, blocked};
 
 /// Zenith colour of the sky light (linear RGB, before [`Lighting::sky`]). Chosen with
 /// [`SKY_GROUND`] and [`SUN_SIDE`] so that, under the default sun, the six face directions get
@@ -285,14 +285,13 @@ pub fn sun_reaches(map: &BrickMap, hit: &Hit, lighting: &Lighting) -> bool {
         return true;
     }
     let from = std::array::from_fn(|i| (hit.voxel[i] as i32 + hit.normal[i]) as f32 + 0.5);
-    trace(
+    !blocked(
         map,
         &Ray {
             origin: from,
             dir: lighting.sun,
         },
     )
-    .is_none()
 }
 
 /// Display colour (sRGB, 0..1) of a hit, from its albedo, normal, the view ray, the AO factor

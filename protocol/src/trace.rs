@@ -81,7 +81,14 @@ struct Dda {
 #[inline(always)]
 pub fn floor_i32(x: f32) -> i32 {
     let t = x as i32;
-    t - i32::from((t as f32) > x)
+    t.saturating_sub(i32::from((t as f32) > x))
+}
+
+/// `ceil` as an `i32`, inline, saturating like [`floor_i32`].
+#[inline(always)]
+pub fn ceil_i32(x: f32) -> i32 {
+    let t = x as i32;
+    t.saturating_add(i32::from((t as f32) < x))
 }
 
 /// How far from a voxel plane (in voxels) a position must be for `floor` alone to settle it.
@@ -205,19 +212,9 @@ impl Dda {
         if dda.step == [0; 3] {
             return None;
         }
-        // The start voxel is the one the ray occupies just after t = 0: every crossing at t <= 0
-        // has happened. On a plane that means floor() moving up and the voxel below moving down,
-        // which keeps the start consistent with the event order that block skips rely on.
-        let start: [i32; 3] = std::array::from_fn(|i| {
-            if dda.step[i] < 0 {
-                (ray.origin[i].ceil() as i32).saturating_sub(1)
-            } else {
-                ray.origin[i].floor() as i32
-            }
-        });
-        let inside = (0..3).all(|i| start[i] >= lo[i] && start[i] < hi[i]);
         // At `t_min` the ray is a whole voxel inside the box on every axis: it has entered the
-        // box and not left it, whatever the rounding, so no slab test is needed.
+        // box and not left it, whatever the rounding, so no slab test is needed. (The common
+        // case after the beam pre-pass, so it is tested first.)
         let deep_inside_at_min = t_min > 0.0
             && (0..3).all(|i| {
                 let p = ray.origin[i] + ray.dir[i] * t_min;
@@ -226,6 +223,22 @@ impl Dda {
                     && ray.origin[i].abs() < SETTLE_RANGE
                     && p.abs() < SETTLE_RANGE
             });
+        // The start voxel is the one the ray occupies just after t = 0: every crossing at t <= 0
+        // has happened. On a plane that means floor() moving up and the voxel below moving down,
+        // which keeps the start consistent with the event order that block skips rely on.
+        // Not needed (and not computed) when the ray starts deep inside at `t_min`.
+        let (start, inside) = if deep_inside_at_min {
+            ([0; 3], false)
+        } else {
+            let start: [i32; 3] = std::array::from_fn(|i| {
+                if dda.step[i] < 0 {
+                    ceil_i32(ray.origin[i]).saturating_sub(1)
+                } else {
+                    floor_i32(ray.origin[i])
+                }
+            });
+            (start, (0..3).all(|i| start[i] >= lo[i] && start[i] < hi[i]))
+        };
         if inside && t_min <= 0.0 {
             dda.v = start;
         } else if deep_inside_at_min {
@@ -433,6 +446,44 @@ pub fn trace_from_with_stats(
     t_min: f32,
     stats: &mut TraceStats,
 ) -> Option<Hit> {
+    trace_pending(map, ray, t_min, stats).map(|hit| hit.resolve(map))
+}
+
+/// Whether a ray meets any solid voxel: [`trace`] without reading the colour (shadow rays).
+pub fn blocked(map: &BrickMap, ray: &Ray) -> bool {
+    trace_pending(map, ray, 0.0, &mut TraceStats::default()).is_some()
+}
+
+/// A hit whose colour has not been read yet: the brick slot and bit to read it from.
+///
+/// Why: the colour is the one read of a hit that usually misses every cache (the colour pool is
+/// the largest array). Tracing a tile's rays first and reading their colours afterwards, in a
+/// row of independent loads, lets those misses overlap instead of stalling each ray in turn.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PendingHit {
+    hit: Hit,
+    slot: u32,
+    bit: u32,
+}
+
+impl PendingHit {
+    /// The hit with its colour, read from `map` (the map it was traced on).
+    #[inline]
+    pub fn resolve(self, map: &BrickMap) -> Hit {
+        let mask = &map.masks[self.slot as usize];
+        let colour =
+            map.colours[(map.colour_base[self.slot as usize] + rank(mask, self.bit)) as usize];
+        Hit { colour, ..self.hit }
+    }
+}
+
+/// [`trace_from_with_stats`] up to the hit, leaving its colour to [`PendingHit::resolve`].
+pub fn trace_pending(
+    map: &BrickMap,
+    ray: &Ray,
+    t_min: f32,
+    stats: &mut TraceStats,
+) -> Option<PendingHit> {
     if t_min == f32::INFINITY {
         return None;
     }
@@ -548,12 +599,14 @@ pub fn trace_from_with_stats(
                 let k = loop {
                     let bit = voxel_bit(vx as u32, vy as u32, vz as u32);
                     if mask_get(mask, bit) {
-                        let colour = map.colours
-                            [(map.colour_base[slot as usize] + rank(mask, bit)) as usize];
                         dda.v = [vx, vy, vz];
                         dda.t = t;
                         dda.axis = axis;
-                        return Some(dda.hit(colour));
+                        return Some(PendingHit {
+                            hit: dda.hit(Colour(0)),
+                            slot,
+                            bit,
+                        });
                     }
                     stats.voxel_steps += 1;
                     let k = earliest(&[nx, ny, nz]);
