@@ -6,6 +6,7 @@
 //! * [`beam`]: the per-tile pre-pass that starts primary rays past the empty space they share.
 //! * [`render`]: camera and the multi-threaded CPU renderer.
 //! * [`shade`]: sky light, ambient occlusion, sun and shadows, tone mapping (the shader's twin).
+//! * [`shadow`]: shadow rays that start from a per-frame table of the sun's voxel walk.
 //! * [`wire`]: the websocket messages and their compact, compressed brick payloads.
 //! * [`apply`]: what a wire edit op does to a brick map (shared by the server and log replay).
 //! * [`demo`]: the built-in procedural demo scene.
@@ -25,6 +26,7 @@ pub mod render;
 pub mod replica;
 pub mod roster;
 pub mod shade;
+pub mod shadow;
 pub mod trace;
 pub mod viewpoint;
 pub mod wire;

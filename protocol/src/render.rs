@@ -11,6 +11,7 @@ use crate::beam::{TILE, TileStarts};
 use crate::map::BrickMap;
 pub use crate::shade::{LightUniform, Lighting, LightingError, sky, to_byte};
 use crate::shade::{normalize, shade_hit};
+use crate::shadow::SunPaths;
 use crate::trace::{Hit, PendingHit, Ray, TraceStats, trace, trace_pending};
 
 /// Marks a pixel whose primary ray missed, in [`Frame::hits`].
@@ -129,10 +130,11 @@ fn pixel_of(
     hit: Option<Hit>,
     lighting: &Lighting,
     uniform: &LightUniform,
+    paths: Option<&SunPaths>,
 ) -> ([u8; 4], u32) {
     match hit {
         Some(hit) => {
-            let rgb = shade_hit(map, &hit, ray, lighting, uniform);
+            let rgb = shade_hit(map, &hit, ray, lighting, uniform, paths);
             (
                 [to_byte(rgb[0]), to_byte(rgb[1]), to_byte(rgb[2]), 255],
                 voxel_index(map.size(), hit.voxel),
@@ -159,7 +161,7 @@ pub fn render_pixel(
     y: u32,
 ) -> ([u8; 4], u32) {
     let ray = projection.ray(x, y);
-    pixel_of(map, &ray, trace(map, &ray), lighting, uniform)
+    pixel_of(map, &ray, trace(map, &ray), lighting, uniform, None)
 }
 
 /// Calls `f(x, y, ray, hit)` for each pixel of the band of rows `y0..y0 + TILE` with its
@@ -172,7 +174,7 @@ fn for_band(
     mut f: impl FnMut(u32, u32, &Ray, Option<Hit>),
 ) {
     let y1 = (y0 + TILE).min(projection.height);
-    let mut tile: Vec<(u32, u32, Ray, Option<PendingHit>)> =
+    let mut pending: Vec<(u32, u32, Option<PendingHit>)> =
         Vec::with_capacity((TILE * TILE) as usize);
     for x0 in (0..projection.width).step_by(TILE as usize) {
         let x1 = (x0 + TILE).min(projection.width);
@@ -181,12 +183,12 @@ fn for_band(
         for y in y0..y1 {
             for x in x0..x1 {
                 let ray = projection.ray(x, y);
-                let hit = trace_pending(map, &ray, starts.at(x, y), &mut stats);
-                tile.push((x, y, ray, hit));
+                pending.push((x, y, trace_pending(map, &ray, starts.at(x, y), &mut stats)));
             }
         }
-        for (x, y, ray, hit) in tile.drain(..) {
-            f(x, y, &ray, hit.map(|h| h.resolve(map)));
+        // Colours after the whole tile is traced: their loads (which usually miss) overlap.
+        for (x, y, hit) in pending.drain(..) {
+            f(x, y, &projection.ray(x, y), hit.map(|h| h.resolve(map)));
         }
     }
 }
@@ -202,12 +204,15 @@ pub fn render(
 ) -> Frame {
     let w = projection.width;
     let uniform = lighting.uniform();
+    // The sun's voxel walk, once per frame, for every shadow ray ([`SunPaths`]).
+    let paths =
+        (lighting.shadows && lighting.sun_strength > 0.0).then(|| SunPaths::shared(lighting.sun));
     let mut pixels = vec![[0u8; 4]; (w * projection.height) as usize];
     let mut hits = vec![MISS; (w * projection.height) as usize];
     let bands = by_bands(projection.height, threads, |y0| {
         let mut band = Vec::with_capacity((w * TILE) as usize);
         for_band(map, projection, y0, |x, y, ray, hit| {
-            let (p, hit) = pixel_of(map, ray, hit, lighting, &uniform);
+            let (p, hit) = pixel_of(map, ray, hit, lighting, &uniform, paths.as_deref());
             band.push(((y * w + x) as usize, p, hit));
         });
         band
@@ -329,6 +334,40 @@ mod tests {
             fov_y: 60.0,
         };
         assert!(down.project(4, 4).is_some(), "looking straight down works");
+    }
+
+    /// The frame renderer's shortcuts (beam starts, colours read after the tile, the sun's walk
+    /// table for shadow rays) change no pixel: every pixel equals the plain per-pixel render.
+    #[test]
+    fn frame_equals_plain_pixels() {
+        let map = crate::demo::demo_scene([160, 96, 160]).unwrap();
+        let lighting = Lighting::default();
+        let uniform = lighting.uniform();
+        for camera in [
+            Camera::overview(map.size()),
+            Camera {
+                eye: [20.0, 40.0, 30.0],
+                target: [120.0, 15.0, 140.0],
+                fov_y: 70.0,
+            },
+        ] {
+            let p = camera.project(96, 64).unwrap();
+            let frame = render(&map, &p, &lighting, 2);
+            let mut hits = 0;
+            for y in 0..p.height {
+                for x in 0..p.width {
+                    let (pixel, hit) = render_pixel(&map, &p, &lighting, &uniform, x, y);
+                    let at = (y * p.width + x) as usize;
+                    assert_eq!(
+                        (frame.pixels[at], frame.hits[at]),
+                        (pixel, hit),
+                        "({x}, {y})"
+                    );
+                    hits += usize::from(hit != MISS);
+                }
+            }
+            assert!(hits > 1000, "{hits}");
+        }
     }
 
     #[test]

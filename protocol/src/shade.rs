@@ -11,11 +11,13 @@
 //!   each corner of the hit face darkens by how many of the three voxels around it (two sides,
 //!   one diagonal) are solid, in the layer in front of the face, and the hit point interpolates
 //!   the four corners bilinearly. Exact and deterministic: eight occupancy lookups, no rays.
-//! * **Sun** with its shadow ray, traced only where the face turns towards it.
+//! * **Sun** with its shadow ray, traced only where the face turns towards it (by the CPU
+//!   renderer from a per-frame table of the sun's voxel walk, [`crate::shadow::SunPaths`]).
 //! * **Headlight**: a light carried by the camera, for scenes the sky and sun cannot reach.
 //! * **Exposure and tone mapping**: albedo is decoded from sRGB, light is summed in linear
 //!   units, `1 - exp(-exposure · c)` rolls bright values off instead of clipping them, and the
-//!   result is encoded back to sRGB for an 8-bit, non-sRGB target.
+//!   result is encoded back to sRGB for an 8-bit, non-sRGB target (on the CPU both curves are
+//!   tables: [`tone_map`], [`encode_srgb`]).
 //!
 //! AO and the headlight scale the sky term, not the sun: the sun has its own (sharp) shadow.
 //! Everything a pixel needs that does not depend on the pixel (the sun's horizontal direction,
@@ -24,9 +26,10 @@
 
 use std::sync::LazyLock;
 
-use crate::brick::{BRICK_EDGE, Mask, mask_get, voxel_bit};
+use crate::brick::{BRICK_EDGE, mask_get};
 use crate::colour::Colour;
 use crate::map::BrickMap;
+use crate::shadow::SunPaths;
 use crate::trace::{Hit, Ray, blocked};
 
 /// Zenith colour of the sky light (linear RGB, before [`Lighting::sky`]). Chosen with
@@ -193,6 +196,31 @@ pub fn encode_srgb(c: f32) -> f32 {
     a + (b - a) * f
 }
 
+/// Where [`TONE_STEPS`] ends: past it `1 - exp(-c)` is 1 within 1.2e-7.
+const TONE_END: f32 = 16.0;
+
+/// `1 - exp(-c)` at 4096 even steps of `0..=TONE_END`, for [`tone_map`].
+static TONE_STEPS: LazyLock<[f32; 4097]> =
+    LazyLock::new(|| std::array::from_fn(|i| 1.0 - (-(i as f32) * TONE_END / 4096.0).exp()));
+
+/// The tone curve `1 - exp(-c)` by linear interpolation in a table, for the same reason as
+/// [`encode_srgb`]: three `exp` calls per pixel cost about as much as the rest of the shading.
+/// Within 2e-6 of the formula everywhere (the curve bends at most by 1 per unit², so a step of
+/// 1/256 leaves at most 1/8 of a step² of error).
+#[inline]
+pub fn tone_map(c: f32) -> f32 {
+    // NaN and negative light land on 0.
+    let x = if c > 0.0 {
+        c.min(TONE_END) * (4096.0 / TONE_END)
+    } else {
+        0.0
+    };
+    let i = (x as usize).min(4095);
+    let f = x - i as f32;
+    let (a, b) = (TONE_STEPS[i], TONE_STEPS[i + 1]);
+    a + (b - a) * f
+}
+
 /// Linear albedo of each 5-bit and 6-bit channel value: RGB565 has only 32 and 64 levels, so
 /// the CPU looks them up instead of calling `powf` per pixel (same formula, same results).
 static LINEAR5: LazyLock<[f32; 32]> =
@@ -231,39 +259,65 @@ fn corner_level(side_a: f32, side_b: f32, diagonal: f32) -> f32 {
 /// How much sky light reaches the hit point, `AO_FLOOR..=1`: the voxel AO of the face it hit.
 /// 1 for a hit without a face (the ray started inside the voxel).
 pub fn ambient_occlusion(map: &BrickMap, hit: &Hit, ray: &Ray) -> f32 {
-    let Some(k) = hit.normal.iter().position(|&c| c != 0) else {
+    let n = hit.normal;
+    let k = if n[0] != 0 {
+        0
+    } else if n[1] != 0 {
+        1
+    } else if n[2] != 0 {
+        2
+    } else {
         return 1.0;
     };
     let (a, b) = ((k + 1) % 3, (k + 2) % 3);
-    let size = map.size();
-    let front: [i64; 3] =
-        std::array::from_fn(|i| i64::from(hit.voxel[i]) + i64::from(hit.normal[i]));
-    // The eight neighbours lie in at most four bricks, usually one: remember the last brick's
-    // mask instead of walking regions and cells for each of them.
-    let mut last: Option<([u32; 3], Option<&Mask>)> = None;
-    let mut solid = |da: i64, db: i64| -> f32 {
-        let mut p = front;
-        p[a] += da;
-        p[b] += db;
-        if (0..3).any(|i| p[i] < 0 || p[i] >= i64::from(size[i])) {
-            return 0.0;
-        }
-        let p = p.map(|c| c as u32);
-        let cell = p.map(|c| c / BRICK_EDGE);
-        let mask = match last {
-            Some((at, mask)) if at == cell => mask,
-            _ => {
-                let mask = map
-                    .slot_of_cell(cell)
-                    .and_then(|slot| map.masks().get(slot as usize));
-                last = Some((cell, mask));
-                mask
+    let size = map.size().map(|s| s as i32);
+    let front: [i32; 3] = std::array::from_fn(|i| hit.voxel[i] as i32 + n[i]);
+    if front[k] < 0 || front[k] >= size[k] {
+        return 1.0;
+    }
+    // The 3×3 neighbours of the front voxel in the face's plane, bit (da + 1) + 3·(db + 1).
+    // They lie in at most two bricks along each of the two axes, usually in one brick: each
+    // brick's mask is looked up once and answers for the neighbours inside it (and inside the
+    // grid), found as ranges of `da` and `db` rather than tested one by one.
+    const E: i32 = BRICK_EDGE as i32;
+    const STRIDE: [i32; 3] = [1, E, E * E];
+    let (fa, fb) = (front[a], front[b]);
+    let (a0, a1) = ((fa - 1).div_euclid(E), (fa + 1).div_euclid(E));
+    let (b0, b1) = ((fb - 1).div_euclid(E), (fb + 1).div_euclid(E));
+    let base_bit = (front[k] & (E - 1)) * STRIDE[k];
+    let mut bits = 0u32;
+    for ca in a0..=a1 {
+        // The `da` whose voxel is in brick column `ca` and in the grid.
+        let da_lo = (ca * E - fa).max(-1).max(-fa);
+        let da_hi = (ca * E + E - 1 - fa).min(1).min(size[a] - 1 - fa);
+        for cb in b0..=b1 {
+            let db_lo = (cb * E - fb).max(-1).max(-fb);
+            let db_hi = (cb * E + E - 1 - fb).min(1).min(size[b] - 1 - fb);
+            if da_lo > da_hi || db_lo > db_hi {
+                continue;
             }
-        };
-        f32::from(u8::from(
-            mask.is_some_and(|m| mask_get(m, voxel_bit(p[0], p[1], p[2]))),
-        ))
-    };
+            let mut cell = [0u32; 3];
+            cell[k] = (front[k] / E) as u32;
+            cell[a] = ca as u32;
+            cell[b] = cb as u32;
+            let Some(mask) = map
+                .slot_of_cell(cell)
+                .and_then(|slot| map.masks().get(slot as usize))
+            else {
+                continue;
+            };
+            for db in db_lo..=db_hi {
+                let row = base_bit + ((fb + db) & (E - 1)) * STRIDE[b];
+                for da in da_lo..=da_hi {
+                    let bit = row + ((fa + da) & (E - 1)) * STRIDE[a];
+                    if mask_get(mask, bit as u32) {
+                        bits |= 1 << ((da + 1) + 3 * (db + 1));
+                    }
+                }
+            }
+        }
+    }
+    let solid = |da: i32, db: i32| -> f32 { ((bits >> ((da + 1) + 3 * (db + 1))) & 1) as f32 };
     let (am, ap, bm, bp) = (solid(-1, 0), solid(1, 0), solid(0, -1), solid(0, 1));
     let l00 = corner_level(am, bm, solid(-1, -1));
     let l10 = corner_level(ap, bm, solid(1, -1));
@@ -280,18 +334,27 @@ pub fn ambient_occlusion(map: &BrickMap, hit: &Hit, ray: &Ray) -> f32 {
 /// Whether the sun reaches a hit: false when shadows are on and a ray from the empty voxel in
 /// front of the hit towards the sun meets a voxel. Starting from that voxel's centre keeps the
 /// shadow ray off the hit surface without any epsilon. Only asked for faces turned to the sun.
-pub fn sun_reaches(map: &BrickMap, hit: &Hit, lighting: &Lighting) -> bool {
+/// `paths`, the frame's table of the sun's voxel walk, answers the same faster.
+pub fn sun_reaches(
+    map: &BrickMap,
+    hit: &Hit,
+    lighting: &Lighting,
+    paths: Option<&SunPaths>,
+) -> bool {
     if !lighting.shadows || hit.normal == [0; 3] {
         return true;
     }
-    let from = std::array::from_fn(|i| (hit.voxel[i] as i32 + hit.normal[i]) as f32 + 0.5);
-    !blocked(
-        map,
-        &Ray {
-            origin: from,
-            dir: lighting.sun,
-        },
-    )
+    let from: [i32; 3] = std::array::from_fn(|i| hit.voxel[i] as i32 + hit.normal[i]);
+    match paths {
+        Some(paths) if paths.dir() == lighting.sun => !paths.blocked(map, from),
+        _ => !blocked(
+            map,
+            &Ray {
+                origin: from.map(|c| c as f32 + 0.5),
+                dir: lighting.sun,
+            },
+        ),
+    }
 }
 
 /// Display colour (sRGB, 0..1) of a hit, from its albedo, normal, the view ray, the AO factor
@@ -312,7 +375,7 @@ pub fn shade(hit: &Hit, dir: [f32; 3], u: &LightUniform, sun_visible: bool, ao: 
     std::array::from_fn(|i| {
         let light = (sky[i] + head) * ao + SUN_COLOUR[i] * sun;
         let c = albedo[i] * light * u.flags[0];
-        encode_srgb(1.0 - (-c).exp())
+        encode_srgb(tone_map(c))
     })
 }
 
@@ -324,10 +387,11 @@ pub fn shade_hit(
     ray: &Ray,
     lighting: &Lighting,
     u: &LightUniform,
+    paths: Option<&SunPaths>,
 ) -> [f32; 3] {
     let faces_sun =
         dot(hit.normal.map(|c| c as f32), lighting.sun) > 0.0 && lighting.sun_strength > 0.0;
-    let sun_visible = faces_sun && sun_reaches(map, hit, lighting);
+    let sun_visible = faces_sun && sun_reaches(map, hit, lighting, paths);
     let ao = if lighting.ao {
         ambient_occlusion(map, hit, ray)
     } else {
@@ -345,6 +409,18 @@ pub fn to_byte(c: f32) -> u8 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn table_tone_map_follows_the_formula() {
+        let worst = (0..=200_000)
+            .map(|i| i as f32 / 10_000.0)
+            .map(|c| (tone_map(c) - (1.0 - (-c).exp())).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 2e-6, "worst error {worst}");
+        assert_eq!(tone_map(-1.0), 0.0);
+        assert_eq!(tone_map(f32::NAN), 0.0);
+        assert!((tone_map(f32::INFINITY) - 1.0).abs() < 2e-7);
+    }
 
     #[test]
     fn table_encoding_follows_the_formula() {

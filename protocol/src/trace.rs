@@ -673,6 +673,21 @@ pub fn trace_flat(
     }
 }
 
+/// Calls `f(voxel, entry)` for each voxel the flat DDA visits in a grid of `size`, in order,
+/// with the ray parameter at which the ray enters it (0 for the start voxel), while that is at
+/// most `t_end`. Nothing for a ray that misses the grid or is not usable.
+pub(crate) fn voxel_walk(size: [u32; 3], ray: &Ray, t_end: f32, mut f: impl FnMut([i32; 3], f32)) {
+    let Some(mut dda) = Dda::start(size, ray) else {
+        return;
+    };
+    while dda.t <= t_end {
+        f(dda.v, dda.t);
+        if !dda.step_voxel() {
+            return;
+        }
+    }
+}
+
 // Keep the region constant visible to readers of the hierarchy above.
 const _: () = assert!(REGION_EDGE == REGION_CELLS * BRICK_EDGE);
 
