@@ -264,7 +264,7 @@ impl Beam {
     /// start and end (which holds every box in between, as each face moves linearly in `t`)
     /// holds no solid voxel, tested on the brick masks themselves. Steps are measured in voxels
     /// moved by the box's fastest face: the first is `first`, they double after a success (up
-    /// to [`MAX_STEP`]) and halve after a failure, and the march ends when a step would be
+    /// to 16 voxels) and halve after a failure, and the march ends when a step would be
     /// shorter than `min`.
     pub fn advance(&self, map: &BrickMap, t: f32, first: f32, min: f32) -> f32 {
         if t.is_nan() || t < 0.0 || t == f32::INFINITY || min.is_nan() || min <= 0.0 {
