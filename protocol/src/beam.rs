@@ -59,19 +59,22 @@ impl Beam {
         }
     }
 
+    /// Whether eye, centre and spread are all finite (a beam the marches can use).
+    fn is_finite(&self) -> bool {
+        self.eye
+            .iter()
+            .chain(&self.centre)
+            .chain(&self.spread)
+            .all(|c| c.is_finite())
+    }
+
     /// The largest ray parameter up to which every voxel the beam's rays meet is known to be
     /// empty: 0 when nothing is known, infinity when the beam never reaches an occupied region.
     pub fn safe_start(&self, map: &BrickMap) -> f32 {
         let Some((rlo, rhi)) = map.occupied_regions() else {
             return f32::INFINITY;
         };
-        if self
-            .eye
-            .iter()
-            .chain(&self.centre)
-            .chain(&self.spread)
-            .any(|c| !c.is_finite())
-        {
+        if !self.is_finite() {
             return 0.0;
         }
         let r = REGION_EDGE as f32;
@@ -273,13 +276,7 @@ impl Beam {
         let Some((rlo, rhi)) = map.occupied_regions() else {
             return f32::INFINITY;
         };
-        if self
-            .eye
-            .iter()
-            .chain(&self.centre)
-            .chain(&self.spread)
-            .any(|c| !c.is_finite())
-        {
+        if !self.is_finite() {
             return t;
         }
         // Voxels outside the occupied regions' box are all empty.
