@@ -150,6 +150,10 @@ pub struct Metrics {
     /// Presence messages from clients, and those refused (bad numbers, too fast).
     pub presence_updates: AtomicU64,
     pub presence_refused: AtomicU64,
+    /// Cluster: presence messages this node published to the other nodes, and messages (or
+    /// entries in them) from other nodes it could not use.
+    pub presence_relayed: AtomicU64,
+    pub presence_relay_refused: AtomicU64,
     /// Undo and redo requests applied (a step was taken from a stack), refused, and the voxels
     /// they restored or kept.
     pub undos: AtomicU64,
@@ -359,6 +363,16 @@ impl Metrics {
                 "presence_refused_total",
                 "Presence and rename messages refused (bad numbers or names, too fast).",
                 &self.presence_refused,
+            ),
+            (
+                "cluster_presence_relayed_total",
+                "Presence messages published to the other nodes (cluster).",
+                &self.presence_relayed,
+            ),
+            (
+                "cluster_presence_refused_total",
+                "Presence messages or entries from other nodes that could not be read or were out of range (cluster).",
+                &self.presence_relay_refused,
             ),
             ("undos_total", "Undo steps applied.", &self.undos),
             ("redos_total", "Redo steps applied.", &self.redos),

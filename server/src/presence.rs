@@ -14,13 +14,21 @@
 //! Joins, renames and leaves ride in the same frames. A joining session registers before its
 //! `Welcome` is built (the Welcome lists the roster it saw) and is sent nothing until the
 //! Welcome is queued; then its first frame is a full one.
+//!
+//! **Peers on other nodes.** In a cluster the hub also holds *remote* peers: people connected
+//! to other nodes, fed in by `crate::cluster::presence` under ids of their own (from
+//! [`REMOTE_IDS`] up, so they never meet this node's session ids). Local clients see them like
+//! anyone else. What changes among the local peers is also kept for the relay
+//! ([`Hub::take_local`]), which publishes it to the other nodes.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use brickcast_protocol::wire::{Cursor, Peer, PeerId, PeerState, ServerMsg, View, encode_server};
+use brickcast_protocol::wire::{
+    Cursor, Peer, PeerId, PeerState, Refusal, ServerMsg, View, encode_server,
+};
 use bytes::Bytes;
 
 use crate::metrics::Metrics;
@@ -28,6 +36,14 @@ use crate::scene::Outbox;
 
 /// A peer whose queue holds more than this is skipped (and gets a full frame later).
 pub const MAX_QUEUED: usize = 256 << 10;
+
+/// Ids of peers on other nodes start here: this node's session ids (a counter from 1) never
+/// get this far, and every id stays below 2^53, exact in a JavaScript number.
+pub const REMOTE_IDS: PeerId = 1 << 52;
+
+/// Most peers from other nodes one hub holds: with the local ones they stay well inside what
+/// one presence frame may list (`MAX_PEERS_PER_FRAME`). Beyond it, remote joins are dropped.
+pub const MAX_REMOTE: usize = 16_384;
 
 struct Member {
     peer: Peer,
@@ -39,14 +55,86 @@ struct Member {
     stale: bool,
 }
 
+/// A peer connected to another node (only in a cluster).
+struct Remote {
+    peer: Peer,
+    state: PeerState,
+}
+
+/// What changed among this node's own peers, for the cluster relay.
+#[derive(Debug, Default, PartialEq)]
+pub struct LocalChanges {
+    /// Joined or renamed.
+    pub joined: Vec<Peer>,
+    pub left: Vec<PeerId>,
+    pub states: Vec<PeerState>,
+}
+
+impl LocalChanges {
+    pub fn is_empty(&self) -> bool {
+        self.joined.is_empty() && self.left.is_empty() && self.states.is_empty()
+    }
+}
+
 #[derive(Default)]
-struct Roster {
-    members: BTreeMap<PeerId, Member>,
-    /// Since the last tick: peers that joined or were renamed, peers that left, states that
-    /// changed.
+struct Changes {
     joined: BTreeMap<PeerId, Peer>,
     left: Vec<PeerId>,
     changed: BTreeMap<PeerId, PeerState>,
+}
+
+impl Changes {
+    fn join(&mut self, peer: Peer) {
+        self.joined.insert(peer.id, peer);
+    }
+
+    fn leave(&mut self, id: PeerId) {
+        self.joined.remove(&id);
+        self.changed.remove(&id);
+        self.left.push(id);
+    }
+}
+
+#[derive(Default)]
+struct Roster {
+    members: BTreeMap<PeerId, Member>,
+    remote: BTreeMap<PeerId, Remote>,
+    /// Since the last tick: peers that joined or were renamed, peers that left, states that
+    /// changed (local and remote alike).
+    pending: Changes,
+    /// Since the relay last took them: the same, local peers only. Kept only in a cluster.
+    local: Option<Changes>,
+}
+
+impl Roster {
+    fn joined(&mut self, peer: &Peer, local: bool) {
+        if local && let Some(l) = &mut self.local {
+            l.join(peer.clone());
+        }
+        self.pending.join(peer.clone());
+    }
+
+    fn left(&mut self, id: PeerId, local: bool) {
+        if local && let Some(l) = &mut self.local {
+            l.leave(id);
+        }
+        self.pending.leave(id);
+    }
+
+    fn changed(&mut self, state: PeerState, local: bool) {
+        if local && let Some(l) = &mut self.local {
+            l.changed.insert(state.id, state);
+        }
+        self.pending.changed.insert(state.id, state);
+    }
+
+    /// Everyone present, local and remote.
+    fn peers(&self) -> impl Iterator<Item = &Peer> {
+        self.members
+            .values()
+            .map(|m| &m.peer)
+            .chain(self.remote.values().map(|r| &r.peer))
+    }
 }
 
 /// One scene's presence: the roster and latest states, and what changed since the last tick.
@@ -76,7 +164,7 @@ impl Hub {
     /// Welcome. It is sent nothing until [`Hub::welcomed`].
     pub fn join(&self, mut peer: Peer, out: Outbox) -> (Peer, Vec<Peer>) {
         let mut roster = self.roster();
-        let others: Vec<Peer> = roster.members.values().map(|m| m.peer.clone()).collect();
+        let others: Vec<Peer> = roster.peers().cloned().collect();
         match others.iter().find(|p| p.user == peer.user) {
             // The same user in another window keeps the colour it shows there.
             Some(same) => peer.colour = same.colour,
@@ -86,7 +174,7 @@ impl Hub {
             }
         }
         let id = peer.id;
-        roster.joined.insert(id, peer.clone());
+        roster.joined(&peer, true);
         roster.members.insert(
             id,
             Member {
@@ -123,7 +211,7 @@ impl Hub {
         m.state.view = view;
         m.state.cursor = cursor;
         let state = m.state;
-        roster.changed.insert(id, state);
+        roster.changed(state, true);
     }
 
     /// The peer's new display name (checked by the session).
@@ -134,29 +222,110 @@ impl Hub {
         };
         m.peer.name = name;
         let peer = m.peer.clone();
-        roster.joined.insert(id, peer);
+        roster.joined(&peer, true);
     }
 
     /// The peer left.
     pub fn leave(&self, id: PeerId) {
         let mut roster = self.roster();
         if roster.members.remove(&id).is_some() {
-            roster.joined.remove(&id);
-            roster.changed.remove(&id);
-            roster.left.push(id);
+            roster.left(id, true);
         }
     }
 
-    /// Names of the peers present, in joining order (the scene list shows them).
-    pub fn names(&self) -> Vec<String> {
-        self.roster()
-            .members
-            .values()
-            .map(|m| m.peer.name.clone())
-            .collect()
+    /// Keeps what changes among the local peers for [`Hub::take_local`] from now on (a node in
+    /// a cluster relays it to the others).
+    pub fn relay_local(&self) {
+        let mut roster = self.roster();
+        if roster.local.is_none() {
+            roster.local = Some(Changes::default());
+        }
     }
 
-    /// Peers present.
+    /// What changed among the local peers since the last call (empty unless
+    /// [`Hub::relay_local`] was called).
+    pub fn take_local(&self) -> LocalChanges {
+        let mut roster = self.roster();
+        let Some(l) = roster.local.as_mut().map(std::mem::take) else {
+            return LocalChanges::default();
+        };
+        LocalChanges {
+            joined: l.joined.into_values().collect(),
+            left: l.left,
+            states: l.changed.into_values().collect(),
+        }
+    }
+
+    /// Every local peer and its latest state (the relay's periodic full message).
+    pub fn local_full(&self) -> (Vec<Peer>, Vec<PeerState>) {
+        let roster = self.roster();
+        roster
+            .members
+            .values()
+            .map(|m| (m.peer.clone(), m.state))
+            .unzip()
+    }
+
+    /// A peer on another node joined or was renamed (`peer.id` is its id here, at or above
+    /// [`REMOTE_IDS`]). False when the hub holds [`MAX_REMOTE`] remote peers already.
+    pub fn remote_join(&self, peer: Peer) -> bool {
+        let mut roster = self.roster();
+        let id = peer.id;
+        if id < REMOTE_IDS {
+            return false;
+        }
+        let full = roster.remote.len() >= MAX_REMOTE;
+        match roster.remote.get_mut(&id) {
+            Some(r) if r.peer == peer => return true,
+            Some(r) => r.peer = peer.clone(),
+            None if full => return false,
+            None => {
+                let state = PeerState {
+                    id,
+                    view: None,
+                    cursor: None,
+                };
+                roster.remote.insert(
+                    id,
+                    Remote {
+                        peer: peer.clone(),
+                        state,
+                    },
+                );
+            }
+        }
+        roster.joined(&peer, false);
+        true
+    }
+
+    /// A remote peer's latest view and cursor (ignored for an id the hub does not hold).
+    pub fn remote_update(&self, state: PeerState) {
+        let mut roster = self.roster();
+        let Some(r) = roster.remote.get_mut(&state.id) else {
+            return;
+        };
+        if r.state == state {
+            return;
+        }
+        r.state = state;
+        roster.changed(state, false);
+    }
+
+    /// A remote peer left (or its node went silent).
+    pub fn remote_leave(&self, id: PeerId) {
+        let mut roster = self.roster();
+        if roster.remote.remove(&id).is_some() {
+            roster.left(id, false);
+        }
+    }
+
+    /// Names of the peers present, here and on other nodes, in joining order (the scene list
+    /// shows them).
+    pub fn names(&self) -> Vec<String> {
+        self.roster().peers().map(|p| p.name.clone()).collect()
+    }
+
+    /// Peers connected to this node.
     pub fn len(&self) -> usize {
         self.roster().members.len()
     }
@@ -170,13 +339,23 @@ impl Hub {
         self.closed.store(true, Relaxed);
     }
 
+    pub fn is_closed(&self) -> bool {
+        self.closed.load(Relaxed)
+    }
+
+    /// How often the hub sends frames.
+    pub fn interval(&self) -> Duration {
+        self.interval
+    }
+
     /// One tick: sends what changed to every peer that keeps up, a full frame to each stale
     /// peer whose queue has drained. Returns the bytes queued.
     pub fn tick(&self, metrics: &Metrics) -> usize {
         let mut roster = self.roster();
-        let joined: Vec<Peer> = std::mem::take(&mut roster.joined).into_values().collect();
-        let left = std::mem::take(&mut roster.left);
-        let states: Vec<PeerState> = std::mem::take(&mut roster.changed).into_values().collect();
+        let pending = std::mem::take(&mut roster.pending);
+        let joined: Vec<Peer> = pending.joined.into_values().collect();
+        let left = pending.left;
+        let states: Vec<PeerState> = pending.changed.into_values().collect();
         let delta = if joined.is_empty() && left.is_empty() && states.is_empty() {
             None
         } else {
@@ -191,7 +370,9 @@ impl Hub {
             )
         };
         let mut sent = 0;
-        let Roster { members, .. } = &mut *roster;
+        let Roster {
+            members, remote, ..
+        } = &mut *roster;
         let needs_full = members
             .values()
             .any(|m| m.welcomed && m.stale && m.out.queued() <= MAX_QUEUED);
@@ -199,9 +380,17 @@ impl Hub {
             encode(
                 ServerMsg::Presence {
                     full: true,
-                    joined: members.values().map(|m| m.peer.clone()).collect(),
+                    joined: members
+                        .values()
+                        .map(|m| m.peer.clone())
+                        .chain(remote.values().map(|r| r.peer.clone()))
+                        .collect(),
                     left: Vec::new(),
-                    states: members.values().map(|m| m.state).collect(),
+                    states: members
+                        .values()
+                        .map(|m| m.state)
+                        .chain(remote.values().map(|r| r.state))
+                        .collect(),
                 },
                 metrics,
             )
@@ -231,6 +420,30 @@ impl Hub {
         Metrics::add(&metrics.presence_bytes, sent as u64);
         sent
     }
+}
+
+/// Checks a view and cursor: finite numbers, a direction with length, a cursor inside a scene of
+/// `size` with a radius up to `max_radius`. For clients' messages and for peers relayed from
+/// other nodes alike.
+pub fn check(
+    view: &Option<View>,
+    cursor: &Option<Cursor>,
+    size: [u32; 3],
+    max_radius: f32,
+) -> Result<(), Refusal> {
+    if view.as_ref().is_some_and(|v| !v.is_valid()) {
+        return Err(Refusal::NotFinite);
+    }
+    if let Some(c) = cursor {
+        if !c.radius.is_finite() {
+            return Err(Refusal::NotFinite);
+        }
+        let inside = (0..3).all(|i| c.voxel[i] < size[i]);
+        if !inside || c.radius < 0.0 || c.radius > max_radius {
+            return Err(Refusal::OutOfRange);
+        }
+    }
+    Ok(())
 }
 
 fn encode(msg: ServerMsg, metrics: &Metrics) -> Option<Bytes> {

@@ -238,19 +238,12 @@ impl Session<'_> {
     /// Checks a presence message: finite numbers, a direction with length, a cursor inside the
     /// scene with a radius the server allows.
     fn check_presence(&self, view: &Option<View>, cursor: &Option<Cursor>) -> Result<(), Refusal> {
-        if view.as_ref().is_some_and(|v| !v.is_valid()) {
-            return Err(Refusal::NotFinite);
-        }
-        if let Some(c) = cursor {
-            if !c.radius.is_finite() {
-                return Err(Refusal::NotFinite);
-            }
-            let inside = (0..3).all(|i| c.voxel[i] < self.scene.size[i]);
-            if !inside || c.radius < 0.0 || c.radius > self.scene.limits.max_brush_radius {
-                return Err(Refusal::OutOfRange);
-            }
-        }
-        Ok(())
+        crate::presence::check(
+            view,
+            cursor,
+            self.scene.size,
+            self.scene.limits.max_brush_radius,
+        )
     }
 
     fn refuse(&self, reason: Refusal) {

@@ -9,6 +9,7 @@
 //!   down, no edit is applied twice or lost;
 //! * SIGKILL and restart of `nats-server` under load: nothing acknowledged is lost;
 //! * a node joining late syncs from the snapshot and the rest of the log;
+//! * people on different nodes see each other (presence), and a dead node's people go;
 //! * bad input: an unreachable NATS, one without JetStream, a node name in use, a corrupt log
 //!   message.
 
@@ -23,7 +24,7 @@ use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
 use brickcast_protocol::Colour;
-use brickcast_protocol::wire::{EditOp, ServerMsg};
+use brickcast_protocol::wire::{ClientMsg, Cursor, EditOp, ServerMsg, View};
 use common::{Client, colour, http_get};
 
 fn free_port() -> u16 {
@@ -840,4 +841,97 @@ async fn undo_goes_through_any_node_and_survives_a_failover() {
     c.catch_up(s).await;
     assert_eq!(c.map.get(spot(0, 0)), Some(colour(1)), "and redone");
     assert!(nodes[other].owns().await);
+}
+
+/// Whether `c`'s roster shows someone named `name`.
+fn sees(c: &Client, name: &str) -> bool {
+    c.roster.others.values().any(|p| p.peer.name == name)
+}
+
+/// Reads `c` until `check` holds, within `within`.
+async fn wait_for(c: &mut Client, within: Duration, check: impl Fn(&Client) -> bool) -> bool {
+    if check(c) {
+        return true;
+    }
+    tokio::time::timeout(within, c.until(|c, _| check(c)))
+        .await
+        .unwrap_or(false)
+}
+
+/// People connected to different nodes see each other: who is here, where they look and point,
+/// renames and leaves. When a node dies, its people leave everyone else's roster.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn people_on_different_nodes_see_each_other() {
+    let nats = Nats::start(true);
+    let mut nodes = [
+        Node::start(&nats.url(), "a", &[]).await,
+        Node::start(&nats.url(), "b", &[]).await,
+    ];
+    let within = Duration::from_secs(15);
+    let mut alice = Client::as_user(&nodes[0].url(), None, 0xa11ce, "alice")
+        .await
+        .unwrap();
+    alice.sync().await;
+    let mut bob = Client::as_user(&nodes[1].url(), None, 0xb0b, "bob")
+        .await
+        .unwrap();
+    bob.sync().await;
+    assert!(wait_for(&mut bob, within, |c| sees(c, "alice")).await);
+    assert!(wait_for(&mut alice, within, |c| sees(c, "bob")).await);
+
+    // A client arriving later is told about both in its Welcome.
+    let mut dan = Client::as_user(&nodes[1].url(), None, 0xda, "dan")
+        .await
+        .unwrap();
+    assert!(sees(&dan, "alice") && sees(&dan, "bob"), "{:?}", dan.roster);
+    dan.sync().await;
+
+    let view = View {
+        eye: [64.0, 80.0, -20.0],
+        forward: [0.0, -0.5, 1.0],
+    };
+    let cursor = Cursor {
+        voxel: [64, 20, 64],
+        radius: 3.0,
+    };
+    alice
+        .send(&ClientMsg::Presence {
+            view: Some(view),
+            cursor: Some(cursor),
+        })
+        .await;
+    let looks = |c: &Client| {
+        c.roster.others.values().any(|p| {
+            p.peer.name == "alice" && p.state.view == Some(view) && p.state.cursor == Some(cursor)
+        })
+    };
+    assert!(wait_for(&mut bob, within, looks).await, "{:?}", bob.roster);
+    alice
+        .send(&ClientMsg::Rename {
+            name: "Alice".into(),
+        })
+        .await;
+    assert!(wait_for(&mut bob, within, |c| sees(c, "Alice") && !sees(c, "alice")).await);
+    // The scene list of a node shows people on the other nodes too.
+    let (_, page) = http_get(nodes[1].addr, "/").await;
+    assert!(page.contains("Alice"), "{page}");
+
+    alice.close().await;
+    assert!(wait_for(&mut bob, within, |c| !sees(c, "Alice")).await);
+
+    // A node dies: its people go from the others' rosters once it has been silent a while.
+    let mut carol = Client::as_user(&nodes[0].url(), None, 0xca201, "carol")
+        .await
+        .unwrap();
+    carol.sync().await;
+    assert!(wait_for(&mut bob, within, |c| sees(c, "carol")).await);
+    nodes[0].kill();
+    let killed = Instant::now();
+    assert!(wait_for(&mut bob, within, |c| !sees(c, "carol")).await);
+    let gone = killed.elapsed();
+    assert!(gone < Duration::from_secs(8), "carol stayed {gone:?}");
+    assert!(sees(&bob, "dan"), "people on the surviving node stay");
+    let relayed = nodes[1].metric("cluster_presence_relayed_total").await;
+    assert!(relayed > 0, "node b published no presence");
+    assert_eq!(nodes[1].metric("cluster_presence_refused_total").await, 0);
 }

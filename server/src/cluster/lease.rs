@@ -86,6 +86,13 @@ pub async fn start_scene(
         broken.clone(),
         shutdown.clone(),
     ));
+    super::presence::start(
+        cluster.client.clone(),
+        node.to_string(),
+        &handle,
+        metrics.clone(),
+        shutdown.clone(),
+    );
     tokio::spawn(hold_lease(LeaseTask {
         scene: handle.clone(),
         owners: cluster.owners.clone(),

@@ -12,6 +12,8 @@
 //!   forwarded edits while leading, the log follower, and the reply publisher.
 //! * `forward.rs` — sessions send edits to whichever node owns the scene.
 //! * `answered.rs` — which forwarded requests were answered, so a retry applies once.
+//! * `presence.rs` — people on different nodes see each other (core NATS, lossy, repaired by
+//!   a full roster every second).
 //! * `status.rs` — `brickcast-server cluster status`.
 //!
 //! NATS layout (names in [`log`]): key-value buckets `brickcast_owners` (scene → owner node,
@@ -19,12 +21,13 @@
 //! running instance, expiring after [`NODE_TTL`]), `brickcast_scenes` (scene → size: the
 //! cluster's scene list); object store `brickcast_snapshots` (scene → newest snapshot); one
 //! stream `BRICKCAST_LOG_<scene>` per scene; core subjects `brickcast.edit.<scene>` for
-//! forwarded edits.
+//! forwarded edits and `brickcast.presence.<scene>` for presence.
 
 mod answered;
 pub mod forward;
 mod lease;
 pub mod log;
+pub mod presence;
 pub mod status;
 
 use std::time::Duration;
