@@ -829,11 +829,28 @@ impl JetLog {
             &self.steps,
             self.answered.entries(),
         );
-        let bytes = encode_snapshot(&body).map_err(StoreError::Cluster)?;
         let store = self.h.snapshots.clone();
         let stream = self.stream.clone();
         let scene = self.scene.clone();
+        // The owner thread only copies the bricks; encoding and compressing the whole scene
+        // (the larger part: seconds for a big scene) runs off it, so edits keep flowing.
         self.uploading = Some(self.h.rt.spawn(async move {
+            let encoded = tokio::task::spawn_blocking(move || {
+                let bytes = encode_snapshot(&body);
+                (body, bytes)
+            })
+            .await;
+            let (body, bytes) = match encoded {
+                Ok((body, Ok(bytes))) => (body, bytes),
+                Ok((_, Err(e))) => {
+                    tracing::error!(scene = %scene, error = %e, "cannot encode a snapshot; the log keeps everything");
+                    return;
+                }
+                Err(e) => {
+                    tracing::error!(scene = %scene, error = %e, "encoding a snapshot failed; the log keeps everything");
+                    return;
+                }
+            };
             if let Err(e) = put_snapshot(&store, &scene, &body, bytes).await {
                 tracing::warn!(scene = %scene, error = %e, "snapshot not written; the log keeps everything");
                 return;
