@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use std::collections::HashMap;
 
-use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, PeerId, Role, ServerMsg, View};
+use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, ServerMsg, View};
 use futures_util::FutureExt;
 use tokio::sync::{mpsc, watch};
 
@@ -99,11 +99,11 @@ pub struct Live {
 }
 
 /// Presence messages a client sent, for timing when the others see them: the message's number
-/// travels in its view (`eye[0]`), the send time stays here.
+/// and the sender's client index travel in its view (`eye[0]`, `eye[1]`), the send time stays
+/// here. The index, not the server's peer id: in a cluster each node shows a peer under an id
+/// of its own.
 #[derive(Default)]
 pub struct PresenceBoard {
-    /// Server peer id → client index.
-    peers: Mutex<HashMap<PeerId, usize>>,
     /// Per client: (message number, sent), the last few.
     sent: Vec<Mutex<VecDeque<(u32, Instant)>>>,
 }
@@ -114,16 +114,8 @@ const PRESENCE_REMEMBERED: usize = 64;
 impl PresenceBoard {
     fn new(connections: usize) -> PresenceBoard {
         PresenceBoard {
-            peers: Mutex::default(),
             sent: (0..connections).map(|_| Mutex::default()).collect(),
         }
-    }
-
-    fn register(&self, peer: PeerId, index: usize) {
-        self.peers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(peer, index);
     }
 
     fn sent(&self, index: usize, number: u32, at: Instant) {
@@ -134,14 +126,19 @@ impl PresenceBoard {
         sent.push_back((number, at));
     }
 
-    /// When peer `peer` sent its message `number`, if remembered.
-    fn sent_at(&self, peer: PeerId, number: u32) -> Option<(usize, Instant)> {
-        let index = *self
-            .peers
+    /// Which client sent the presence `view` and when, if it is one of ours and remembered.
+    fn sent_at(&self, view: &View) -> Option<(usize, Instant)> {
+        let [number, index, zero] = view.eye;
+        let whole = |v: f32| v >= 0.0 && v.fract() == 0.0 && v < 16_777_216.0;
+        if !(whole(number) && whole(index) && zero == 0.0) {
+            return None;
+        }
+        let (number, index) = (number as u32, index as usize);
+        let sent = self
+            .sent
+            .get(index)?
             .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(&peer)?;
-        let sent = self.sent[index].lock().unwrap_or_else(|e| e.into_inner());
+            .unwrap_or_else(|e| e.into_inner());
         sent.iter()
             .find(|(n, _)| *n == number)
             .map(|&(_, at)| (index, at))
@@ -155,7 +152,15 @@ pub struct Shared {
     pub live: Live,
     pub cache: DeltaCache,
     pub presence: PresenceBoard,
+    /// Clients connecting and syncing now are bounded by this (see [`SETUP_AT_ONCE`]).
+    pub setup: tokio::sync::Semaphore,
 }
+
+/// Clients that connect and sync at the same time. Hundreds at once split the server's and
+/// the generator's time so finely that one client can wait past its Welcome timeout although
+/// the scene is fine; in waves, every client's sync is quick, and the whole setup takes about
+/// as long (it is the same work).
+pub const SETUP_AT_ONCE: usize = 64;
 
 impl Shared {
     pub fn new(connections: usize) -> Shared {
@@ -164,6 +169,7 @@ impl Shared {
             live: Live::default(),
             cache: DeltaCache::default(),
             presence: PresenceBoard::new(connections),
+            setup: tokio::sync::Semaphore::new(SETUP_AT_ONCE),
         }
     }
 
@@ -375,6 +381,8 @@ impl Client {
         // Connect and sync, unless the run is aborted meanwhile.
         let mut abort = self.control.clone();
         let setup = async {
+            // Never closed: `acquire` cannot fail.
+            let _turn = self.shared.setup.acquire().await.ok();
             let mut link = Link::connect(
                 &self.plan.url,
                 &name,
@@ -384,7 +392,6 @@ impl Client {
             )
             .await?;
             let welcome = link.welcome.clone();
-            self.shared.presence.register(welcome.you.id, index);
             if self.plan.editor.is_some() && welcome.role != Role::Editor {
                 return Err(ClientError::NotEditor(welcome.role));
             }
@@ -673,7 +680,7 @@ impl Client {
                 for state in states {
                     let Some(view) = state.view else { continue };
                     let number = view.eye[0] as u32;
-                    let Some((from, sent)) = self.shared.presence.sent_at(state.id, number) else {
+                    let Some((from, sent)) = self.shared.presence.sent_at(&view) else {
                         continue;
                     };
                     if from == self.plan.index {
