@@ -126,8 +126,9 @@ impl PresenceBoard {
         sent.push_back((number, at));
     }
 
-    /// Which client sent the presence `view` and when, if it is one of ours and remembered.
-    fn sent_at(&self, view: &View) -> Option<(usize, Instant)> {
+    /// Which client sent the presence `view`, its message number and when, if it is one of
+    /// ours and remembered.
+    fn sent_at(&self, view: &View) -> Option<(usize, u32, Instant)> {
         let [number, index, zero] = view.eye;
         let whole = |v: f32| v >= 0.0 && v.fract() == 0.0 && v < 16_777_216.0;
         if !(whole(number) && whole(index) && zero == 0.0) {
@@ -141,7 +142,7 @@ impl PresenceBoard {
             .unwrap_or_else(|e| e.into_inner());
         sent.iter()
             .find(|(n, _)| *n == number)
-            .map(|&(_, at)| (index, at))
+            .map(|&(_, at)| (index, number, at))
     }
 }
 
@@ -679,8 +680,7 @@ impl Client {
             ServerMsg::Presence { states, .. } => {
                 for state in states {
                     let Some(view) = state.view else { continue };
-                    let number = view.eye[0] as u32;
-                    let Some((from, sent)) = self.shared.presence.sent_at(&view) else {
+                    let Some((from, number, sent)) = self.shared.presence.sent_at(&view) else {
                         continue;
                     };
                     if from == self.plan.index {
