@@ -22,18 +22,18 @@ pub mod metrics;
 pub mod presence;
 pub mod record;
 pub mod scene;
+pub mod served;
 pub mod session;
 #[cfg(test)]
 mod sim;
 pub mod store;
 pub mod web;
 
-use std::collections::BTreeMap;
 use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use anyhow::Context;
@@ -104,7 +104,12 @@ pub struct ClusterConfig {
     pub node: Option<String>,
     /// Copies JetStream keeps of the streams and buckets this node creates.
     pub replicas: usize,
+    /// A scene nobody on this node used for this long is closed here (zero: never).
+    pub close_idle: Duration,
 }
+
+/// Default of [`ClusterConfig::close_idle`].
+pub const CLOSE_IDLE: Duration = Duration::from_secs(60);
 
 impl ServerConfig {
     pub fn new(listen: SocketAddr, data: PathBuf) -> ServerConfig {
@@ -126,14 +131,15 @@ impl ServerConfig {
 struct Node {
     cluster: cluster::Cluster,
     name: String,
+    close_idle: Duration,
     registration: tokio::task::JoinHandle<()>,
 }
 
 /// State shared by the HTTP handlers and sessions.
 pub struct App {
-    /// Served scenes. Written only when an imported scene arrives through the spool, so a
-    /// read lock held for a lookup costs nothing in practice.
-    scenes: RwLock<BTreeMap<String, SceneHandle>>,
+    /// Served scenes: every scene of the store (one node), or those someone here uses
+    /// (cluster, see `served`).
+    scenes: served::Served,
     /// Owner threads, joined at shutdown (scenes added while running included).
     owners: Mutex<Vec<std::thread::JoinHandle<()>>>,
     /// The redb store (one node), or the cluster this node belongs to.
@@ -175,22 +181,30 @@ impl App {
         SessionGuard(self.sessions.clone())
     }
 
+    /// A scene served now (a cluster node may also serve it on demand: [`App::open_scene`]).
     pub fn scene(&self, name: &str) -> Option<SceneHandle> {
-        self.read_scenes().get(name).cloned()
+        self.scenes.get(name)
     }
 
-    /// Every served scene, by name.
+    /// Every scene served now, by name.
     pub fn scene_list(&self) -> Vec<(String, SceneHandle)> {
-        self.read_scenes()
-            .iter()
-            .map(|(n, h)| (n.clone(), h.clone()))
-            .collect()
+        self.scenes.list()
     }
 
-    fn read_scenes(&self) -> std::sync::RwLockReadGuard<'_, BTreeMap<String, SceneHandle>> {
-        // A panic while holding the lock cannot leave the map half-written (inserts are one
-        // call), so a poisoned lock is still a good map.
-        self.scenes.read().unwrap_or_else(|e| e.into_inner())
+    /// Every scene served now or (cluster) known to the cluster, by name.
+    pub fn catalog(&self) -> Vec<served::Listed> {
+        self.scenes.catalog()
+    }
+
+    /// Whether there is such a scene, served or (cluster) in the cluster's scene list.
+    pub async fn has_scene(&self, name: &str) -> bool {
+        if self.scenes.knows(name) {
+            return true;
+        }
+        match &self.node {
+            Some(node) => matches!(node.cluster.scene_entry(name).await, Ok(Some(_))),
+            None => false,
+        }
     }
 
     /// Starts serving a recovered scene: spawns its owner and makes it reachable.
@@ -207,15 +221,18 @@ impl App {
             self.owner_config.clone(),
             tokio::runtime::Handle::current(),
         )?;
-        self.serve_scene(name, handle, thread);
+        self.serve_scene(name, handle, thread, None);
         Ok(())
     }
 
-    fn serve_scene(&self, name: String, handle: SceneHandle, thread: std::thread::JoinHandle<()>) {
-        self.scenes
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(name, handle);
+    fn serve_scene(
+        &self,
+        name: String,
+        handle: SceneHandle,
+        thread: std::thread::JoinHandle<()>,
+        close: Option<Arc<watch::Sender<bool>>>,
+    ) {
+        self.scenes.insert(name, handle, close);
         self.owners
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -223,13 +240,14 @@ impl App {
     }
 
     /// Cluster: loads a scene from the cluster and serves it (following its log; the lease
-    /// decides whether this node orders its edits).
+    /// decides whether this node orders its edits) until it closes (see `served`).
     async fn add_cluster_scene(&self, name: String) -> anyhow::Result<()> {
         let node = self.node.as_ref().context("not a cluster node")?;
         let loaded = cluster::log::load(&node.cluster.handles(&node.name), &name)
             .await
             .with_context(|| format!("loading scene {name} from the cluster"))?;
         tracing::info!(scene = %name, seq = loaded.loaded.seq, replayed = loaded.loaded.replayed, pos = loaded.pos, "scene loaded from the cluster");
+        let (close, closed) = served::close_signal(&self.shutdown);
         let (handle, thread) = cluster::start_scene(
             &node.cluster,
             &node.name,
@@ -237,33 +255,11 @@ impl App {
             loaded,
             self.metrics.clone(),
             self.owner_config.clone(),
-            self.shutdown.clone(),
+            closed,
         )
         .await?;
-        self.serve_scene(name, handle, thread);
+        self.serve_scene(name, handle, thread, Some(close));
         Ok(())
-    }
-
-    /// Cluster: serves scenes added to the cluster (`import --nats`) while running.
-    async fn watch_cluster_scenes(self: Arc<Self>) {
-        let mut shutdown = self.shutdown.clone();
-        while wait_or_shutdown(&mut shutdown, CLUSTER_POLL).await {
-            let Some(node) = &self.node else { return };
-            let names = match node.cluster.scene_names().await {
-                Ok(names) => names,
-                Err(e) => {
-                    tracing::warn!(error = %e, "cannot list the cluster's scenes");
-                    continue;
-                }
-            };
-            for name in names {
-                if self.scene(&name).is_none()
-                    && let Err(e) = self.add_cluster_scene(name.clone()).await
-                {
-                    tracing::warn!(scene = %name, error = %format!("{e:#}"), "cannot serve a scene of the cluster");
-                }
-            }
-        }
     }
 
     /// This node's name in a cluster.
@@ -334,7 +330,7 @@ pub struct Server {
 impl Server {
     /// Opens the store (creating the demo scene if it holds none), recovers every scene, starts
     /// their owners and binds the listener. With `config.cluster`, joins the cluster instead:
-    /// every scene of the cluster is loaded from NATS and followed.
+    /// scenes open when someone asks for them (see `served`).
     pub async fn bind(config: ServerConfig) -> anyhow::Result<Server> {
         if config.cluster.is_some() {
             return Server::bind_cluster(config).await;
@@ -376,7 +372,7 @@ impl Server {
     ) -> Server {
         let (shutdown, shutdown_rx) = watch::channel(false);
         let app = Arc::new(App {
-            scenes: RwLock::new(BTreeMap::new()),
+            scenes: served::Served::default(),
             owners: Mutex::new(Vec::new()),
             store,
             node,
@@ -430,12 +426,12 @@ impl Server {
         let node = Node {
             cluster: cluster.clone(),
             name,
+            close_idle: cc.close_idle,
             registration,
         };
+        // Scenes open when someone asks for them (see `served`).
         let server = Server::new(listener, config, None, Some(node));
-        for name in cluster.scene_names().await? {
-            server.app.add_cluster_scene(name).await?;
-        }
+        server.app.refresh_known(&cluster).await?;
         Ok(server)
     }
 
@@ -456,8 +452,8 @@ impl Server {
             shutdown,
             http: http_config,
         } = self;
-        let spool = if app.node.is_some() {
-            tokio::spawn(app.clone().watch_cluster_scenes())
+        let spool = if let Some(node) = &app.node {
+            tokio::spawn(app.clone().tend_cluster_scenes(node.close_idle))
         } else {
             tokio::spawn(app.clone().watch_spool())
         };
@@ -536,6 +532,11 @@ async fn metrics_text(State(app): State<Arc<App>>) -> Response {
         "Websocket connections admitted and not yet closed.",
         app.connections.open() as u64,
     );
+    gauge(
+        "scenes_open",
+        "Scenes this server serves now (a cluster node: those someone here used lately).",
+        app.scene_list().len() as u64,
+    );
     if let Some(rss) = metrics::resident_bytes() {
         gauge(
             "process_resident_bytes",
@@ -572,12 +573,13 @@ async fn metrics_text(State(app): State<Arc<App>>) -> Response {
 
 async fn scene_list(State(app): State<Arc<App>>) -> Response {
     let list: Vec<_> = app
-        .scene_list()
+        .catalog()
         .into_iter()
-        .map(|(name, s)| {
-            serde_json::json!({
-                "name": name,
+        .map(|listed| match listed.handle {
+            Some(s) => serde_json::json!({
+                "name": listed.name,
                 "size": s.size,
+                "open": true,
                 "seq": s.info.seq.load(Relaxed),
                 "bricks": s.info.bricks.load(Relaxed),
                 "voxels": s.info.voxels.load(Relaxed),
@@ -585,7 +587,15 @@ async fn scene_list(State(app): State<Arc<App>>) -> Response {
                 "gpu_bytes": s.info.gpu_bytes.load(Relaxed),
                 "node": app.node_name(),
                 "owned_here": s.info.leading.load(Relaxed),
-            })
+            }),
+            // Cluster: a scene nobody uses on this node (it opens when someone does).
+            None => serde_json::json!({
+                "name": listed.name,
+                "size": listed.size,
+                "open": false,
+                "node": app.node_name(),
+                "owned_here": false,
+            }),
         })
         .collect();
     axum::Json(list).into_response()
@@ -598,9 +608,9 @@ async fn websocket(
     ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
 ) -> Response {
     // Unknown scenes are a 404 whether or not the request is a websocket upgrade.
-    let Some(scene) = app.scene(&name) else {
+    if !app.has_scene(&name).await {
         return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
-    };
+    }
     let ws = match ws {
         Ok(ws) => ws,
         Err(rejection) => return rejection.into_response(),
@@ -616,6 +626,14 @@ async fn websocket(
             return (StatusCode::SERVICE_UNAVAILABLE, format!("{refusal}\n")).into_response();
         }
     };
+    // Only an admitted websocket opens a scene a cluster node does not serve yet.
+    let (scene, using) = match app.open_scene(&name).await {
+        Ok(Some(found)) => found,
+        Ok(None) => {
+            return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
+        }
+        Err(e) => return (StatusCode::SERVICE_UNAVAILABLE, format!("{e}\n")).into_response(),
+    };
     // Accept frames a little over the limit so the session can answer them with a clean
     // FrameTooLarge error instead of a dropped connection.
     let max = scene.limits.max_frame_bytes as usize + (64 << 10);
@@ -623,6 +641,6 @@ async fn websocket(
         .max_frame_size(max)
         .on_upgrade(move |socket| async move {
             session::run(socket, scene, app).await;
-            drop(admitted);
+            drop((admitted, using));
         })
 }

@@ -92,7 +92,9 @@ enum ClusterCmd {
 }
 
 fn main() -> anyhow::Result<()> {
+    // Logs go to stderr: stdout carries what a command prints (`--json` output included).
     tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
         )
@@ -266,6 +268,19 @@ struct ServeArgs {
     /// 3 on a JetStream cluster of three servers (README, "Running a cluster").
     #[arg(long, default_value_t = 1, requires = "nats", value_parser = clap::value_parser!(u8).range(1..=5))]
     replicas: u8,
+    /// Seconds a scene nobody on this node uses stays open here (0: never close). A cluster
+    /// node opens a scene when someone asks for it and closes it after this; a lease it held
+    /// goes at once to a node with people on the scene.
+    #[arg(long, default_value_t = brickcast_server::CLOSE_IDLE.as_secs_f64(), requires = "nats", value_parser = zero_or_seconds)]
+    close_idle: f64,
+}
+
+/// A clap parser for zero or a positive, finite number of seconds.
+fn zero_or_seconds(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(0.0) => Ok(0.0),
+        _ => positive_seconds(text),
+    }
 }
 
 /// A clap parser for a positive, finite number of seconds.
@@ -294,6 +309,7 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
             url,
             node: args.node,
             replicas: usize::from(args.replicas),
+            close_idle: Duration::from_secs_f64(args.close_idle),
         });
         if let Some(path) = args.auth {
             config.auth = Auth::from_file(&path)?;

@@ -169,6 +169,10 @@ pub struct Metrics {
     pub turns_replicated: AtomicU64,
     pub takeovers: AtomicU64,
     pub stepdowns: AtomicU64,
+    /// Cluster: scenes this node opened because someone asked for them, and closed after
+    /// nobody here used them for a while (see `crate::served`).
+    pub scene_opens: AtomicU64,
+    pub scene_closes: AtomicU64,
     commit_buckets: [AtomicU64; COMMIT_BUCKETS_US.len()],
     commit_sum_us: AtomicU64,
     /// Owner turns (one group commit each, when they carried edits).
@@ -338,6 +342,16 @@ impl Metrics {
                 "cluster_stepdowns_total",
                 "Times this node stopped ordering a scene's edits: lease lost, another node appended, or an append refused (cluster).",
                 &self.stepdowns,
+            ),
+            (
+                "cluster_scene_opens_total",
+                "Scenes this node loaded from the cluster because a client or page asked for them (cluster).",
+                &self.scene_opens,
+            ),
+            (
+                "cluster_scene_closes_total",
+                "Scenes this node closed after nobody here used them for --close-idle (cluster).",
+                &self.scene_closes,
             ),
             (
                 "presence_frames_total",

@@ -132,23 +132,33 @@ async fn index(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
         .and_then(|h| h.to_str().ok())
         .unwrap_or("HOST:7878")
         .to_string();
-    let scenes = app.scene_list();
+    let scenes = app.catalog();
     let rows: Vec<String> = scenes
         .iter()
-        .map(|(name, s)| {
-            let [x, y, z] = s.size;
-            let who = s.presence.names();
-            let here = match who.len() {
-                0 => "nobody here".to_string(),
-                n => format!("{n} here: {}", who.join(", ")),
+        .map(|listed| {
+            let [x, y, z] = listed.size;
+            // A cluster node knows who is in a scene only while it serves the scene.
+            let (figures, here) = match &listed.handle {
+                Some(s) => {
+                    let who = s.presence.names();
+                    let here = match who.len() {
+                        0 => "nobody here".to_string(),
+                        n => format!("{n} here: {}", who.join(", ")),
+                    };
+                    let figures = format!(
+                        " · {} voxels · {} bricks",
+                        s.info.voxels.load(Relaxed),
+                        s.info.bricks.load(Relaxed)
+                    );
+                    (figures, here)
+                }
+                None => (String::new(), "not open on this node".to_string()),
             };
-            let name_html = escape(name);
+            let name_html = escape(&listed.name);
             format!(
                 "<li><a href=\"/scenes/{name_html}\"><img src=\"/scenes/{name_html}/thumb.png\" alt=\"{name_html}\" loading=\"lazy\"></a>\
                  <div class=\"meta\"><a class=\"name\" href=\"/scenes/{name_html}\">{name_html}</a><br>\
-                 {x}×{y}×{z} · {} voxels · {} bricks<br>{}</div></li>",
-                s.info.voxels.load(Relaxed),
-                s.info.bricks.load(Relaxed),
+                 {x}×{y}×{z}{figures}<br>{}</div></li>",
                 escape(&here)
             )
         })
@@ -173,7 +183,7 @@ async fn index(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
 }
 
 async fn viewer(State(app): State<Arc<App>>, Path(name): Path<String>) -> Response {
-    if app.scene(&name).is_none() {
+    if !app.has_scene(&name).await {
         let page = format!(
             "<!doctype html><meta charset=\"utf-8\"><title>No such scene · brickcast</title>\
              <link rel=\"stylesheet\" href=\"/assets/style.css?v={}\"><body class=\"list\">\
@@ -232,10 +242,9 @@ async fn asset(Path(file): Path<String>, headers: HeaderMap) -> Response {
 }
 
 async fn thumbnail(State(app): State<Arc<App>>, Path(name): Path<String>) -> Response {
-    let Some(scene) = app.scene(&name) else {
-        return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
-    };
-    let seq = scene.info.seq.load(Relaxed);
+    // A cluster node draws a scene it does not serve by opening it (it closes again when
+    // nobody uses it); a fresh enough picture is served without.
+    let seq = app.scene(&name).map(|s| s.info.seq.load(Relaxed));
     let png = |png: Bytes| {
         (
             [
@@ -253,11 +262,18 @@ async fn thumbnail(State(app): State<Arc<App>>, Path(name): Path<String>) -> Res
             .lock()
             .unwrap_or_else(|e| e.into_inner());
         if let Some(t) = cache.get(&name)
-            && (t.seq == seq || t.at.elapsed() < THUMBNAIL_EVERY)
+            && (Some(t.seq) == seq || t.at.elapsed() < THUMBNAIL_EVERY)
         {
             return png(t.png.clone());
         }
     }
+    let (scene, _using) = match app.open_scene(&name).await {
+        Ok(Some(found)) => found,
+        Ok(None) => {
+            return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
+        }
+        Err(e) => return (StatusCode::SERVICE_UNAVAILABLE, format!("{e}\n")).into_response(),
+    };
     let (done, rendered) = oneshot::channel();
     let (width, height) = THUMBNAIL_SIZE;
     if scene

@@ -122,8 +122,20 @@ fn signal(child: &Child, sig: i32) {
 }
 
 impl Node {
-    /// Starts a node and waits until it answers HTTP.
+    /// Starts a node, waits until it answers HTTP, and opens the demo scene on it the way
+    /// people do (a client joins and leaves): nodes open scenes on demand.
     async fn start(nats: &str, name: &str, extra: &[&str]) -> Node {
+        let node = Node::start_bare(nats, name, extra).await;
+        let mut c = Client::connect(&node.url(), None)
+            .await
+            .unwrap_or_else(|e| panic!("node {name} serves no demo scene: {e:?}"));
+        c.sync().await;
+        c.close().await;
+        node
+    }
+
+    /// Starts a node and waits until it answers HTTP.
+    async fn start_bare(nats: &str, name: &str, extra: &[&str]) -> Node {
         let node = Node::spawn(nats, name, extra);
         let deadline = Instant::now() + Duration::from_secs(60);
         loop {
@@ -223,15 +235,27 @@ impl Node {
 
     /// Whether this node owns the demo scene now (from `/scenes`).
     async fn owns(&self) -> bool {
+        self.demo_entry().await["owned_here"] == true
+    }
+
+    /// Whether this node serves the demo scene now (from `/scenes`).
+    async fn serves(&self) -> bool {
+        self.demo_entry().await["open"] == true
+    }
+
+    /// What `/scenes` says of the demo scene (null when it does not list it).
+    async fn demo_entry(&self) -> serde_json::Value {
         let (status, body) = http_get(self.addr, "/scenes").await;
         if status != 200 {
-            return false;
+            return serde_json::Value::Null;
         }
         let list: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
         list.as_array()
             .into_iter()
             .flatten()
-            .any(|s| s["name"] == "demo" && s["owned_here"] == true)
+            .find(|s| s["name"] == "demo")
+            .cloned()
+            .unwrap_or_default()
     }
 
     /// A counter from `/metrics`.
@@ -797,8 +821,22 @@ async fn a_log_with_a_gap_is_refused() {
     let last = stream.get_info().await.unwrap().state.last_sequence;
     // Drop everything before the last message: no snapshot covers it.
     stream.purge().sequence(last).await.unwrap();
-    let mut late = Node::spawn(&nats.url(), "late", &[]);
-    assert_refused(&mut late, "are missing");
+    // The node runs, but does not serve the scene: a client is told why, and so is the log.
+    let late = Node::start_bare(&nats.url(), "late", &[]).await;
+    match tokio_tungstenite::connect_async(late.url()).await {
+        Err(tokio_tungstenite::tungstenite::Error::Http(response)) => {
+            assert_eq!(response.status(), 503);
+            let body = String::from_utf8_lossy(response.body().as_deref().unwrap_or_default());
+            assert!(body.contains("are missing"), "{body}");
+        }
+        other => panic!(
+            "a scene with a gap in its log was served: {:?}",
+            other.map(|_| ())
+        ),
+    }
+    let text = late.log_text();
+    assert!(text.contains("are missing"), "{text}");
+    assert!(!late.serves().await);
 }
 
 /// Undo and redo travel to the owner like edits, and the history moves with the scene: after
@@ -934,4 +972,173 @@ async fn people_on_different_nodes_see_each_other() {
     let relayed = nodes[1].metric("cluster_presence_relayed_total").await;
     assert!(relayed > 0, "node b published no presence");
     assert_eq!(nodes[1].metric("cluster_presence_refused_total").await, 0);
+}
+
+/// Waits until `check` holds for `node`, or panics saying `what`.
+async fn until_node(node: &Node, within: Duration, what: &str, check: impl AsyncFn(&Node) -> bool) {
+    let deadline = Instant::now() + within;
+    while !check(node).await {
+        assert!(
+            Instant::now() < deadline,
+            "node {}: {what}\n{}",
+            node.name,
+            node.log_text()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// A node serves a scene while people on it use it: it opens the scene for the first client,
+/// closes it once nobody there used it for `--close-idle`, and a lease it held goes at once to
+/// a node that still has people on the scene. Nothing edited is lost across closes and opens.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn scenes_open_where_people_are_and_close_behind_them() {
+    let nats = Nats::start(true);
+    let idle = ["--close-idle", "1"];
+    let a = Node::start_bare(&nats.url(), "a", &idle).await;
+    let b = Node::start_bare(&nats.url(), "b", &idle).await;
+    let within = Duration::from_secs(20);
+    // Listed, but served by nobody yet.
+    for n in [&a, &b] {
+        let entry = n.demo_entry().await;
+        assert_eq!(entry["open"], false, "{entry}");
+        assert_eq!(n.metric("scenes_open").await, 0);
+    }
+    let (status, _) = http_get(a.addr, "/scenes/nothing-here/ws").await;
+    assert_eq!(status, 404);
+
+    // The first client opens it on a, and a takes the lease.
+    let mut on_a = Client::connect(&a.url(), None).await.unwrap();
+    on_a.sync().await;
+    until_node(&a, within, "a does not lead", async |n| n.owns().await).await;
+    assert!(!b.serves().await);
+    let mut on_b = Client::connect(&b.url(), None).await.unwrap();
+    on_b.sync().await;
+    assert!(b.serves().await);
+    let first = set(&mut on_b, spot(0, 0), 1).await;
+
+    // a's client leaves: a closes the scene and b, where people are, leads it.
+    on_a.close().await;
+    until_node(&a, within, "a still serves the scene", async |n| {
+        !n.serves().await
+    })
+    .await;
+    until_node(&a, within, "a did not count the close", async |n| {
+        n.metric("cluster_scene_closes_total").await == 1
+    })
+    .await;
+    until_node(&b, within, "b did not take the lease over", async |n| {
+        n.owns().await
+    })
+    .await;
+    let second = set(&mut on_b, spot(0, 1), 2).await;
+    assert!(second > first);
+    // b keeps the scene while its client stays, idle or not.
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    assert!(b.serves().await);
+
+    // Everyone leaves: nobody serves it; the next client opens it again with every edit.
+    on_b.close().await;
+    until_node(&b, within, "b still serves the scene", async |n| {
+        !n.serves().await
+    })
+    .await;
+    let mut back = Client::connect(&a.url(), None).await.unwrap();
+    back.sync().await;
+    assert_eq!(back.map.get(spot(0, 0)), Some(colour(1)));
+    assert_eq!(back.map.get(spot(0, 1)), Some(colour(2)));
+    until_node(&a, within, "a does not lead again", async |n| {
+        n.owns().await
+    })
+    .await;
+    assert!(set(&mut back, spot(0, 2), 3).await > second);
+    assert_eq!(a.metric("cluster_scene_opens_total").await, 2);
+}
+
+/// Snapshots after the first are deltas of the bricks and history changed since: a node that
+/// loads the scene from a base, its deltas and the log has every voxel and every undo step.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_scene_loads_from_a_base_and_its_deltas_with_its_history() {
+    let nats = Nats::start(true);
+    let mut a = Node::start(&nats.url(), "a", &["--snapshot-every", "0.2"]).await;
+    owner_of(&[&a], Duration::from_secs(20)).await;
+    let mut c = Client::as_user(&a.url(), None, 0x5eed, "sam")
+        .await
+        .unwrap();
+    c.sync().await;
+    // After each change, wait for a snapshot holding it: a base, then deltas.
+    let mut snapshots = a.metric("snapshots_total").await;
+    let mut snapshot_after = async |a: &Node| {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            let now = a.metric("snapshots_total").await;
+            if now > snapshots {
+                snapshots = now;
+                return;
+            }
+            assert!(Instant::now() < deadline, "no snapshot");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    };
+    set(&mut c, spot(0, 0), 1).await;
+    snapshot_after(&a).await;
+    set(&mut c, spot(0, 1), 2).await;
+    snapshot_after(&a).await;
+    match c.undo(false).await {
+        ServerMsg::Undone { seq: Some(s), .. } => c.catch_up(s).await,
+        other => panic!("{other:?}"),
+    }
+    snapshot_after(&a).await;
+    c.close().await;
+    let client = async_nats::connect(nats.url()).await.unwrap();
+    let store = async_nats::jetstream::new(client)
+        .get_object_store("brickcast_snapshots")
+        .await
+        .unwrap();
+    // The uploads finish after the counter moves.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while store.info("demo+2").await.is_err() {
+        assert!(Instant::now() < deadline, "no second delta was written");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let base = store.info("demo").await.unwrap().size;
+    let delta = store.info("demo+1").await.unwrap().size;
+    assert!(
+        delta * 10 < base,
+        "a delta of {delta} bytes on a base of {base}"
+    );
+    // `cluster status` counts them.
+    let out = Command::new(env!("CARGO_BIN_EXE_brickcast-server"))
+        .args(["cluster", "status", "--json", "--nats", &nats.url()])
+        .output()
+        .unwrap();
+    let status: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let demo = &status["scenes"][0];
+    assert_eq!(demo["name"], "demo");
+    assert!(demo["snapshot_deltas"].as_u64() >= Some(2), "{status}");
+    a.kill();
+
+    // A new node loads base + deltas + log, takes the scene, and has sam's history.
+    let b = Node::start(&nats.url(), "b", &[]).await;
+    let mut c = Client::as_user(&b.url(), None, 0x5eed, "sam")
+        .await
+        .unwrap();
+    c.sync().await;
+    assert_eq!(c.map.get(spot(0, 0)), Some(colour(1)));
+    assert_eq!(c.map.get(spot(0, 1)), None);
+    for (redo, pos, expect) in [
+        (false, spot(0, 0), None),
+        (true, spot(0, 0), Some(colour(1))),
+        (true, spot(0, 1), Some(colour(2))),
+    ] {
+        match c.undo(redo).await {
+            ServerMsg::Undone {
+                seq: Some(s),
+                restored: 1,
+                ..
+            } => c.catch_up(s).await,
+            other => panic!("redo {redo}: {other:?}"),
+        }
+        assert_eq!(c.map.get(pos), expect, "redo {redo} at {pos:?}");
+    }
 }

@@ -27,7 +27,8 @@ use crate::metrics::Metrics;
 use crate::scene::{self, Command, OwnerConfig, SceneCluster, SceneHandle};
 
 /// Starts serving a scene loaded from the cluster: its owner thread (following the log) and
-/// the lease, intake, follower and reply tasks, which end at `shutdown`.
+/// the lease, intake, follower and reply tasks, which end at `shutdown` (the server's, or the
+/// scene's close on this node).
 #[allow(clippy::too_many_arguments)]
 pub async fn start_scene(
     cluster: &Cluster,
@@ -245,8 +246,19 @@ async fn hold_lease(mut task: LeaseTask) {
             _ = task.shutdown.changed() => {}
         }
         if *task.shutdown.borrow() {
-            // The key expires by itself once the owner thread has stopped appending.
+            // The owner thread appends nothing more; a scene closed on this node (or a node
+            // shutting down) hands the lease over now rather than when it expires. An append
+            // still in flight is fenced by the log, whoever takes the key.
             task.clock.revoke();
+            if let Some(edits) = intake.take() {
+                edits.abort();
+            }
+            if let Some(revision) = held {
+                let _ = task
+                    .owners
+                    .delete_expect_revision(&task.scene.name, Some(revision))
+                    .await;
+            }
             return;
         }
         if let Some(mut revision) = held {

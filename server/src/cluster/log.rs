@@ -15,9 +15,10 @@
 //! boundaries (history in the last). A turn with no records is a lease marker: a new owner
 //! appends one first, so an owner that lost its lease finds its next append refused.
 //!
-//! **Snapshots** are whole: bricks, the scene sequence and stream position they cover, every
-//! user's undo stacks and step bodies. The owner encodes one on its thread, a task uploads it
-//! and only then purges the stream below it.
+//! **Snapshots** (`snapshot.rs`): a whole base, then deltas of the bricks changed since, each
+//! with the scene sequence and stream position it covers and the undo stacks. The owner thread
+//! only copies what a snapshot holds; a task encodes and uploads it and only then purges the
+//! stream below it.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
@@ -25,23 +26,21 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
 use async_nats::jetstream::{self, object_store::ObjectStore, stream::Stream};
+use brickcast_protocol::BrickMap;
 use brickcast_protocol::wire::UserId;
-use brickcast_protocol::{BrickMap, brick::BrickData};
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
-use tokio::io::AsyncReadExt;
 use tokio::sync::mpsc;
 
 use super::answered::{Answered, AnsweredEntry};
 use super::forward::ForwardReply;
+use super::snapshot;
 use crate::record::LogRecord;
 use crate::scene::history::{History, HistoryWrites, Stacks, StepMeta};
-use crate::store::{Loaded, SceneMeta, StoreError, decode_brick, encode_brick};
+use crate::store::{Loaded, SceneMeta, StoreError};
 
 /// First bytes of a turn message: a tag and the format version.
 const TURN_MAGIC: [u8; 2] = [b'T', 1];
-/// First bytes of a snapshot object.
-const SNAPSHOT_MAGIC: [u8; 2] = [b'S', 1];
 /// The most a turn or snapshot may decompress to: bounds what a corrupt message can allocate.
 const MAX_RAW: usize = 4 << 30;
 /// Room left in a message for headers and framing.
@@ -90,7 +89,7 @@ impl Turn {
 }
 
 /// `magic`, raw length (u64 LE), zstd of `raw`.
-fn pack(magic: [u8; 2], raw: &[u8]) -> Result<Vec<u8>, String> {
+pub(super) fn pack(magic: [u8; 2], raw: &[u8]) -> Result<Vec<u8>, String> {
     let packed = zstd::bulk::compress(raw, 1).map_err(|e| e.to_string())?;
     let mut out = Vec::with_capacity(packed.len() + 10);
     out.extend_from_slice(&magic);
@@ -99,7 +98,7 @@ fn pack(magic: [u8; 2], raw: &[u8]) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
-fn unpack(magic: [u8; 2], bytes: &[u8], what: &str) -> Result<Vec<u8>, String> {
+pub(super) fn unpack(magic: [u8; 2], bytes: &[u8], what: &str) -> Result<Vec<u8>, String> {
     if bytes.len() < 10 || bytes[..2] != magic {
         return Err(format!(
             "{what}: not a brickcast {what} (format {:?})",
@@ -116,26 +115,6 @@ fn unpack(magic: [u8; 2], bytes: &[u8], what: &str) -> Result<Vec<u8>, String> {
         return Err(format!("{what}: {} bytes, {len} declared", raw.len()));
     }
     Ok(raw)
-}
-
-/// A whole scene at one sequence, as the object store holds it.
-#[derive(Serialize, Deserialize)]
-struct SnapshotBody {
-    size: [u32; 3],
-    /// The scene sequence the bricks reflect.
-    seq: u64,
-    /// The stream sequence of the last turn the snapshot holds.
-    pos: u64,
-    /// Undo stacks: (user, step id, meta), and the step bodies.
-    history: Vec<(UserId, u64, StepMeta)>,
-    steps: Vec<(u64, Vec<u8>)>,
-    last_step_id: u64,
-    /// The answered forwarded requests (`answered.rs`).
-    answered: Vec<AnsweredEntry>,
-    /// Linear cells, and their bricks as the redb store's rows, back to back (a row's length
-    /// follows from its mask).
-    cells: Vec<u32>,
-    rows: Vec<u8>,
 }
 
 /// A turn cut into messages of at most `limit` bytes, at record boundaries (the history and
@@ -256,95 +235,38 @@ pub async fn create(h: &LogHandles, scene: &str, map: &BrickMap) -> Result<(), S
     })
     .await
     .map_err(|e| cluster(format!("creating the log stream: {e}")))?;
-    let body = snapshot_body(
-        map,
-        map.sequence(),
-        0,
-        &History::new(Vec::new(), 0, 1, 0),
-        &HashMap::new(),
-        Vec::new(),
-    );
-    let bytes = encode_snapshot(&body).map_err(cluster)?;
-    put_snapshot(&h.snapshots, scene, &body, bytes)
-        .await
-        .map_err(cluster)
+    let first = snapshot::first(map).encode(scene, None).map_err(cluster)?;
+    snapshot::put(&h.snapshots, &first).await.map_err(cluster)
 }
 
-fn snapshot_body(
-    map: &BrickMap,
-    seq: u64,
-    pos: u64,
-    history: &History,
-    steps: &HashMap<u64, Vec<u8>>,
-    answered: Vec<AnsweredEntry>,
-) -> SnapshotBody {
-    let mut cells = Vec::with_capacity(map.brick_count() as usize);
-    let mut rows = Vec::new();
-    let mut row = Vec::new();
-    for (brick, _) in map.bricks() {
-        cells.push(map.cell_index(brick.cell));
-        encode_brick(&brick.mask, &brick.colours, &mut row);
-        rows.extend_from_slice(&row);
-    }
-    let history_rows = history.rows();
-    let steps = history_rows
-        .iter()
-        .filter_map(|(_, id, _)| steps.get(id).map(|b| (*id, b.clone())))
-        .collect();
-    SnapshotBody {
-        size: map.size(),
-        seq,
-        pos,
-        history: history_rows,
-        steps,
-        last_step_id: history.last_id(),
-        answered,
-        cells,
-        rows,
-    }
-}
+/// How many times a load starts over when the snapshot moved on while it was read.
+const LOAD_ATTEMPTS: u32 = 5;
 
-fn encode_snapshot(body: &SnapshotBody) -> Result<Vec<u8>, String> {
-    let raw = bincode::serde::encode_to_vec(body, bincode::config::standard())
-        .map_err(|e| e.to_string())?;
-    pack(SNAPSHOT_MAGIC, &raw)
-}
-
-async fn put_snapshot(
-    store: &ObjectStore,
-    scene: &str,
-    body: &SnapshotBody,
-    bytes: Vec<u8>,
-) -> Result<(), String> {
-    let meta = jetstream::object_store::ObjectMetadata {
-        name: scene.to_string(),
-        description: Some(format!("seq={} pos={}", body.seq, body.pos)),
-        ..Default::default()
-    };
-    store
-        .put(meta, &mut bytes.as_slice())
-        .await
-        .map(|_| ())
-        .map_err(|e| format!("writing the snapshot: {e}"))
-}
-
-/// The snapshot's scene sequence and stream position, from its description (for `cluster
-/// status`, without downloading it).
-pub fn parse_description(description: &str) -> Option<(u64, u64)> {
-    let mut seq = None;
-    let mut pos = None;
-    for part in description.split_whitespace() {
-        if let Some(v) = part.strip_prefix("seq=") {
-            seq = v.parse().ok();
-        } else if let Some(v) = part.strip_prefix("pos=") {
-            pos = v.parse().ok();
+/// Loads a scene: its newest snapshot (base and deltas), then every turn after it, checked
+/// for gaps. A gap right after the snapshot, with a newer snapshot in the store by then, means
+/// the owner wrote one and trimmed the log while this node read: it reads again.
+pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreError> {
+    let mut attempt = 1;
+    loop {
+        let before = snapshot::newest(&h.snapshots, scene).await;
+        match load_once(h, scene).await {
+            Err(StoreError::Inconsistent { .. } | StoreError::Cluster(_))
+                if attempt < LOAD_ATTEMPTS
+                    && snapshot::newest(&h.snapshots, scene).await != before =>
+            {
+                tracing::info!(
+                    scene,
+                    attempt,
+                    "the snapshot moved on while the scene loaded; reading it again"
+                );
+                attempt += 1;
+            }
+            other => return other,
         }
     }
-    Some((seq?, pos?))
 }
 
-/// Loads a scene: its newest snapshot, then every turn after it, checked for gaps.
-pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreError> {
+async fn load_once(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreError> {
     let corrupt = |detail: String| StoreError::Corrupt {
         scene: scene.into(),
         detail,
@@ -354,63 +276,18 @@ pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreErr
         detail,
     };
     let cluster = |e: String| StoreError::Cluster(format!("scene {scene}: {e}"));
-    let mut object = match h.snapshots.get(scene).await {
-        Ok(o) => o,
-        Err(e) if matches!(e.kind(), jetstream::object_store::GetErrorKind::NotFound) => {
-            return Err(StoreError::UnknownScene(scene.into()));
-        }
-        Err(e) => return Err(cluster(format!("reading the snapshot: {e}"))),
-    };
-    let mut bytes = Vec::new();
-    object
-        .read_to_end(&mut bytes)
-        .await
-        .map_err(|e| cluster(format!("reading the snapshot: {e}")))?;
-    let raw = unpack(SNAPSHOT_MAGIC, &bytes, "snapshot").map_err(corrupt)?;
-    let (body, _): (SnapshotBody, usize) =
-        bincode::serde::decode_from_slice(&raw, bincode::config::standard())
-            .map_err(|e| corrupt(format!("snapshot: {e}")))?;
-    drop(raw);
-    let mut map = BrickMap::new(body.size).map_err(|e| corrupt(e.to_string()))?;
-    map.set_sequence(body.seq);
-    let mut at = 0usize;
-    for &cell in &body.cells {
-        let mask_end = at + 64;
-        let Some(mask_bytes) = body.rows.get(at..mask_end) else {
-            return Err(corrupt(format!("snapshot brick {cell} is cut short")));
-        };
-        let solid: usize = mask_bytes.iter().map(|b| b.count_ones() as usize).sum();
-        let end = mask_end + 2 * solid;
-        let row = body
-            .rows
-            .get(at..end)
-            .ok_or_else(|| corrupt(format!("snapshot brick {cell} is cut short")))?;
-        if u64::from(cell)
-            >= map
-                .cell_dims()
-                .iter()
-                .map(|&d| u64::from(d))
-                .product::<u64>()
-        {
-            return Err(corrupt(format!(
-                "snapshot brick {cell} is outside the scene"
-            )));
-        }
-        let coords = map.cell_coords(cell);
-        let brick: BrickData =
-            decode_brick(coords, row).ok_or_else(|| corrupt(format!("snapshot brick {cell}")))?;
-        map.put_brick(&brick).map_err(|e| corrupt(e.to_string()))?;
-        at = end;
-    }
-    map.prune_tombstones(body.seq);
-    let mut rows: BTreeMap<u64, (UserId, StepMeta)> = body
-        .history
-        .iter()
-        .map(|(u, id, m)| (*id, (*u, *m)))
-        .collect();
-    let mut steps: HashMap<u64, Vec<u8>> = body.steps.into_iter().collect();
-    let mut last_step_id = body.last_step_id;
-    let mut answered = Answered::from_entries(body.answered);
+    let snapshot::Restored {
+        mut map,
+        size,
+        seq: snapshot_seq,
+        pos: snapshot_pos,
+        mut rows,
+        mut steps,
+        mut last_step_id,
+        answered,
+        ..
+    } = snapshot::read(&h.snapshots, scene).await?;
+    let mut answered = Answered::from_entries(answered);
 
     // Every turn after the snapshot, in order.
     let stream =
@@ -422,8 +299,8 @@ pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreErr
         .await
         .map_err(|e| cluster(format!("reading the log stream: {e}")))?;
     let (first, last) = (info.state.first_sequence, info.state.last_sequence);
-    let mut pos = body.pos;
-    let mut seq = body.seq;
+    let mut pos = snapshot_pos;
+    let mut seq = snapshot_seq;
     let mut replayed = 0;
     if last > pos && first > pos + 1 {
         return Err(inconsistent(format!(
@@ -486,10 +363,7 @@ pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreErr
     Ok(ClusterLoaded {
         loaded: Loaded {
             map,
-            meta: SceneMeta {
-                size: body.size,
-                snapshot_seq: body.seq,
-            },
+            meta: SceneMeta { size, snapshot_seq },
             seq,
             replayed,
             replay_touched,
@@ -531,6 +405,10 @@ pub struct JetLog {
     /// The snapshot being uploaded: one at a time, so an older one can never land after (and
     /// over) a newer one whose trim already happened.
     uploading: Option<tokio::task::JoinHandle<()>>,
+    /// The snapshot chain this node wrote while leading without a break, so the next snapshot
+    /// can be a delta on it (`snapshot.rs`). `None`: the next one is a base. The upload task
+    /// sets it once a snapshot is stored; a failed upload and any change of leadership clear it.
+    chain: Arc<std::sync::Mutex<Option<snapshot::Chain>>>,
 }
 
 impl JetLog {
@@ -560,6 +438,7 @@ impl JetLog {
             broken: Arc::default(),
             appends: 0,
             uploading: None,
+            chain: Arc::default(),
             h,
         })
     }
@@ -587,6 +466,7 @@ impl JetLog {
     /// Stops appending (the lease is gone, or another node appended).
     pub fn follow(&mut self) {
         self.leading = false;
+        self.forget_chain();
     }
 
     pub fn history_step(&self, id: u64) -> Option<Vec<u8>> {
@@ -668,6 +548,8 @@ impl JetLog {
     /// its lease finds its next append refused.
     pub fn claim(&mut self) -> Result<(), StoreError> {
         self.leading = true;
+        // What changed before this node led is not in the owner's changed-brick set.
+        self.forget_chain();
         let marker = Turn {
             node: self.h.node.clone(),
             ..Default::default()
@@ -790,7 +672,12 @@ impl JetLog {
     }
 
     /// Loads the scene again from the cluster (after a gap, or an append that lost the lease).
+    fn forget_chain(&self) {
+        *self.chain.lock().unwrap_or_else(|e| e.into_inner()) = None;
+    }
+
     pub fn reload(&mut self) -> Result<Loaded, StoreError> {
+        self.forget_chain();
         let mut loaded = self.h.rt.clone().block_on(load(&self.h, &self.scene))?;
         self.pos = loaded.pos;
         self.steps = std::mem::take(&mut loaded.steps);
@@ -800,12 +687,14 @@ impl JetLog {
         Ok(loaded.loaded)
     }
 
-    /// Writes a whole snapshot at `seq` (this replica's position) in the background and trims
-    /// the stream below it once it is stored. Only the owner snapshots, one at a time: false
-    /// when this call wrote nothing.
+    /// Writes a snapshot at `seq` (this replica's position) in the background: a delta of
+    /// the bricks at `changed` (linear cells changed since the last snapshot) when this node
+    /// wrote the chain it follows, else a base. The stream is trimmed below it once it is
+    /// stored. Only the owner snapshots, one at a time: false when this call wrote nothing.
     pub fn snapshot(
         &mut self,
         map: &BrickMap,
+        changed: &[u32],
         seq: u64,
         history: &History,
     ) -> Result<bool, StoreError> {
@@ -821,8 +710,12 @@ impl JetLog {
                 ),
             });
         }
-        let body = snapshot_body(
+        let chain = self.chain.clone();
+        let before = chain.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let prepared = snapshot::prepare(
+            before.as_ref(),
             map,
+            changed,
             seq,
             self.pos,
             history,
@@ -832,36 +725,70 @@ impl JetLog {
         let store = self.h.snapshots.clone();
         let stream = self.stream.clone();
         let scene = self.scene.clone();
-        // The owner thread only copies the bricks; encoding and compressing the whole scene
-        // (the larger part: seconds for a big scene) runs off it, so edits keep flowing.
+        // The owner thread only copies the bricks; encoding and compressing (the larger part:
+        // seconds for a big scene's base) runs off it, so edits keep flowing.
         self.uploading = Some(self.h.rt.spawn(async move {
-            let encoded = tokio::task::spawn_blocking(move || {
-                let bytes = encode_snapshot(&body);
-                (body, bytes)
-            })
-            .await;
-            let (body, bytes) = match encoded {
-                Ok((body, Ok(bytes))) => (body, bytes),
-                Ok((_, Err(e))) => {
+            let forget = || *chain.lock().unwrap_or_else(|e| e.into_inner()) = None;
+            let name = scene.clone();
+            let encoded =
+                tokio::task::spawn_blocking(move || prepared.encode(&name, before)).await;
+            let encoded = match encoded {
+                Ok(Ok(encoded)) => encoded,
+                Ok(Err(e)) => {
+                    forget();
                     tracing::error!(scene = %scene, error = %e, "cannot encode a snapshot; the log keeps everything");
                     return;
                 }
                 Err(e) => {
+                    forget();
                     tracing::error!(scene = %scene, error = %e, "encoding a snapshot failed; the log keeps everything");
                     return;
                 }
             };
-            if let Err(e) = put_snapshot(&store, &scene, &body, bytes).await {
+            if let Err(e) = snapshot::put(&store, &encoded).await {
+                forget();
                 tracing::warn!(scene = %scene, error = %e, "snapshot not written; the log keeps everything");
                 return;
             }
+            *chain.lock().unwrap_or_else(|e| e.into_inner()) = Some(encoded.chain.clone());
             // Messages after the snapshot stay; the ones it holds go.
-            match stream.purge().sequence(body.pos + 1).await {
-                Ok(_) => tracing::debug!(scene = %scene, seq = body.seq, pos = body.pos, "snapshot written, log trimmed"),
+            let (seq, pos) = (encoded.seq, encoded.pos);
+            match stream.purge().sequence(pos + 1).await {
+                Ok(_) => tracing::debug!(scene = %scene, seq, pos, object = %encoded.name, bytes = encoded.bytes.len(), "snapshot written, log trimmed"),
                 Err(e) => tracing::warn!(scene = %scene, error = %e, "snapshot written, log not trimmed"),
+            }
+            if encoded.is_base {
+                // The new base holds everything: the old chain's deltas are leftovers.
+                snapshot::delete_deltas(&store, &scene).await;
             }
         }));
         Ok(true)
+    }
+}
+
+/// How long a stopping owner waits for its last snapshot's upload.
+const UPLOAD_PATIENCE: Duration = Duration::from_secs(20);
+
+impl Drop for JetLog {
+    /// A snapshot still uploading when the owner stops (the scene closing on this node, the
+    /// server shutting down) is waited for: the next node to open the scene then reads it
+    /// instead of replaying the log, and a process exiting does not cut the upload short.
+    fn drop(&mut self) {
+        let Some(upload) = self.uploading.take() else {
+            return;
+        };
+        // Only the owner thread may wait (blocking inside the runtime would panic).
+        if upload.is_finished() || tokio::runtime::Handle::try_current().is_ok() {
+            return;
+        }
+        if self
+            .h
+            .rt
+            .block_on(tokio::time::timeout(UPLOAD_PATIENCE, upload))
+            .is_err()
+        {
+            tracing::warn!(scene = %self.scene, "the last snapshot's upload did not finish in time; the log keeps everything");
+        }
     }
 }
 
@@ -938,12 +865,5 @@ mod tests {
         // One record over the limit cannot be split.
         let err = split(turn, 2000, "s").unwrap_err().to_string();
         assert!(err.contains("max_payload"), "{err}");
-    }
-
-    #[test]
-    fn snapshot_descriptions_parse() {
-        assert_eq!(parse_description("seq=12 pos=40"), Some((12, 40)));
-        assert_eq!(parse_description("seq=12"), None);
-        assert_eq!(parse_description(""), None);
     }
 }

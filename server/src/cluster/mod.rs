@@ -1,13 +1,16 @@
 //! Several nodes, one scene: brickcast on NATS JetStream.
 //!
-//! `serve --nats URL` makes this node one of a cluster. Every node serves every scene; per
-//! scene one node is the **owner**, chosen through a lease in a key-value bucket, and only it
-//! orders edits. Every node (the owner too) is a **replica**: it follows the scene's log
-//! stream in order, applies each turn with the same code as recovery, and sends its own
-//! clients one delta per turn, so fan-out spreads over the nodes.
+//! `serve --nats URL` makes this node one of a cluster. Every node can serve every scene and
+//! opens one when someone asks for it (`crate::served`); per scene one node is the **owner**,
+//! chosen through a lease in a key-value bucket, and only it orders edits. Every node serving
+//! the scene (the owner too) is a **replica**: it follows the scene's log stream in order,
+//! applies each turn with the same code as recovery, and sends its own clients one delta per
+//! turn, so fan-out spreads over the nodes.
 //!
-//! * `log.rs` — the log stream per scene (turn messages, fenced appends), snapshots in an
-//!   object store, loading a scene, [`JetLog`] (the owner's store in a cluster).
+//! * `log.rs` — the log stream per scene (turn messages, fenced appends), loading a scene,
+//!   [`JetLog`] (the owner's store in a cluster).
+//! * `snapshot.rs` — snapshots in an object store: a whole base, then deltas of the bricks
+//!   changed since.
 //! * `lease.rs` — per scene on each node: the lease loop (claim, renew, lose), the intake of
 //!   forwarded edits while leading, the log follower, and the reply publisher.
 //! * `forward.rs` — sessions send edits to whichever node owns the scene.
@@ -19,7 +22,7 @@
 //! NATS layout (names in [`log`]): key-value buckets `brickcast_owners` (scene → owner node,
 //! entries expire after [`LEASE_TTL`] without renewal), `brickcast_nodes` (node name → the
 //! running instance, expiring after [`NODE_TTL`]), `brickcast_scenes` (scene → size: the
-//! cluster's scene list); object store `brickcast_snapshots` (scene → newest snapshot); one
+//! cluster's scene list); object store `brickcast_snapshots` (scene → base snapshot, `scene+N` → its deltas); one
 //! stream `BRICKCAST_LOG_<scene>` per scene; core subjects `brickcast.edit.<scene>` for
 //! forwarded edits and `brickcast.presence.<scene>` for presence.
 
@@ -28,6 +31,7 @@ pub mod forward;
 mod lease;
 pub mod log;
 pub mod presence;
+pub mod snapshot;
 pub mod status;
 
 use std::time::Duration;
@@ -283,6 +287,24 @@ impl Cluster {
         Ok(names)
     }
 
+    /// What the scene list says of one scene; `None` when the cluster has no such scene.
+    pub async fn scene_entry(&self, name: &str) -> Result<Option<SceneEntry>, ClusterError> {
+        if !crate::store::valid_scene_name(name) {
+            return Ok(None);
+        }
+        let Some(value) = self
+            .scenes
+            .get(name)
+            .await
+            .map_err(|e| nats("reading the scene list")(&e))?
+        else {
+            return Ok(None);
+        };
+        serde_json::from_slice(&value)
+            .map(Some)
+            .map_err(|e| ClusterError::Nats(format!("the scene list's entry for {name}: {e}")))
+    }
+
     pub fn handles(&self, node: &str) -> LogHandles {
         LogHandles {
             js: self.js.clone(),
@@ -323,6 +345,7 @@ impl Cluster {
                 .map_err(|e| nats("removing the old scene")(&e))?;
             let _ = self.js.delete_stream(log::stream_name(name)).await;
             let _ = self.snapshots.delete(name).await;
+            snapshot::delete_deltas(&self.snapshots, name).await;
         }
         let h = self.handles("import");
         log::create(&h, name, map)

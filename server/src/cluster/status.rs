@@ -4,7 +4,7 @@ use std::fmt::Write;
 
 use futures_util::StreamExt;
 
-use super::log::{parse_description, stream_name};
+use super::log::stream_name;
 use super::{Cluster, ClusterError, NodeEntry, SceneEntry};
 
 /// One scene's line.
@@ -17,9 +17,11 @@ pub struct SceneStatus {
     /// Messages in the log stream (turns since the snapshot), and the stream's last position.
     pub log_messages: u64,
     pub log_last: u64,
-    /// The snapshot's scene sequence and stream position.
+    /// The newest snapshot's scene sequence and stream position, and how many deltas follow
+    /// the base (`snapshot.rs`).
     pub snapshot_seq: Option<u64>,
     pub snapshot_pos: Option<u64>,
+    pub snapshot_deltas: Option<u32>,
 }
 
 /// Nodes and scenes.
@@ -67,13 +69,7 @@ pub async fn status(cluster: &Cluster) -> Result<Status, ClusterError> {
             },
             Err(_) => (0, 0),
         };
-        let described = cluster
-            .snapshots
-            .info(&name)
-            .await
-            .ok()
-            .and_then(|i| i.description)
-            .and_then(|d| parse_description(&d));
+        let described = super::snapshot::newest(&cluster.snapshots, &name).await;
         scenes.push(SceneStatus {
             name,
             size,
@@ -82,6 +78,7 @@ pub async fn status(cluster: &Cluster) -> Result<Status, ClusterError> {
             log_last,
             snapshot_seq: described.map(|d| d.0),
             snapshot_pos: described.map(|d| d.1),
+            snapshot_deltas: described.map(|d| d.2),
         });
     }
     Ok(Status { nodes, scenes })
@@ -98,8 +95,8 @@ impl Status {
         let _ = writeln!(out, "scenes ({}):", self.scenes.len());
         let _ = writeln!(
             out,
-            "  {:<20} {:<16} {:<20} {:>10} {:>10} {:>14}",
-            "scene", "size", "owner", "log msgs", "log last", "snapshot seq"
+            "  {:<20} {:<16} {:<20} {:>10} {:>10} {:>14} {:>7}",
+            "scene", "size", "owner", "log msgs", "log last", "snapshot seq", "deltas"
         );
         for s in &self.scenes {
             let size = format!("{}x{}x{}", s.size[0], s.size[1], s.size[2]);
@@ -107,10 +104,13 @@ impl Status {
             let snap = s
                 .snapshot_seq
                 .map_or_else(|| "-".to_string(), |v| v.to_string());
+            let deltas = s
+                .snapshot_deltas
+                .map_or_else(|| "-".to_string(), |v| v.to_string());
             let _ = writeln!(
                 out,
-                "  {:<20} {:<16} {:<20} {:>10} {:>10} {:>14}",
-                s.name, size, owner, s.log_messages, s.log_last, snap
+                "  {:<20} {:<16} {:<20} {:>10} {:>10} {:>14} {:>7}",
+                s.name, size, owner, s.log_messages, s.log_last, snap, deltas
             );
         }
         out

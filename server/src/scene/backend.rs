@@ -48,8 +48,9 @@ impl Backend {
         }
     }
 
-    /// Snapshots `map` at `seq` (redb writes `cells`, the bricks touched since the last one;
-    /// the cluster writes the whole scene and its history). False when nothing was written:
+    /// Snapshots `map` at `seq`, with `cells` the bricks touched since the last one (redb
+    /// writes them; the cluster writes them as a delta, or the whole scene as a new base, with
+    /// the history). False when nothing was written:
     /// in a cluster only the owner snapshots, one upload at a time.
     pub fn snapshot(
         &mut self,
@@ -60,7 +61,7 @@ impl Backend {
     ) -> Result<bool, StoreError> {
         match self {
             Backend::Redb { store, scene } => store.snapshot(scene, map, cells, seq).map(|()| true),
-            Backend::Jet(log) => log.snapshot(map, seq, history),
+            Backend::Jet(log) => log.snapshot(map, cells, seq, history),
         }
     }
 

@@ -273,6 +273,11 @@ impl SceneHandle {
     pub fn try_send(&self, cmd: Command) -> Result<(), SceneGone> {
         self.tx.try_send(cmd).map_err(|_| SceneGone)
     }
+
+    /// Resolves once the owner thread has stopped taking commands (it stopped, or crashed).
+    pub async fn closed(&self) {
+        self.tx.closed().await
+    }
 }
 
 /// A command sent to a scene whose owner thread has stopped (shutdown or a storage failure).
@@ -363,6 +368,9 @@ pub fn spawn_with(
                 owner.fail_all(&e.to_string());
             }
             presence.close();
+            // The owner first (in a cluster it waits for a snapshot still uploading), so the
+            // handle reads as closed only once it is gone.
+            drop(owner);
         })?;
     Ok((handle, thread))
 }

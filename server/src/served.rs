@@ -1,0 +1,330 @@
+//! Which scenes this server serves now.
+//!
+//! **Why scenes open on demand in a cluster:** a node that loaded every scene of the cluster
+//! would hold every map in memory and follow every log, so adding nodes would add fan-out but
+//! never room for more scenes. A cluster node opens a scene when someone asks for it (a
+//! websocket, or the scene list's picture of it), and closes it again once nobody on this
+//! node used it for `--close-idle`: its owner thread stops (writing a snapshot if it led),
+//! its log follower, presence relay and lease end, and a lease it held is handed over at once
+//! to a node that still has people on the scene. The scene's owner so follows its users.
+//!
+//! One node (redb) serves every scene of its store from start to shutdown; the same map holds
+//! them and nothing closes.
+//!
+//! **Limits:** one scene opens at a time per node (a second waits for the first; loading is
+//! a snapshot read and a log replay, seconds for the largest scenes), and a scene being closed
+//! is reopened only once its close finished, so one node never runs two owners of a scene.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{Duration, Instant};
+
+use tokio::sync::watch;
+
+use crate::metrics::Metrics;
+use crate::scene::{Command, SceneHandle};
+use crate::{App, CLUSTER_POLL, wait_or_shutdown};
+
+/// How long a closing scene's tasks get to end (lease handed over, relay's last roster sent).
+const CLOSE_PATIENCE: Duration = Duration::from_secs(30);
+
+/// The scenes being served, and (cluster) the ones that could be.
+#[derive(Default)]
+pub struct Served {
+    open: RwLock<BTreeMap<String, Entry>>,
+    /// Cluster: the cluster's scene list (name → size), refreshed every [`CLUSTER_POLL`].
+    known: RwLock<BTreeMap<String, [u32; 3]>>,
+    /// Held while a scene opens or closes (see the module's limits).
+    pub(crate) opening: tokio::sync::Mutex<()>,
+}
+
+#[derive(Clone)]
+struct Entry {
+    handle: SceneHandle,
+    uses: Arc<Uses>,
+    /// Cluster: ends the scene's lease, follower and relay tasks.
+    close: Option<Arc<watch::Sender<bool>>>,
+}
+
+/// Who uses a scene on this node now, and since when nobody does.
+struct Uses {
+    count: AtomicUsize,
+    idle_since: Mutex<Instant>,
+}
+
+/// One use of a served scene (a session, a thumbnail being drawn); the scene stays open while
+/// any is alive.
+pub struct SceneUse(Arc<Uses>);
+
+impl Drop for SceneUse {
+    fn drop(&mut self) {
+        // The count and the time are read together only under the map's write lock, and a
+        // use is only taken under its read lock: a scene with a use is never closed.
+        *self.0.idle_since.lock().unwrap_or_else(|e| e.into_inner()) = Instant::now();
+        self.0.count.fetch_sub(1, Relaxed);
+    }
+}
+
+/// A scene in the scene list: served here (`handle`), or only known to the cluster.
+pub struct Listed {
+    pub name: String,
+    pub size: [u32; 3],
+    pub handle: Option<SceneHandle>,
+}
+
+/// Why a scene could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    #[error("the server is shutting down")]
+    ShuttingDown,
+    #[error("cannot open scene {scene}: {detail}")]
+    Failed { scene: String, detail: String },
+}
+
+impl Served {
+    fn read(&self) -> std::sync::RwLockReadGuard<'_, BTreeMap<String, Entry>> {
+        // Inserts and removals are one call each: a poisoned map is still a good map.
+        self.open.read().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn write(&self) -> std::sync::RwLockWriteGuard<'_, BTreeMap<String, Entry>> {
+        self.open.write().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// A served scene.
+    pub fn get(&self, name: &str) -> Option<SceneHandle> {
+        self.read().get(name).map(|e| e.handle.clone())
+    }
+
+    /// A served scene, kept open while the returned use lives.
+    pub fn take(&self, name: &str) -> Option<(SceneHandle, SceneUse)> {
+        let open = self.read();
+        let entry = open.get(name)?;
+        entry.uses.count.fetch_add(1, Relaxed);
+        Some((entry.handle.clone(), SceneUse(entry.uses.clone())))
+    }
+
+    /// Every served scene, by name.
+    pub fn list(&self) -> Vec<(String, SceneHandle)> {
+        self.read()
+            .iter()
+            .map(|(n, e)| (n.clone(), e.handle.clone()))
+            .collect()
+    }
+
+    pub fn insert(
+        &self,
+        name: String,
+        handle: SceneHandle,
+        close: Option<Arc<watch::Sender<bool>>>,
+    ) {
+        let uses = Arc::new(Uses {
+            count: AtomicUsize::new(0),
+            idle_since: Mutex::new(Instant::now()),
+        });
+        self.write().insert(
+            name,
+            Entry {
+                handle,
+                uses,
+                close,
+            },
+        );
+    }
+
+    /// Cluster: the scene list as the cluster has it now.
+    pub fn set_known(&self, known: BTreeMap<String, [u32; 3]>) {
+        *self.known.write().unwrap_or_else(|e| e.into_inner()) = known;
+    }
+
+    /// Whether a scene is served or known to the cluster (as of the last look at its list).
+    pub fn knows(&self, name: &str) -> bool {
+        self.read().contains_key(name)
+            || self
+                .known
+                .read()
+                .unwrap_or_else(|e| e.into_inner())
+                .contains_key(name)
+    }
+
+    /// Served and known scenes together, sorted by name.
+    pub fn catalog(&self) -> Vec<Listed> {
+        let mut all: BTreeMap<String, Listed> = self
+            .known
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .map(|(name, &size)| {
+                let listed = Listed {
+                    name: name.clone(),
+                    size,
+                    handle: None,
+                };
+                (name.clone(), listed)
+            })
+            .collect();
+        for (name, handle) in self.list() {
+            all.insert(
+                name.clone(),
+                Listed {
+                    name,
+                    size: handle.size,
+                    handle: Some(handle),
+                },
+            );
+        }
+        all.into_values().collect()
+    }
+
+    /// Takes out of service the scenes nobody used for `idle`.
+    fn take_idle(&self, idle: Duration) -> Vec<(String, Entry)> {
+        let mut open = self.write();
+        let names: Vec<String> = open
+            .iter()
+            .filter(|(_, e)| {
+                e.close.is_some()
+                    && e.uses.count.load(Relaxed) == 0
+                    && e.uses
+                        .idle_since
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .elapsed()
+                        >= idle
+            })
+            .map(|(n, _)| n.clone())
+            .collect();
+        names
+            .into_iter()
+            .filter_map(|n| open.remove(&n).map(|e| (n, e)))
+            .collect()
+    }
+}
+
+impl App {
+    /// A scene for someone who wants to use it: served already, or (cluster) loaded from the
+    /// cluster now. `Ok(None)`: no such scene.
+    pub async fn open_scene(
+        &self,
+        name: &str,
+    ) -> Result<Option<(SceneHandle, SceneUse)>, OpenError> {
+        if let Some(found) = self.scenes.take(name) {
+            return Ok(Some(found));
+        }
+        let Some(node) = &self.node else {
+            return Ok(None);
+        };
+        let failed = |detail: String| OpenError::Failed {
+            scene: name.to_string(),
+            detail,
+        };
+        match node.cluster.scene_entry(name).await {
+            Ok(Some(_)) => {}
+            Ok(None) => return Ok(None),
+            Err(e) => return Err(failed(e.to_string())),
+        }
+        let _opening = self.scenes.opening.lock().await;
+        if let Some(found) = self.scenes.take(name) {
+            return Ok(Some(found));
+        }
+        if *self.shutdown.borrow() {
+            return Err(OpenError::ShuttingDown);
+        }
+        self.add_cluster_scene(name.to_string()).await.map_err(|e| {
+            let detail = format!("{e:#}");
+            tracing::warn!(scene = %name, error = %detail, "cannot open a scene of the cluster");
+            failed(detail)
+        })?;
+        Metrics::add(&self.metrics.scene_opens, 1);
+        self.scenes
+            .take(name)
+            .map(Some)
+            .ok_or_else(|| failed("it closed as it opened".into()))
+    }
+
+    /// Cluster: reads the cluster's scene list (an entry only for names not seen before).
+    pub(crate) async fn refresh_known(
+        &self,
+        cluster: &crate::cluster::Cluster,
+    ) -> Result<(), crate::cluster::ClusterError> {
+        let before = self
+            .scenes
+            .known
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone();
+        let mut known = BTreeMap::new();
+        for name in cluster.scene_names().await? {
+            let size = match before.get(&name) {
+                Some(&size) => Some(size),
+                None => cluster.scene_entry(&name).await?.map(|e| e.size),
+            };
+            if let Some(size) = size {
+                known.insert(name, size);
+            }
+        }
+        self.scenes.set_known(known);
+        Ok(())
+    }
+
+    /// Cluster: keeps the scene list fresh and closes scenes nobody here used for
+    /// `close_idle` (never when it is zero), until shutdown.
+    pub(crate) async fn tend_cluster_scenes(self: Arc<Self>, close_idle: Duration) {
+        let mut shutdown = self.shutdown.clone();
+        while wait_or_shutdown(&mut shutdown, CLUSTER_POLL).await {
+            let Some(node) = &self.node else { return };
+            if let Err(e) = self.refresh_known(&node.cluster).await {
+                tracing::warn!(error = %e, "cannot list the cluster's scenes");
+            }
+            if close_idle.is_zero() {
+                continue;
+            }
+            let _closing = self.scenes.opening.lock().await;
+            if *self.shutdown.borrow() {
+                return;
+            }
+            for (name, entry) in self.scenes.take_idle(close_idle) {
+                close(&name, entry, close_idle).await;
+                Metrics::add(&self.metrics.scene_closes, 1);
+            }
+            self.owners
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .retain(|t| !t.is_finished());
+        }
+    }
+}
+
+/// Stops a scene taken out of service: its owner thread first (what it applied is committed,
+/// a snapshot written if it led), then its cluster tasks, which hand a held lease over.
+async fn close(name: &str, entry: Entry, idle: Duration) {
+    let _ = entry.handle.send(Command::Shutdown).await;
+    if tokio::time::timeout(CLOSE_PATIENCE, entry.handle.closed())
+        .await
+        .is_err()
+    {
+        tracing::warn!(scene = %name, "a closing scene's owner did not stop in time");
+    }
+    if let Some(close) = entry.close {
+        close.send_replace(true);
+        let _ = tokio::time::timeout(CLOSE_PATIENCE, close.closed()).await;
+    }
+    tracing::info!(scene = %name, idle_s = idle.as_secs_f64(), "closed a scene nobody on this node used");
+}
+
+/// A per-scene stop signal that also fires at the server's shutdown.
+pub fn close_signal(
+    shutdown: &watch::Receiver<bool>,
+) -> (Arc<watch::Sender<bool>>, watch::Receiver<bool>) {
+    let (tx, rx) = watch::channel(false);
+    let tx = Arc::new(tx);
+    let mut global = shutdown.clone();
+    let forward = tx.clone();
+    tokio::spawn(async move {
+        tokio::select! {
+            _ = global.wait_for(|stop| *stop) => { forward.send_replace(true); }
+            _ = forward.closed() => {}
+        }
+    });
+    (tx, rx)
+}
