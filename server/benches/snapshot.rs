@@ -40,63 +40,29 @@ fn snapshots(c: &mut Criterion) {
         changed.len(),
         base.bytes.len()
     );
+    let prepare = |chain: Option<&Chain>| {
+        snapshot::prepare(chain, &map, &changed, seq, 2, &history, &steps, Vec::new())
+    };
+    let delta = prepare(Some(&chain))
+        .encode("demo", Some(chain.clone()))
+        .expect("the delta encodes");
+    eprintln!("delta {} bytes", delta.bytes.len());
     let mut g = c.benchmark_group("snapshot");
     g.sample_size(10);
-    g.bench_function("prepare_base", |b| {
-        b.iter(|| {
-            black_box(snapshot::prepare(
-                None,
-                &map,
-                &changed,
-                seq,
-                2,
-                &history,
-                &steps,
-                Vec::new(),
-            ))
-        })
-    });
+    g.bench_function("prepare_base", |b| b.iter(|| black_box(prepare(None))));
     g.bench_function("prepare_delta", |b| {
-        b.iter(|| {
-            black_box(snapshot::prepare(
-                Some(&chain),
-                &map,
-                &changed,
-                seq,
-                2,
-                &history,
-                &steps,
-                Vec::new(),
-            ))
-        })
+        b.iter(|| black_box(prepare(Some(&chain))))
     });
-    let prepared = || snapshot::prepare(None, &map, &changed, seq, 2, &history, &steps, Vec::new());
     g.bench_function("encode_base", |b| {
         b.iter_batched(
-            prepared,
+            || prepare(None),
             |p| black_box(p.encode("demo", None).map(|e| e.bytes.len())),
             criterion::BatchSize::LargeInput,
         )
     });
-    let prepared_delta = || {
-        snapshot::prepare(
-            Some(&chain),
-            &map,
-            &changed,
-            seq,
-            2,
-            &history,
-            &steps,
-            Vec::new(),
-        )
-    };
-    let delta = prepared_delta()
-        .encode("demo", Some(chain.clone()))
-        .expect("the delta encodes");
-    eprintln!("delta {} bytes", delta.bytes.len());
     g.bench_function("encode_delta", |b| {
         b.iter_batched(
-            prepared_delta,
+            || prepare(Some(&chain)),
             |p| black_box(p.encode("demo", Some(chain.clone())).map(|e| e.bytes.len())),
             criterion::BatchSize::SmallInput,
         )

@@ -71,25 +71,39 @@ impl Turn {
     }
 
     pub fn encode(&self) -> Result<Vec<u8>, String> {
-        let raw = bincode::serde::encode_to_vec(self, bincode::config::standard())
-            .map_err(|e| e.to_string())?;
-        pack(TURN_MAGIC, &raw)
+        encode_as(TURN_MAGIC, self)
     }
 
     pub fn decode(bytes: &[u8]) -> Result<Turn, String> {
-        let raw = unpack(TURN_MAGIC, bytes, "turn")?;
-        let (turn, read): (Turn, usize) =
-            bincode::serde::decode_from_slice(&raw, bincode::config::standard())
-                .map_err(|e| format!("turn: {e}"))?;
-        if read != raw.len() {
-            return Err(format!("turn: {} bytes after it", raw.len() - read));
-        }
-        Ok(turn)
+        decode_as(TURN_MAGIC, bytes, "turn")
     }
 }
 
+/// `value` in bincode, packed under `magic`.
+pub(super) fn encode_as<T: Serialize>(magic: [u8; 2], value: &T) -> Result<Vec<u8>, String> {
+    let raw = bincode::serde::encode_to_vec(value, bincode::config::standard())
+        .map_err(|e| e.to_string())?;
+    pack(magic, &raw)
+}
+
+/// What [`encode_as`] packed: the magic checked, nothing left over.
+pub(super) fn decode_as<T: for<'de> Deserialize<'de>>(
+    magic: [u8; 2],
+    bytes: &[u8],
+    what: &str,
+) -> Result<T, String> {
+    let raw = unpack(magic, bytes, what)?;
+    let (value, read): (T, usize) =
+        bincode::serde::decode_from_slice(&raw, bincode::config::standard())
+            .map_err(|e| format!("{what}: {e}"))?;
+    if read != raw.len() {
+        return Err(format!("{what}: {} bytes after it", raw.len() - read));
+    }
+    Ok(value)
+}
+
 /// `magic`, raw length (u64 LE), zstd of `raw`.
-pub(super) fn pack(magic: [u8; 2], raw: &[u8]) -> Result<Vec<u8>, String> {
+fn pack(magic: [u8; 2], raw: &[u8]) -> Result<Vec<u8>, String> {
     let packed = zstd::bulk::compress(raw, 1).map_err(|e| e.to_string())?;
     let mut out = Vec::with_capacity(packed.len() + 10);
     out.extend_from_slice(&magic);
@@ -98,7 +112,7 @@ pub(super) fn pack(magic: [u8; 2], raw: &[u8]) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
-pub(super) fn unpack(magic: [u8; 2], bytes: &[u8], what: &str) -> Result<Vec<u8>, String> {
+fn unpack(magic: [u8; 2], bytes: &[u8], what: &str) -> Result<Vec<u8>, String> {
     if bytes.len() < 10 || bytes[..2] != magic {
         return Err(format!(
             "{what}: not a brickcast {what} (format {:?})",

@@ -29,7 +29,7 @@ use serde::{Deserialize, Serialize};
 use tokio::io::AsyncReadExt;
 
 use super::answered::AnsweredEntry;
-use super::log::{pack, unpack};
+use super::log::{decode_as, encode_as};
 use crate::scene::history::{History, StepMeta};
 use crate::store::{StoreError, decode_brick, encode_brick};
 
@@ -50,14 +50,27 @@ struct Whole {
     seq: u64,
     /// The stream sequence of the last turn the snapshot holds.
     pos: u64,
-    /// Undo stacks: (user, step id, meta), and the step bodies.
+    undo: Undo,
+    bricks: Bricks,
+}
+
+/// The undo stacks and answered requests at a snapshot. (bincode writes a nested struct's
+/// fields in place: [`Whole`] reads as it did before it was split up.)
+#[derive(Serialize, Deserialize)]
+struct Undo {
+    /// Undo stacks: (user, step id, meta), and step bodies (in a delta, only those newer
+    /// than the previous snapshot's).
     history: Vec<(UserId, u64, StepMeta)>,
     steps: Vec<(u64, Vec<u8>)>,
     last_step_id: u64,
     /// The answered forwarded requests (`answered.rs`).
     answered: Vec<AnsweredEntry>,
-    /// Linear cells, and their bricks as the redb store's rows, back to back (a row's length
-    /// follows from its mask).
+}
+
+/// Linear cells, and their bricks as the redb store's rows, back to back (a row's length
+/// follows from its mask).
+#[derive(Serialize, Deserialize)]
+struct Bricks {
     cells: Vec<u32>,
     rows: Vec<u8>,
 }
@@ -77,14 +90,9 @@ struct Delta {
     number: u32,
     seq: u64,
     pos: u64,
-    /// The whole undo index, and the bodies of the steps newer than the previous snapshot.
-    history: Vec<(UserId, u64, StepMeta)>,
-    steps: Vec<(u64, Vec<u8>)>,
-    last_step_id: u64,
-    answered: Vec<AnsweredEntry>,
-    /// Changed bricks that hold voxels (as in [`Whole`]), and changed cells now empty.
-    cells: Vec<u32>,
-    rows: Vec<u8>,
+    undo: Undo,
+    /// Changed bricks that hold voxels, and changed cells now empty.
+    bricks: Bricks,
     emptied: Vec<u32>,
 }
 
@@ -155,7 +163,7 @@ fn delta_fits(chain: &Chain, changed: usize, bricks: u64) -> bool {
 }
 
 /// Bricks at `cells` (linear indices) as rows, back to back; the cells holding none apart.
-fn rows_of(map: &BrickMap, cells: impl Iterator<Item = u32>) -> (Vec<u32>, Vec<u8>, Vec<u32>) {
+fn rows_of(map: &BrickMap, cells: impl Iterator<Item = u32>) -> (Bricks, Vec<u32>) {
     let (mut solid, mut rows, mut empty, mut row) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for cell in cells {
@@ -168,7 +176,7 @@ fn rows_of(map: &BrickMap, cells: impl Iterator<Item = u32>) -> (Vec<u32>, Vec<u
             None => empty.push(cell),
         }
     }
-    (solid, rows, empty)
+    (Bricks { cells: solid, rows }, empty)
 }
 
 /// A random base id (never 0: a base written before deltas reads as id 0).
@@ -198,44 +206,40 @@ pub fn prepare(
 ) -> Prepared {
     let rows = history.rows();
     let last_step_id = history.last_id();
-    let bodies = |newer_than: Option<u64>| -> Vec<(u64, Vec<u8>)> {
-        rows.iter()
+    let undo = |newer_than: Option<u64>| Undo {
+        steps: rows
+            .iter()
             .filter(|(_, id, _)| newer_than.is_none_or(|n| *id > n))
             .filter_map(|(_, id, _)| steps.get(id).map(|b| (*id, b.clone())))
-            .collect()
+            .collect(),
+        history: rows.clone(),
+        last_step_id,
+        answered,
     };
     let kind = match chain.filter(|c| delta_fits(c, changed.len(), map.brick_count())) {
         Some(c) => {
-            let (cells, brick_rows, emptied) = rows_of(map, changed.iter().copied());
+            let (bricks, emptied) = rows_of(map, changed.iter().copied());
             Kind::Delta(Delta {
                 base: c.base,
                 number: c.next,
                 seq,
                 pos,
-                steps: bodies(Some(c.last_step_id)),
-                history: rows.clone(),
-                last_step_id,
-                answered,
-                cells,
-                rows: brick_rows,
+                undo: undo(Some(c.last_step_id)),
+                bricks,
                 emptied,
             })
         }
         None => {
             let every = map.bricks().map(|(b, _)| map.cell_index(b.cell));
-            let (cells, brick_rows, _) = rows_of(map, every);
+            let (bricks, _) = rows_of(map, every);
             Kind::Base(Base {
                 id: new_id(),
                 whole: Whole {
                     size: map.size(),
                     seq,
                     pos,
-                    steps: bodies(None),
-                    history: rows.clone(),
-                    last_step_id,
-                    answered,
-                    cells,
-                    rows: brick_rows,
+                    undo: undo(None),
+                    bricks,
                 },
             })
         }
@@ -261,27 +265,6 @@ pub fn first(map: &BrickMap) -> Prepared {
         &HashMap::new(),
         Vec::new(),
     )
-}
-
-fn encode_as<T: Serialize>(magic: [u8; 2], value: &T) -> Result<Vec<u8>, String> {
-    let raw = bincode::serde::encode_to_vec(value, bincode::config::standard())
-        .map_err(|e| e.to_string())?;
-    pack(magic, &raw)
-}
-
-fn decode_as<T: for<'de> Deserialize<'de>>(
-    magic: [u8; 2],
-    bytes: &[u8],
-    what: &str,
-) -> Result<T, String> {
-    let raw = unpack(magic, bytes, what)?;
-    let (value, read): (T, usize) =
-        bincode::serde::decode_from_slice(&raw, bincode::config::standard())
-            .map_err(|e| format!("{what}: {e}"))?;
-    if read != raw.len() {
-        return Err(format!("{what}: {} bytes after it", raw.len() - read));
-    }
-    Ok(value)
 }
 
 impl Prepared {
@@ -334,8 +317,14 @@ impl Prepared {
     }
 }
 
-/// Puts the bricks of `cells`/`rows` into `map` (checked: a corrupt object is an error).
-fn put_rows(map: &mut BrickMap, cells: &[u32], rows: &[u8]) -> Result<(), String> {
+/// Step id → (user, meta), from a snapshot's undo index.
+fn index(history: &[(UserId, u64, StepMeta)]) -> BTreeMap<u64, (UserId, StepMeta)> {
+    history.iter().map(|(u, id, m)| (*id, (*u, *m))).collect()
+}
+
+/// Puts `bricks` into `map` (checked: a corrupt object is an error).
+fn put_rows(map: &mut BrickMap, bricks: &Bricks) -> Result<(), String> {
+    let (cells, rows) = (&bricks.cells, &bricks.rows);
     let total: u64 = map.cell_dims().iter().map(|&d| u64::from(d)).product();
     let mut at = 0usize;
     for &cell in cells {
@@ -376,16 +365,16 @@ impl Restored {
         let w = base.whole;
         let mut map = BrickMap::new(w.size).map_err(|e| e.to_string())?;
         map.set_sequence(w.seq);
-        put_rows(&mut map, &w.cells, &w.rows).map_err(|e| format!("snapshot: {e}"))?;
+        put_rows(&mut map, &w.bricks).map_err(|e| format!("snapshot: {e}"))?;
         Ok(Restored {
             map,
             size: w.size,
             seq: w.seq,
             pos: w.pos,
-            rows: w.history.iter().map(|(u, id, m)| (*id, (*u, *m))).collect(),
-            steps: w.steps.into_iter().collect(),
-            last_step_id: w.last_step_id,
-            answered: w.answered,
+            rows: index(&w.undo.history),
+            steps: w.undo.steps.into_iter().collect(),
+            last_step_id: w.undo.last_step_id,
+            answered: w.undo.answered,
             deltas: 0,
             base: base.id,
         })
@@ -405,7 +394,7 @@ impl Restored {
             return Ok(false);
         }
         self.map.set_sequence(d.seq);
-        put_rows(&mut self.map, &d.cells, &d.rows).map_err(|e| format!("{what}: {e}"))?;
+        put_rows(&mut self.map, &d.bricks).map_err(|e| format!("{what}: {e}"))?;
         let total: u64 = self.map.cell_dims().iter().map(|&c| u64::from(c)).product();
         for &cell in &d.emptied {
             if u64::from(cell) >= total {
@@ -413,12 +402,12 @@ impl Restored {
             }
             self.map.remove_brick(self.map.cell_coords(cell));
         }
-        self.rows = d.history.iter().map(|(u, id, m)| (*id, (*u, *m))).collect();
-        self.steps.extend(d.steps);
+        self.rows = index(&d.undo.history);
+        self.steps.extend(d.undo.steps);
         let rows = &self.rows;
         self.steps.retain(|id, _| rows.contains_key(id));
-        self.last_step_id = d.last_step_id;
-        self.answered = d.answered;
+        self.last_step_id = d.undo.last_step_id;
+        self.answered = d.undo.answered;
         self.seq = d.seq;
         self.pos = d.pos;
         self.deltas = number;
@@ -618,6 +607,46 @@ mod tests {
         // Garbage is an error, not a silent stop.
         assert!(again.apply_delta(1, b"Dx not a delta").is_err());
         assert!(Restored::from_base(b"nothing").is_err());
+    }
+
+    /// A base written before deltas existed: the flat layout of that release, magic `S1`.
+    #[test]
+    fn bases_from_before_deltas_still_load() {
+        #[derive(Serialize)]
+        struct OldSnapshotBody {
+            size: [u32; 3],
+            seq: u64,
+            pos: u64,
+            history: Vec<(UserId, u64, StepMeta)>,
+            steps: Vec<(u64, Vec<u8>)>,
+            last_step_id: u64,
+            answered: Vec<AnsweredEntry>,
+            cells: Vec<u32>,
+            rows: Vec<u8>,
+        }
+        let map = scene();
+        let every = map.bricks().map(|(b, _)| map.cell_index(b.cell));
+        let (bricks, _) = rows_of(&map, every);
+        let old = OldSnapshotBody {
+            size: map.size(),
+            seq: 5,
+            pos: 7,
+            history: Vec::new(),
+            steps: vec![(3, vec![1, 2, 3])],
+            last_step_id: 3,
+            answered: Vec::new(),
+            cells: bricks.cells,
+            rows: bricks.rows,
+        };
+        let bytes = encode_as(BASE_V1, &old).unwrap();
+        let restored = Restored::from_base(&bytes).unwrap();
+        assert_eq!(restored.map.content_hash(), map.content_hash());
+        assert_eq!(
+            (restored.seq, restored.pos, restored.last_step_id),
+            (5, 7, 3)
+        );
+        assert_eq!(restored.steps.get(&3), Some(&vec![1, 2, 3]));
+        assert_eq!(restored.base, 0, "no delta follows an old base");
     }
 
     #[test]
