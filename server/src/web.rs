@@ -152,7 +152,7 @@ async fn index(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
                     );
                     (figures, here)
                 }
-                None => (String::new(), "not open on this node".to_string()),
+                None => (String::new(), "not open on this server yet: it opens when you join".to_string()),
             };
             let name_html = escape(&listed.name);
             format!(

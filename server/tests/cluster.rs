@@ -1006,6 +1006,13 @@ async fn scenes_open_where_people_are_and_close_behind_them() {
     }
     let (status, _) = http_get(a.addr, "/scenes/nothing-here/ws").await;
     assert_eq!(status, 404);
+    // The scene list and the viewer page know it without opening it.
+    let (status, page) = http_get(a.addr, "/").await;
+    assert_eq!(status, 200);
+    assert!(page.contains("it opens when you join"), "{page}");
+    assert_eq!(http_get(a.addr, "/scenes/demo").await.0, 200);
+    assert_eq!(http_get(a.addr, "/scenes/nothing-here").await.0, 404);
+    assert!(!a.serves().await);
 
     // The first client opens it on a, and a takes the lease.
     let mut on_a = Client::connect(&a.url(), None).await.unwrap();
