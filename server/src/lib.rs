@@ -467,8 +467,11 @@ impl Server {
         })
         .await;
         tracing::info!("shutting down: flushing scenes");
-        // No scene may be added after the owners were told to stop.
+        // No scene may be added after the owners were told to stop: the spool and the
+        // scene tender have ended, and an open still loading finishes before this lock is
+        // had (any later one sees the shutdown).
         let _ = spool.await;
+        let _opening = app.scenes.opening.lock().await;
         for (_, scene) in app.scene_list() {
             let _ = scene.send(Command::Shutdown).await;
         }

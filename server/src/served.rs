@@ -4,16 +4,17 @@
 //! would hold every map in memory and follow every log, so adding nodes would add fan-out but
 //! never room for more scenes. A cluster node opens a scene when someone asks for it (a
 //! websocket, or the scene list's picture of it), and closes it again once nobody on this
-//! node used it for `--close-idle`: its owner thread stops (writing a snapshot if it led),
-//! its log follower, presence relay and lease end, and a lease it held is handed over at once
-//! to a node that still has people on the scene. The scene's owner so follows its users.
+//! node used it for `--close-idle`: its lease (handed over at once), log follower and presence
+//! relay end, then its owner thread. A free lease goes to a node with people on the scene
+//! first (`cluster::CLAIM_GRACE`): the scene's owner so follows its users.
 //!
 //! One node (redb) serves every scene of its store from start to shutdown; the same map holds
 //! them and nothing closes.
 //!
 //! **Limits:** one scene opens at a time per node (a second waits for the first; loading is
 //! a snapshot read and a log replay, seconds for the largest scenes), and a scene being closed
-//! is reopened only once its close finished, so one node never runs two owners of a scene.
+//! is reopened only once its owner thread stopped, so one node never runs two owners of a
+//! scene.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
@@ -35,8 +36,11 @@ pub struct Served {
     open: RwLock<BTreeMap<String, Entry>>,
     /// Cluster: the cluster's scene list (name → size), refreshed every [`CLUSTER_POLL`].
     known: RwLock<BTreeMap<String, [u32; 3]>>,
-    /// Held while a scene opens or closes (see the module's limits).
+    /// Held while a scene opens or closes (see the module's limits), and by shutdown.
     pub(crate) opening: tokio::sync::Mutex<()>,
+    /// Scenes whose owner thread did not stop within [`CLOSE_PATIENCE`]: not reopened here
+    /// until it has.
+    still_closing: Arc<Mutex<BTreeMap<String, SceneHandle>>>,
 }
 
 #[derive(Clone)]
@@ -78,6 +82,8 @@ pub struct Listed {
 pub enum OpenError {
     #[error("the server is shutting down")]
     ShuttingDown,
+    #[error("scene {0} is still closing on this server; try again in a few seconds")]
+    StillClosing(String),
     #[error("cannot open scene {scene}: {detail}")]
     Failed { scene: String, detail: String },
 }
@@ -230,6 +236,15 @@ impl App {
         if *self.shutdown.borrow() {
             return Err(OpenError::ShuttingDown);
         }
+        if self
+            .scenes
+            .still_closing
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains_key(name)
+        {
+            return Err(OpenError::StillClosing(name.to_string()));
+        }
         self.add_cluster_scene(name.to_string()).await.map_err(|e| {
             let detail = format!("{e:#}");
             tracing::warn!(scene = %name, error = %detail, "cannot open a scene of the cluster");
@@ -257,7 +272,14 @@ impl App {
         for name in cluster.scene_names().await? {
             let size = match before.get(&name) {
                 Some(&size) => Some(size),
-                None => cluster.scene_entry(&name).await?.map(|e| e.size),
+                // One bad entry does not hide the others.
+                None => match cluster.scene_entry(&name).await {
+                    Ok(entry) => entry.map(|e| e.size),
+                    Err(e) => {
+                        tracing::warn!(scene = %name, error = %e, "skipping a scene of the cluster's list");
+                        None
+                    }
+                },
             };
             if let Some(size) = size {
                 known.insert(name, size);
@@ -285,7 +307,7 @@ impl App {
             }
             let mut closed = 0;
             for (name, entry) in self.scenes.take_idle(close_idle) {
-                close(&name, entry, close_idle).await;
+                close(&name, entry, close_idle, &self.scenes.still_closing).await;
                 Metrics::add(&self.metrics.scene_closes, 1);
                 closed += 1;
             }
@@ -294,25 +316,48 @@ impl App {
                 .unwrap_or_else(|e| e.into_inner())
                 .retain(|t| !t.is_finished());
             if closed > 0 {
-                give_back_memory();
+                let _ = tokio::task::spawn_blocking(give_back_memory).await;
             }
         }
     }
 }
 
-/// Stops a scene taken out of service: its owner thread first (what it applied is committed,
-/// a snapshot written if it led), then its cluster tasks, which hand a held lease over.
-async fn close(name: &str, entry: Entry, idle: Duration) {
+/// Stops a scene taken out of service. Its cluster tasks end first: the lease task stops the
+/// intake and hands a held lease over at once, so edits from other nodes move to a node with
+/// people on the scene instead of waiting for this owner's last turn and snapshot. Then the
+/// owner thread stops (committing what it has; an append after the lease went is refused and
+/// retried on the new owner, and the log's fence keeps it from landing twice). An owner that
+/// does not stop in time stays listed as closing, and the scene is not reopened here until it
+/// has stopped: one node never runs two owners of a scene.
+async fn close(
+    name: &str,
+    entry: Entry,
+    idle: Duration,
+    still_closing: &Arc<Mutex<BTreeMap<String, SceneHandle>>>,
+) {
+    if let Some(close) = entry.close {
+        close.send_replace(true);
+        let _ = tokio::time::timeout(CLOSE_PATIENCE, close.closed()).await;
+    }
     let _ = entry.handle.send(Command::Shutdown).await;
     if tokio::time::timeout(CLOSE_PATIENCE, entry.handle.closed())
         .await
         .is_err()
     {
-        tracing::warn!(scene = %name, "a closing scene's owner did not stop in time");
-    }
-    if let Some(close) = entry.close {
-        close.send_replace(true);
-        let _ = tokio::time::timeout(CLOSE_PATIENCE, close.closed()).await;
+        tracing::warn!(scene = %name, "a closing scene's owner did not stop in time; the scene reopens here once it has");
+        still_closing
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(name.to_string(), entry.handle.clone());
+        let (still_closing, name) = (still_closing.clone(), name.to_string());
+        tokio::spawn(async move {
+            entry.handle.closed().await;
+            still_closing
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .remove(&name);
+        });
+        return;
     }
     tracing::info!(scene = %name, idle_s = idle.as_secs_f64(), "closed a scene nobody on this node used");
 }

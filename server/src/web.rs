@@ -242,8 +242,8 @@ async fn asset(Path(file): Path<String>, headers: HeaderMap) -> Response {
 }
 
 async fn thumbnail(State(app): State<Arc<App>>, Path(name): Path<String>) -> Response {
-    // A cluster node draws a scene it does not serve by opening it (it closes again when
-    // nobody uses it); a fresh enough picture is served without.
+    // A cluster node draws a scene it does not serve (and has no picture of) by opening it;
+    // it closes again when nobody uses it.
     let seq = app.scene(&name).map(|s| s.info.seq.load(Relaxed));
     let png = |png: Bytes| {
         (
@@ -261,8 +261,10 @@ async fn thumbnail(State(app): State<Arc<App>>, Path(name): Path<String>) -> Res
             .cache
             .lock()
             .unwrap_or_else(|e| e.into_inner());
+        // A scene this node does not serve keeps the picture it had: drawing it again would
+        // open the scene for every visit to the scene list.
         if let Some(t) = cache.get(&name)
-            && (Some(t.seq) == seq || t.at.elapsed() < THUMBNAIL_EVERY)
+            && (Some(t.seq) == seq || seq.is_none() || t.at.elapsed() < THUMBNAIL_EVERY)
         {
             return png(t.png.clone());
         }

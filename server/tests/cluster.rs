@@ -997,6 +997,8 @@ async fn scenes_open_where_people_are_and_close_behind_them() {
     let idle = ["--close-idle", "1"];
     let a = Node::start_bare(&nats.url(), "a", &idle).await;
     let b = Node::start_bare(&nats.url(), "b", &idle).await;
+    // A third node serves the scene too, but without clients (it drew its picture).
+    let c = Node::start_bare(&nats.url(), "c", &[]).await;
     let within = Duration::from_secs(20);
     // Listed, but served by nobody yet.
     for n in [&a, &b] {
@@ -1018,6 +1020,8 @@ async fn scenes_open_where_people_are_and_close_behind_them() {
     let mut on_a = Client::connect(&a.url(), None).await.unwrap();
     on_a.sync().await;
     until_node(&a, within, "a does not lead", async |n| n.owns().await).await;
+    assert_eq!(http_get(c.addr, "/scenes/demo/thumb.png").await.0, 200);
+    assert!(c.serves().await);
     assert!(!b.serves().await);
     let mut on_b = Client::connect(&b.url(), None).await.unwrap();
     on_b.sync().await;
@@ -1040,6 +1044,9 @@ async fn scenes_open_where_people_are_and_close_behind_them() {
     .await;
     let second = set(&mut on_b, spot(0, 1), 2).await;
     assert!(second > first);
+    // The node without clients left the lease to the ones with people.
+    assert_eq!(c.metric("cluster_takeovers_total").await, 0);
+    drop(c);
     // b keeps the scene while its client stays, idle or not.
     tokio::time::sleep(Duration::from_millis(2500)).await;
     assert!(b.serves().await);

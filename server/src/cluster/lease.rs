@@ -22,7 +22,7 @@ use tokio::sync::{mpsc, oneshot, watch};
 
 use super::forward::Forwarded;
 use super::log::{self as jetlog, ClusterLoaded, JetLog, LeaseClock, Turn};
-use super::{CLAIM_POLL, Cluster, LEASE_MARGIN, LEASE_TTL, RENEW_EVERY};
+use super::{CLAIM_GRACE, CLAIM_POLL, Cluster, LEASE_MARGIN, LEASE_TTL, RENEW_EVERY};
 use crate::metrics::Metrics;
 use crate::scene::{self, Command, OwnerConfig, SceneCluster, SceneHandle};
 
@@ -234,6 +234,8 @@ impl LeaseTask {
 
 async fn hold_lease(mut task: LeaseTask) {
     let mut held: Option<u64> = None;
+    // Since when nobody holds the lease, while this node has no client on the scene.
+    let mut free_since: Option<Instant> = None;
     let mut intake: Option<tokio::task::JoinHandle<()>> = None;
     loop {
         let wait = if held.is_some() {
@@ -274,6 +276,7 @@ async fn hold_lease(mut task: LeaseTask) {
         // Who holds it now (for this node's sessions); nobody: try to take it.
         match task.owners.get(&task.scene.name).await {
             Ok(Some(holder)) => {
+                free_since = None;
                 let holder = String::from_utf8_lossy(&holder).into_owned();
                 task.owner.send_if_modified(|o| {
                     let changed = o.as_deref() != Some(holder.as_str());
@@ -284,6 +287,15 @@ async fn hold_lease(mut task: LeaseTask) {
             }
             Ok(None) => {
                 task.owner.send_if_modified(|o| o.take().is_some());
+                // The lease goes to a node with people on the scene: one without (idle until
+                // it closes the scene, or opened for a picture) claims only if none did.
+                if task.scene.info.clients.load(Relaxed) == 0 {
+                    if free_since.get_or_insert_with(Instant::now).elapsed() < CLAIM_GRACE {
+                        continue;
+                    }
+                } else {
+                    free_since = None;
+                }
             }
             Err(_) => continue,
         }
@@ -307,6 +319,14 @@ async fn hold_lease(mut task: LeaseTask) {
         )));
         let (done, mut answer) = oneshot::channel();
         if task.scene.send(Command::TakeOver { done }).await.is_err() {
+            // The owner thread is gone (the scene is closing): hand the key back now.
+            if let Some(edits) = intake.take() {
+                edits.abort();
+            }
+            let _ = task
+                .owners
+                .delete_expect_revision(&task.scene.name, Some(revision))
+                .await;
             return;
         }
         // Catching up can take a while: keep the lease meanwhile.

@@ -420,9 +420,8 @@ pub struct JetLog {
     /// over) a newer one whose trim already happened.
     uploading: Option<tokio::task::JoinHandle<()>>,
     /// The snapshot chain this node wrote while leading without a break, so the next snapshot
-    /// can be a delta on it (`snapshot.rs`). `None`: the next one is a base. The upload task
-    /// sets it once a snapshot is stored; a failed upload and any change of leadership clear it.
-    chain: Arc<std::sync::Mutex<Option<snapshot::Chain>>>,
+    /// can be a delta on it (`snapshot.rs`), and which leadership it belongs to.
+    chain: Arc<std::sync::Mutex<ChainState>>,
 }
 
 impl JetLog {
@@ -687,7 +686,9 @@ impl JetLog {
 
     /// Loads the scene again from the cluster (after a gap, or an append that lost the lease).
     fn forget_chain(&self) {
-        *self.chain.lock().unwrap_or_else(|e| e.into_inner()) = None;
+        let mut state = self.chain.lock().unwrap_or_else(|e| e.into_inner());
+        state.generation += 1;
+        state.chain = None;
     }
 
     pub fn reload(&mut self) -> Result<Loaded, StoreError> {
@@ -724,8 +725,11 @@ impl JetLog {
                 ),
             });
         }
-        let chain = self.chain.clone();
-        let before = chain.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let state = self.chain.clone();
+        let (generation, before) = {
+            let s = state.lock().unwrap_or_else(|e| e.into_inner());
+            (s.generation, s.chain.clone())
+        };
         let prepared = snapshot::prepare(
             before.as_ref(),
             map,
@@ -739,10 +743,20 @@ impl JetLog {
         let store = self.h.snapshots.clone();
         let stream = self.stream.clone();
         let scene = self.scene.clone();
+        let lease = self.lease.clone();
+        // Still the leadership that prepared the snapshot, with the lease held: a deposed
+        // owner's late upload must not replace a newer owner's snapshot.
+        let current = {
+            let state = state.clone();
+            move || {
+                lease.valid()
+                    && state.lock().unwrap_or_else(|e| e.into_inner()).generation == generation
+            }
+        };
         // The owner thread only copies the bricks; encoding and compressing (the larger part:
         // seconds for a big scene's base) runs off it, so edits keep flowing.
         self.uploading = Some(self.h.rt.spawn(async move {
-            let forget = || *chain.lock().unwrap_or_else(|e| e.into_inner()) = None;
+            let forget = || state.lock().unwrap_or_else(|e| e.into_inner()).chain = None;
             let name = scene.clone();
             let encoded =
                 tokio::task::spawn_blocking(move || prepared.encode(&name, before)).await;
@@ -759,12 +773,23 @@ impl JetLog {
                     return;
                 }
             };
+            if !current() {
+                forget();
+                tracing::info!(scene = %scene, "a snapshot not written: this node no longer leads the scene");
+                return;
+            }
             if let Err(e) = snapshot::put(&store, &encoded).await {
                 forget();
                 tracing::warn!(scene = %scene, error = %e, "snapshot not written; the log keeps everything");
                 return;
             }
-            *chain.lock().unwrap_or_else(|e| e.into_inner()) = Some(encoded.chain.clone());
+            {
+                let mut s = state.lock().unwrap_or_else(|e| e.into_inner());
+                if s.generation != generation {
+                    return;
+                }
+                s.chain = Some(encoded.chain.clone());
+            }
             // Messages after the snapshot stay; the ones it holds go.
             let (seq, pos) = (encoded.seq, encoded.pos);
             match stream.purge().sequence(pos + 1).await {
@@ -778,6 +803,16 @@ impl JetLog {
         }));
         Ok(true)
     }
+}
+
+/// The snapshot chain and the leadership it belongs to. `chain: None`: the next snapshot is
+/// a base. An upload sets the chain once its snapshot is stored, but only in the leadership
+/// that started it: claim, step-down and reload start a new one (and clear the chain), so an
+/// upload finishing after a change of leadership cannot bring an old chain back.
+#[derive(Default)]
+struct ChainState {
+    generation: u64,
+    chain: Option<snapshot::Chain>,
 }
 
 /// How long a stopping owner waits for its last snapshot's upload.

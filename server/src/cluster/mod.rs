@@ -50,6 +50,8 @@ pub const LEASE_TTL: Duration = Duration::from_secs(3);
 pub const RENEW_EVERY: Duration = Duration::from_millis(750);
 /// How often a node without the lease tries to take it.
 pub const CLAIM_POLL: Duration = Duration::from_millis(250);
+/// How long a node without clients on a scene leaves a free lease to nodes with clients.
+pub const CLAIM_GRACE: Duration = Duration::from_secs(1);
 /// The owner stops appending this long before its lease could have run out.
 pub const LEASE_MARGIN: Duration = Duration::from_millis(500);
 /// A node's name is held this long without renewal.

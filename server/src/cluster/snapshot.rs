@@ -294,7 +294,7 @@ impl Prepared {
                 let bytes = encode_as(DELTA_MAGIC, &delta)?;
                 let before = chain
                     .filter(|c| c.base == delta.base && c.next == delta.number)
-                    .ok_or("the chain moved while the delta was prepared")?;
+                    .ok_or("the delta does not follow the chain it was encoded with")?;
                 Ok(Encoded {
                     name: delta_name(scene, delta.number),
                     description: format!(
