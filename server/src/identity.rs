@@ -70,16 +70,26 @@ fn palette_colour(i: usize) -> Colour {
     Colour::from_rgb8(r, g, b)
 }
 
+/// Squared RGB distance under which two markers read as the same colour (90 steps; every two
+/// palette colours are farther apart).
+const ALIKE: i32 = 90 * 90;
+
+fn distance(a: Colour, b: Colour) -> i32 {
+    let (a, b) = (a.to_rgb8(), b.to_rgb8());
+    (0..3)
+        .map(|i| (i32::from(a[i]) - i32::from(b[i])).pow(2))
+        .sum()
+}
+
+/// Whether two markers would read as the same colour.
+pub fn looks_alike(a: Colour, b: Colour) -> bool {
+    distance(a, b) < ALIKE
+}
+
 /// The user's own colour, unless it looks like one another user present shows: then the
 /// palette colour farthest from every colour shown. People in one scene can tell each other
 /// apart (up to twelve of them), and a user among few keeps the same colour every time.
 pub fn colour_among(user: UserId, taken: &[Colour]) -> Colour {
-    let distance = |a: Colour, b: Colour| -> i32 {
-        let (a, b) = (a.to_rgb8(), b.to_rgb8());
-        (0..3)
-            .map(|i| (i32::from(a[i]) - i32::from(b[i])).pow(2))
-            .sum()
-    };
     let nearest = |c: Colour| {
         taken
             .iter()
@@ -88,9 +98,7 @@ pub fn colour_among(user: UserId, taken: &[Colour]) -> Colour {
             .unwrap_or(i32::MAX)
     };
     let own = colour_of(user);
-    // Closer than this (90 steps of RGB; every two palette colours are farther apart) two
-    // markers read as the same colour.
-    if nearest(own) >= 90 * 90 {
+    if nearest(own) >= ALIKE {
         return own;
     }
     (0..PALETTE.len())

@@ -27,7 +27,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use brickcast_protocol::wire::{
-    Cursor, Peer, PeerId, PeerState, Refusal, ServerMsg, View, encode_server,
+    Cursor, Peer, PeerId, PeerState, Refusal, ServerMsg, UserId, View, encode_server,
 };
 use bytes::Bytes;
 
@@ -112,6 +112,45 @@ impl Roster {
             l.join(peer.clone());
         }
         self.pending.join(peer.clone());
+    }
+
+    /// Two nodes can give one colour to two people who joined at the same moment (each picks
+    /// among the peers it knows of). Of a local user and a remote one that look alike, the
+    /// one with the larger user id picks again, on its own node: both nodes apply the same
+    /// rule, so exactly one of them changes. The change goes out like a rename, to this node's
+    /// clients and to the other nodes. Every window of the user gets the new colour.
+    fn recolour_against(&mut self, remote: &Peer) {
+        let mut users: Vec<UserId> = self
+            .members
+            .values()
+            .filter(|m| {
+                m.peer.user > remote.user
+                    && crate::identity::looks_alike(m.peer.colour, remote.colour)
+            })
+            .map(|m| m.peer.user)
+            .collect();
+        users.sort_unstable();
+        users.dedup();
+        for user in users {
+            let taken: Vec<_> = self
+                .peers()
+                .filter(|p| p.user != user)
+                .map(|p| p.colour)
+                .collect();
+            let colour = crate::identity::colour_among(user, &taken);
+            let changed: Vec<Peer> = self
+                .members
+                .values_mut()
+                .filter(|m| m.peer.user == user)
+                .map(|m| {
+                    m.peer.colour = colour;
+                    m.peer.clone()
+                })
+                .collect();
+            for peer in &changed {
+                self.joined(peer, true);
+            }
+        }
     }
 
     fn left(&mut self, id: PeerId, local: bool) {
@@ -295,6 +334,7 @@ impl Hub {
             }
         }
         roster.joined(&peer, false);
+        roster.recolour_against(&peer);
         true
     }
 
@@ -488,6 +528,37 @@ mod tests {
         std::iter::from_fn(|| rx.try_take())
             .filter_map(|f| decode_server(&f, &brickcast_protocol::wire::Limits::hard_caps()).ok())
             .collect()
+    }
+
+    #[test]
+    fn a_colour_two_nodes_gave_at_once_is_picked_again_by_one_of_them() {
+        let total = Arc::new(AtomicUsize::new(0));
+        let hub = Hub::new(20);
+        hub.relay_local();
+        let (out, _rx) = Outbox::new(total.clone());
+        let (me, _) = hub.join(peer(9), out.clone());
+        // The same user in a second window of this node: the same colour.
+        let mut second = peer(10);
+        second.user = 9;
+        let (window, _) = hub.join(second, out);
+        assert_eq!(window.colour, me.colour);
+        // Another node gave a user with a smaller id the same colour: this node's user yields,
+        // in both windows, and the new colour is relayed.
+        let mut them = peer(REMOTE_IDS + 1);
+        them.user = 5;
+        them.colour = me.colour;
+        assert!(hub.remote_join(them.clone()));
+        let changed = hub.take_local();
+        let mine: Vec<_> = changed.joined.iter().filter(|p| p.user == 9).collect();
+        assert_eq!(mine.len(), 2, "{changed:?}");
+        assert!(mine.iter().all(|p| p.colour == mine[0].colour));
+        assert!(!crate::identity::looks_alike(mine[0].colour, them.colour));
+        // A user with a larger id on another node: that node yields, not this one.
+        let mut other = peer(REMOTE_IDS + 2);
+        other.user = 50;
+        other.colour = mine[0].colour;
+        assert!(hub.remote_join(other));
+        assert!(hub.take_local().joined.is_empty());
     }
 
     #[test]

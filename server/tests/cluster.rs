@@ -1156,3 +1156,53 @@ async fn a_scene_loads_from_a_base_and_its_deltas_with_its_history() {
         assert_eq!(c.map.get(pos), expect, "redo {redo} at {pos:?}");
     }
 }
+
+/// Two people who join two nodes at the same moment can be given one colour (each node picks
+/// among the people it knows of). One of them picks again, and both end up seeing each other
+/// in a colour unlike their own, the same colour the other sees for itself.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn people_joining_two_nodes_at_once_end_with_two_colours() {
+    use brickcast_server::identity::{colour_of, looks_alike};
+    let nats = Nats::start(true);
+    let a = Node::start(&nats.url(), "a", &[]).await;
+    let b = Node::start(&nats.url(), "b", &[]).await;
+    // Two users whose own colour is the same.
+    let first = 0x1000u64;
+    let second = (first + 1..)
+        .find(|&u| colour_of(u) == colour_of(first))
+        .unwrap();
+    let (url_a, url_b) = (a.url(), b.url());
+    let (x, y) = tokio::join!(
+        Client::as_user(&url_a, None, first, "x"),
+        Client::as_user(&url_b, None, second, "y"),
+    );
+    let (mut x, mut y) = (x.unwrap(), y.unwrap());
+    x.sync().await;
+    y.sync().await;
+    let within = Duration::from_secs(15);
+    // Each sees the other in a colour unlike its own.
+    let apart = |other: &'static str| {
+        move |c: &Client| {
+            let Some(me) = &c.roster.you else {
+                return false;
+            };
+            c.roster
+                .others
+                .values()
+                .find(|p| p.peer.name == other)
+                .is_some_and(|p| !looks_alike(p.peer.colour, me.colour))
+        }
+    };
+    assert!(wait_for(&mut x, within, apart("y")).await, "{:?}", x.roster);
+    assert!(wait_for(&mut y, within, apart("x")).await, "{:?}", y.roster);
+    // And what one sees of the other is what the other shows itself as.
+    let shown = |c: &Client, name: &str| {
+        c.roster
+            .others
+            .values()
+            .find(|p| p.peer.name == name)
+            .map(|p| p.peer.colour)
+    };
+    assert_eq!(shown(&x, "y"), y.roster.you.as_ref().map(|p| p.colour));
+    assert_eq!(shown(&y, "x"), x.roster.you.as_ref().map(|p| p.colour));
+}
