@@ -47,7 +47,7 @@ use tokio::sync::watch;
 use crate::auth::Auth;
 use crate::conns::{ConnectionLimits, Connections};
 use crate::metrics::Metrics;
-use crate::scene::{Command, OwnerConfig, SceneHandle};
+use crate::scene::{OwnerConfig, SceneHandle};
 use crate::store::Store;
 
 /// Size of the built-in demo scene created on an empty store.
@@ -132,7 +132,8 @@ struct Node {
     cluster: cluster::Cluster,
     name: String,
     close_idle: Duration,
-    registration: tokio::task::JoinHandle<()>,
+    /// This process's hold on its name (given back at shutdown; lost if another took it).
+    registration: cluster::NodeName,
 }
 
 /// State shared by the HTTP handlers and sessions.
@@ -459,10 +460,23 @@ impl Server {
         };
         let router = router(app.clone());
         let stop = shutdown.clone();
+        // A cluster node whose name another process took stops as if told to.
+        let mut lost = app.node.as_ref().map(|n| n.registration.lost.clone());
         // TCP_NODELAY, the header timeout and ConnectInfo: see `http`. Waits out requests in
         // flight; upgraded websockets end through `app.shutdown`.
         http::serve(listener, router, http_config, async move {
-            signal.await;
+            let name_lost = async {
+                match &mut lost {
+                    Some(lost) => {
+                        let _ = lost.wait_for(|why| why.is_some()).await;
+                    }
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                () = signal => {}
+                () = name_lost => {}
+            }
             let _ = stop.send(true);
         })
         .await;
@@ -472,9 +486,16 @@ impl Server {
         // had (any later one sees the shutdown).
         let _ = spool.await;
         let _opening = app.scenes.opening.lock().await;
-        for (_, scene) in app.scene_list() {
-            let _ = scene.send(Command::Shutdown).await;
-        }
+        // Every scene takes the one closing path (`served::close`): in a cluster a lease is
+        // kept until its owner has committed and snapshotted, then handed over at once.
+        let still_closing = app.scenes.still_closing.clone();
+        futures_util::future::join_all(app.scenes.take_all().into_iter().map(|(name, entry)| {
+            let still_closing = still_closing.clone();
+            async move {
+                served::close(&name, entry, served::Closing::Shutdown, &still_closing).await;
+            }
+        }))
+        .await;
         let owners = std::mem::take(&mut *app.owners.lock().unwrap_or_else(|e| e.into_inner()));
         let crashed = tokio::task::spawn_blocking(move || {
             owners.into_iter().filter_map(|o| o.join().err()).count()
@@ -483,24 +504,20 @@ impl Server {
         // Owners have dropped their outboxes: writers send what is left and close.
         let mut sessions = app.sessions.subscribe();
         let _ = tokio::time::timeout(Duration::from_secs(5), sessions.wait_for(|&n| n == 0)).await;
+        let mut name_lost = None;
         if let Some(node) = &app.node {
-            // Every owner has stopped appending: hand the scenes this node owned to the others
-            // now rather than when their leases expire, and free the name for a restart.
-            for (name, _) in app.scene_list() {
-                if let Ok(Some(holder)) = node.cluster.owners.get(&name).await
-                    && holder == node.name.as_bytes()
-                {
-                    let _ = node.cluster.owners.delete(&name).await;
-                }
-            }
-            node.registration.abort();
-            let _ = node.cluster.nodes.delete(&node.name).await;
+            name_lost = node.registration.lost.borrow().clone();
+            // Free the name for a restart (unless another process holds it now).
+            node.registration.release().await;
             let _ = node.cluster.client.flush().await;
         }
         if crashed > 0 {
             anyhow::bail!(
                 "{crashed} scene owner(s) crashed; their last acknowledged edits are in the log"
             );
+        }
+        if let Some(why) = name_lost {
+            anyhow::bail!("{why}");
         }
         tracing::info!("shut down cleanly");
         Ok(())

@@ -296,7 +296,7 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
         .enable_all()
         .build()
         .context("starting tokio")?;
-    runtime.block_on(async move {
+    let served = runtime.block_on(async move {
         let mut config = ServerConfig::new(args.listen, args.data);
         config.owner.snapshot_every = Duration::from_secs_f64(args.snapshot_every);
         config.owner.budget.max_work_per_edit = args.max_work_per_edit;
@@ -322,7 +322,10 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
             Some(why) => tracing::warn!("no browser viewer in this build: {}", why.trim()),
         }
         server.run(shutdown_signal()).await
-    })
+    });
+    // Whatever a task still waits on (a NATS connection that is gone), the process ends.
+    runtime.shutdown_timeout(Duration::from_secs(5));
+    served
 }
 
 /// Ctrl-C or SIGTERM.

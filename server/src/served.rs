@@ -40,11 +40,11 @@ pub struct Served {
     pub(crate) opening: tokio::sync::Mutex<()>,
     /// Scenes whose owner thread did not stop within [`CLOSE_PATIENCE`]: not reopened here
     /// until it has.
-    still_closing: Arc<Mutex<BTreeMap<String, SceneHandle>>>,
+    pub(crate) still_closing: Arc<Mutex<BTreeMap<String, SceneHandle>>>,
 }
 
 #[derive(Clone)]
-struct Entry {
+pub(crate) struct Entry {
     handle: SceneHandle,
     uses: Arc<Uses>,
     /// Cluster: ends the scene's lease, follower and relay tasks.
@@ -183,6 +183,25 @@ impl Served {
         all.into_values().collect()
     }
 
+    /// Takes every scene out of service (shutdown).
+    pub(crate) fn take_all(&self) -> Vec<(String, Entry)> {
+        std::mem::take(&mut *self.write()).into_iter().collect()
+    }
+
+    /// Takes out of service the cluster scenes whose owner thread stopped by itself.
+    fn take_stopped(&self) -> Vec<(String, Entry)> {
+        let mut open = self.write();
+        let names: Vec<String> = open
+            .iter()
+            .filter(|(_, e)| e.close.is_some() && e.handle.is_closed())
+            .map(|(n, _)| n.clone())
+            .collect();
+        names
+            .into_iter()
+            .filter_map(|n| open.remove(&n).map(|e| (n, e)))
+            .collect()
+    }
+
     /// Takes out of service the scenes nobody used for `idle`.
     fn take_idle(&self, idle: Duration) -> Vec<(String, Entry)> {
         let mut open = self.write();
@@ -289,8 +308,9 @@ impl App {
         Ok(())
     }
 
-    /// Cluster: keeps the scene list fresh and closes scenes nobody here used for
-    /// `close_idle` (never when it is zero), until shutdown.
+    /// Cluster: keeps the scene list fresh, takes scenes whose owner stopped by itself out of
+    /// service, and closes scenes nobody here used for `close_idle` (never when it is zero),
+    /// until shutdown.
     pub(crate) async fn tend_cluster_scenes(self: Arc<Self>, close_idle: Duration) {
         let mut shutdown = self.shutdown.clone();
         while wait_or_shutdown(&mut shutdown, CLUSTER_POLL).await {
@@ -298,16 +318,23 @@ impl App {
             if let Err(e) = self.refresh_known(&node.cluster).await {
                 tracing::warn!(error = %e, "cannot list the cluster's scenes");
             }
-            if close_idle.is_zero() {
-                continue;
-            }
             let _closing = self.scenes.opening.lock().await;
             if *self.shutdown.borrow() {
                 return;
             }
             let mut closed = 0;
-            for (name, entry) in self.scenes.take_idle(close_idle) {
-                close(&name, entry, close_idle, &self.scenes.still_closing).await;
+            for (name, entry) in self.scenes.take_stopped() {
+                close(&name, entry, Closing::Stopped, &self.scenes.still_closing).await;
+                closed += 1;
+            }
+            let idle = if close_idle.is_zero() {
+                Vec::new()
+            } else {
+                self.scenes.take_idle(close_idle)
+            };
+            for (name, entry) in idle {
+                let why = Closing::Idle(close_idle);
+                close(&name, entry, why, &self.scenes.still_closing).await;
                 Metrics::add(&self.metrics.scene_closes, 1);
                 closed += 1;
             }
@@ -322,28 +349,27 @@ impl App {
     }
 }
 
-/// Stops a scene taken out of service. Its cluster tasks end first: the lease task stops the
-/// intake and hands a held lease over at once, so edits from other nodes move to a node with
-/// people on the scene instead of waiting for this owner's last turn and snapshot. Then the
-/// owner thread stops (committing what it has; an append after the lease went is refused and
-/// retried on the new owner, and the log's fence keeps it from landing twice). An owner that
-/// does not stop in time stays listed as closing, and the scene is not reopened here until it
-/// has stopped: one node never runs two owners of a scene.
-async fn close(
+/// Stops a scene taken out of service: the one path of an idle close and of a shutdown. Its
+/// cluster tasks are told first: the lease task stops taking forwarded edits (their senders
+/// retry until the lease names another node) but keeps the lease while the owner thread
+/// commits what it has and writes its last snapshot, then hands it over at once. An owner
+/// that does not stop in time stays listed as closing, and the scene is not reopened here
+/// until it has stopped: one node never runs two owners of a scene.
+pub(crate) async fn close(
     name: &str,
     entry: Entry,
-    idle: Duration,
+    why: Closing,
     still_closing: &Arc<Mutex<BTreeMap<String, SceneHandle>>>,
 ) {
-    if let Some(close) = entry.close {
+    if let Some(close) = &entry.close {
         close.send_replace(true);
-        let _ = tokio::time::timeout(CLOSE_PATIENCE, close.closed()).await;
     }
     let _ = entry.handle.send(Command::Shutdown).await;
-    if tokio::time::timeout(CLOSE_PATIENCE, entry.handle.closed())
-        .await
-        .is_err()
-    {
+    let stopped = tokio::time::timeout(CLOSE_PATIENCE, entry.handle.closed()).await;
+    if let Some(close) = &entry.close {
+        let _ = tokio::time::timeout(CLOSE_PATIENCE, close.closed()).await;
+    }
+    if stopped.is_err() {
         tracing::warn!(scene = %name, "a closing scene's owner did not stop in time; the scene reopens here once it has");
         still_closing
             .lock()
@@ -359,7 +385,26 @@ async fn close(
         });
         return;
     }
-    tracing::info!(scene = %name, idle_s = idle.as_secs_f64(), "closed a scene nobody on this node used");
+    match why {
+        Closing::Idle(idle) => {
+            tracing::info!(scene = %name, idle_s = idle.as_secs_f64(), "closed a scene nobody on this node used")
+        }
+        Closing::Stopped => {
+            tracing::info!(scene = %name, "took a scene whose owner stopped out of service; it opens again (from the cluster) when someone asks")
+        }
+        Closing::Shutdown => tracing::debug!(scene = %name, "closed a scene for the shutdown"),
+    }
+}
+
+/// Why a scene is taken out of service.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Closing {
+    /// Nobody on this node used it for this long.
+    Idle(Duration),
+    /// Its owner thread stopped by itself (in a cluster: its log cannot be followed).
+    Stopped,
+    /// The server is shutting down.
+    Shutdown,
 }
 
 /// Returns the freed memory of closed scenes to the system. glibc's allocator keeps freed

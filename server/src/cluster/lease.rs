@@ -168,10 +168,13 @@ async fn follow(
                         }
                     }
                     Err(e) => {
-                        tracing::error!(scene = %scene.name, pos, error = %e, "the scene's log holds a message this node cannot read; it stops serving the scene's edits");
+                        let why = format!(
+                            "log message {pos} is corrupt ({e}); {}",
+                            super::repair::hint(&scene.name)
+                        );
+                        tracing::error!(scene = %scene.name, pos, error = %e, "the scene's log holds a message this node cannot read");
                         broken.store(true, Relaxed);
-                        let why = format!("log message {pos} is corrupt: {e}");
-                        let _ = scene.send(Command::StepDown { why }).await;
+                        let _ = scene.send(Command::LogFault { why }).await;
                         return;
                     }
                 }
@@ -232,6 +235,90 @@ impl LeaseTask {
     }
 }
 
+impl LeaseTask {
+    /// Hands a held lease back at once (delete with its revision: a key someone else took
+    /// since is left alone).
+    async fn release(&self, revision: u64) {
+        let _ = self
+            .owners
+            .delete_expect_revision(&self.scene.name, Some(revision))
+            .await;
+    }
+
+    /// With the lease held at `revision`: make the owner thread catch up and claim the log
+    /// (`Command::TakeOver`), renewing meanwhile. The revision while the owner leads, `None`
+    /// when it could not (the lease is then given back at once).
+    async fn lead(
+        &self,
+        mut revision: u64,
+        intake: &mut Option<tokio::task::JoinHandle<()>>,
+    ) -> Option<u64> {
+        if intake.is_none() {
+            *intake = Some(tokio::spawn(take_edits(
+                self.client.clone(),
+                self.scene.clone(),
+                self.node.clone(),
+            )));
+        }
+        let (done, mut answer) = oneshot::channel();
+        if self.scene.send(Command::TakeOver { done }).await.is_err() {
+            // The owner thread is gone (the scene is closing): hand the key back now.
+            if let Some(edits) = intake.take() {
+                edits.abort();
+            }
+            self.release(revision).await;
+            return None;
+        }
+        // Catching up can take a while: keep the lease meanwhile.
+        let claimed = loop {
+            tokio::select! {
+                a = &mut answer => break a.unwrap_or(false),
+                _ = tokio::time::sleep(RENEW_EVERY) => {
+                    if !self.renew(&mut revision).await {
+                        break false;
+                    }
+                }
+            }
+        };
+        if claimed && self.clock.valid() {
+            Metrics::add(&self.metrics.takeovers, 1);
+            self.owner.send_replace(Some(self.node.clone()));
+            return Some(revision);
+        }
+        self.lose(intake, "the log could not be claimed".into())
+            .await;
+        // Let another node have it now rather than when it expires.
+        self.release(revision).await;
+        None
+    }
+
+    /// The scene is closing on this node (or the node is shutting down): no more forwarded
+    /// edits; a held lease is kept, renewed, while the owner thread commits what it has and
+    /// writes its last snapshot, and handed over the moment it has stopped.
+    async fn close(&self, held: Option<u64>, intake: &mut Option<tokio::task::JoinHandle<()>>) {
+        if let Some(edits) = intake.take() {
+            edits.abort();
+        }
+        if let Some(mut revision) = held {
+            let kept = loop {
+                tokio::select! {
+                    () = self.scene.closed() => break true,
+                    _ = tokio::time::sleep(RENEW_EVERY) => {
+                        if !self.renew(&mut revision).await {
+                            break false;
+                        }
+                    }
+                }
+            };
+            if kept {
+                self.release(revision).await;
+            }
+        }
+        self.clock.revoke();
+        self.owner.send_replace(None);
+    }
+}
+
 async fn hold_lease(mut task: LeaseTask) {
     let mut held: Option<u64> = None;
     // Since when nobody holds the lease, while this node has no client on the scene.
@@ -248,29 +335,35 @@ async fn hold_lease(mut task: LeaseTask) {
             _ = task.shutdown.changed() => {}
         }
         if *task.shutdown.borrow() {
-            // The owner thread appends nothing more; a scene closed on this node (or a node
-            // shutting down) hands the lease over now rather than when it expires. An append
-            // still in flight is fenced by the log, whoever takes the key.
-            task.clock.revoke();
-            if let Some(edits) = intake.take() {
-                edits.abort();
-            }
-            if let Some(revision) = held {
-                let _ = task
-                    .owners
-                    .delete_expect_revision(&task.scene.name, Some(revision))
-                    .await;
-            }
-            return;
+            return task.close(held, &mut intake).await;
         }
         if let Some(mut revision) = held {
-            if task.renew(&mut revision).await {
-                held = Some(revision);
-            } else {
+            if !task.renew(&mut revision).await {
                 held = None;
                 task.lose(&mut intake, "the lease could not be renewed".into())
                     .await;
+                continue;
             }
+            if task.broken.load(Relaxed) {
+                // This node cannot follow the log: it must not keep the scene from the others.
+                held = None;
+                task.lose(
+                    &mut intake,
+                    "the scene's log cannot be followed here".into(),
+                )
+                .await;
+                task.release(revision).await;
+                continue;
+            }
+            held = if task.scene.info.leading.load(Relaxed) {
+                Some(revision)
+            } else {
+                // The owner stopped ordering edits while the lease stayed ours (an append
+                // refused after a pause just under the lease's life): claim the log again
+                // rather than hold a lease nobody uses.
+                tracing::info!(scene = %task.scene.name, "the owner stopped ordering edits under a held lease; claiming the log again");
+                task.lead(revision, &mut intake).await
+            };
             continue;
         }
         // Who holds it now (for this node's sessions); nobody: try to take it.
@@ -303,7 +396,7 @@ async fn hold_lease(mut task: LeaseTask) {
             continue;
         }
         let sent = Instant::now();
-        let Ok(mut revision) = task
+        let Ok(revision) = task
             .owners
             .create(&task.scene.name, task.node.clone().into())
             .await
@@ -312,46 +405,9 @@ async fn hold_lease(mut task: LeaseTask) {
             continue;
         };
         task.clock.extend_to(sent + LEASE_TTL - LEASE_MARGIN);
-        intake = Some(tokio::spawn(take_edits(
-            task.client.clone(),
-            task.scene.clone(),
-            task.node.clone(),
-        )));
-        let (done, mut answer) = oneshot::channel();
-        if task.scene.send(Command::TakeOver { done }).await.is_err() {
-            // The owner thread is gone (the scene is closing): hand the key back now.
-            if let Some(edits) = intake.take() {
-                edits.abort();
-            }
-            let _ = task
-                .owners
-                .delete_expect_revision(&task.scene.name, Some(revision))
-                .await;
+        held = task.lead(revision, &mut intake).await;
+        if held.is_none() && task.scene.is_closed() {
             return;
-        }
-        // Catching up can take a while: keep the lease meanwhile.
-        let claimed = loop {
-            tokio::select! {
-                a = &mut answer => break a.unwrap_or(false),
-                _ = tokio::time::sleep(RENEW_EVERY) => {
-                    if !task.renew(&mut revision).await {
-                        break false;
-                    }
-                }
-            }
-        };
-        if claimed && task.clock.valid() {
-            held = Some(revision);
-            Metrics::add(&task.metrics.takeovers, 1);
-            task.owner.send_replace(Some(task.node.clone()));
-        } else {
-            task.lose(&mut intake, "the log could not be claimed".into())
-                .await;
-            // Let another node have it now rather than when it expires.
-            let _ = task
-                .owners
-                .delete_expect_revision(&task.scene.name, Some(revision))
-                .await;
         }
     }
 }

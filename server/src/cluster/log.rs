@@ -830,12 +830,12 @@ impl Drop for JetLog {
         if upload.is_finished() || tokio::runtime::Handle::try_current().is_ok() {
             return;
         }
-        if self
+        // The timeout is made inside the runtime: this thread is not one of its own.
+        let waited = self
             .h
             .rt
-            .block_on(tokio::time::timeout(UPLOAD_PATIENCE, upload))
-            .is_err()
-        {
+            .block_on(async { tokio::time::timeout(UPLOAD_PATIENCE, upload).await });
+        if waited.is_err() {
             tracing::warn!(scene = %self.scene, "the last snapshot's upload did not finish in time; the log keeps everything");
         }
     }

@@ -31,6 +31,7 @@ pub mod forward;
 mod lease;
 pub mod log;
 pub mod presence;
+pub mod repair;
 pub mod snapshot;
 pub mod status;
 
@@ -222,11 +223,7 @@ impl Cluster {
     /// Takes `name` for this process and keeps it while the process lives. A name held by a
     /// node that just died frees itself within [`NODE_TTL`], so a restarted node waits that
     /// long before it calls the name taken.
-    pub async fn register_node(
-        &self,
-        name: &str,
-        listen: &str,
-    ) -> Result<tokio::task::JoinHandle<()>, ClusterError> {
+    pub async fn register_node(&self, name: &str, listen: &str) -> Result<NodeName, ClusterError> {
         if !crate::store::valid_scene_name(name) {
             return Err(ClusterError::BadNodeName(name.into()));
         }
@@ -243,7 +240,7 @@ impl Cluster {
         let value =
             bytes::Bytes::from(serde_json::to_vec(&entry).map_err(|e| nats("node entry")(&e))?);
         let deadline = tokio::time::Instant::now() + NODE_TTL + Duration::from_secs(1);
-        let mut revision = loop {
+        let revision = loop {
             match self.nodes.create(name, value.clone()).await {
                 Ok(r) => break r,
                 Err(e) if e.kind() == kv::CreateErrorKind::AlreadyExists => {
@@ -255,22 +252,21 @@ impl Cluster {
                 Err(e) => return Err(nats("registering the node")(&e)),
             }
         };
-        let nodes = self.nodes.clone();
-        let name = name.to_string();
-        Ok(tokio::spawn(async move {
-            loop {
-                tokio::time::sleep(NODE_TTL / 4).await;
-                match nodes.update(&name, value.clone(), revision).await {
-                    Ok(r) => revision = r,
-                    Err(e) => {
-                        tracing::warn!(node = %name, error = %e, "cannot renew the node's name; taking it again");
-                        if let Ok(r) = nodes.create(&name, value.clone()).await {
-                            revision = r;
-                        }
-                    }
-                }
-            }
-        }))
+        let (release, released) = tokio::sync::oneshot::channel();
+        let (lost_tx, lost) = tokio::sync::watch::channel(None);
+        let task = tokio::spawn(hold_name(
+            self.nodes.clone(),
+            name.to_string(),
+            value,
+            revision,
+            released,
+            lost_tx,
+        ));
+        Ok(NodeName {
+            release: std::sync::Mutex::new(Some(release)),
+            task: tokio::sync::Mutex::new(Some(task)),
+            lost,
+        })
     }
 
     /// The cluster's scenes, sorted.
@@ -361,6 +357,93 @@ impl Cluster {
                 Err(ClusterError::SceneExists(name.into()))
             }
             Err(e) => Err(nats("adding the scene to the list")(&e)),
+        }
+    }
+}
+
+/// This process's hold on its node name (`register_node`).
+pub struct NodeName {
+    release: std::sync::Mutex<Option<tokio::sync::oneshot::Sender<()>>>,
+    task: tokio::sync::Mutex<Option<tokio::task::JoinHandle<()>>>,
+    /// Why this process must stop, once another process took its name.
+    pub lost: tokio::sync::watch::Receiver<Option<String>>,
+}
+
+impl NodeName {
+    /// Gives the name back (a restarted node takes it at once). A name another process took
+    /// meanwhile is left alone.
+    pub async fn release(&self) {
+        let release = self
+            .release
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take();
+        if let Some(release) = release {
+            let _ = release.send(());
+        }
+        if let Some(task) = self.task.lock().await.take() {
+            let _ = tokio::time::timeout(Duration::from_secs(5), task).await;
+        }
+    }
+}
+
+/// Renews the name every quarter of its life. When a renewal fails, the name is looked at:
+/// gone (it expired while this process was paused or cut off) → taken again; another
+/// process's → this process must stop (`NodeName::lost`): two processes of one name would both
+/// answer for it.
+async fn hold_name(
+    nodes: kv::Store,
+    name: String,
+    value: bytes::Bytes,
+    mut revision: u64,
+    mut released: tokio::sync::oneshot::Receiver<()>,
+    lost: tokio::sync::watch::Sender<Option<String>>,
+) {
+    loop {
+        tokio::select! {
+            biased;
+            _ = &mut released => {
+                let _ = nodes.delete_expect_revision(&name, Some(revision)).await;
+                return;
+            }
+            _ = tokio::time::sleep(NODE_TTL / 4) => {}
+        }
+        let error = match nodes.update(&name, value.clone(), revision).await {
+            Ok(r) => {
+                revision = r;
+                continue;
+            }
+            Err(e) => e,
+        };
+        match nodes.entry(&name).await {
+            Ok(Some(entry)) if entry.operation == kv::Operation::Put && entry.value == value => {
+                // Ours after all (the update's answer was lost).
+                revision = entry.revision;
+            }
+            Ok(Some(entry)) if entry.operation == kv::Operation::Put => {
+                let other = serde_json::from_slice::<NodeEntry>(&entry.value)
+                    .map(|e| e.listen)
+                    .unwrap_or_default();
+                let why = format!(
+                    "another process (listening on {other}) took this node's name {name:?} while this one could not renew it (it was paused or cut off from NATS for over {} s); this process stops",
+                    NODE_TTL.as_secs()
+                );
+                tracing::error!("{why}");
+                lost.send_replace(Some(why));
+                return;
+            }
+            Ok(_) => {
+                tracing::warn!(node = %name, error = %error, "the node's name expired; taking it again");
+                match nodes.create(&name, value.clone()).await {
+                    Ok(r) => revision = r,
+                    Err(e) => {
+                        tracing::warn!(node = %name, error = %e, "cannot take the node's name again yet")
+                    }
+                }
+            }
+            Err(e) => {
+                tracing::warn!(node = %name, error = %e, "cannot renew the node's name; trying again");
+            }
         }
     }
 }

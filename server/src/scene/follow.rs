@@ -237,8 +237,12 @@ impl Owner {
 
     /// The log cannot be followed: say so loudly, stop serving the scene from this node
     /// rather than show (or order edits on) a scene that forked from it.
-    fn refuse_log(&mut self, fault: &str) {
-        tracing::error!(scene = %self.name, fault, "the scene's log does not fit this replica; this node stops serving the scene until restarted");
+    pub(super) fn refuse_log(&mut self, fault: &str) {
+        if self.broken {
+            return;
+        }
+        self.broken = true;
+        tracing::error!(scene = %self.name, fault, "the scene's log does not fit this replica; this node stops serving the scene (it loads it again when someone asks)");
         if let Some(jet) = self.backend.jet() {
             jet.broken.store(true, std::sync::atomic::Ordering::Relaxed);
             jet.follow();
@@ -248,6 +252,10 @@ impl Owner {
 
     /// This node took the lease: catch up to the log's end, then claim it.
     pub(super) fn take_over(&mut self) -> bool {
+        // Asked again while it leads (the lease task saw it before this turn published it).
+        if self.backend.jet_ref().is_some_and(|j| j.leading()) {
+            return true;
+        }
         for attempt in 0..2 {
             let Some(jet) = self.backend.jet() else {
                 return false;

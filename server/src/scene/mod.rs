@@ -129,6 +129,11 @@ pub enum Command {
     StepDown {
         why: String,
     },
+    /// Cluster: the log holds something this replica cannot follow (a message that does not
+    /// decode): stop serving the scene here, saying why.
+    LogFault {
+        why: String,
+    },
 }
 
 /// Who a joining session is.
@@ -277,6 +282,11 @@ impl SceneHandle {
     /// Resolves once the owner thread has stopped taking commands (it stopped, or crashed).
     pub async fn closed(&self) {
         self.tx.closed().await
+    }
+
+    /// Whether the owner thread has stopped taking commands.
+    pub fn is_closed(&self) -> bool {
+        self.tx.is_closed()
     }
 }
 

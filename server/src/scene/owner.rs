@@ -90,6 +90,9 @@ pub struct Owner {
     pub(super) undo_budget: HashMap<u64, (f64, Instant)>,
     /// Shutting down: a lost lease is not followed by a reload.
     pub(super) stopping: bool,
+    /// The log cannot be followed (cluster): the owner stops after this turn, and the scene
+    /// is served again only from a fresh load.
+    pub(super) broken: bool,
 }
 
 /// A reply (`Ack` or `Undone`) waiting for the commit of what it reports.
@@ -204,6 +207,7 @@ impl Owner {
             history,
             undo_budget: HashMap::new(),
             stopping: false,
+            broken: false,
         };
         owner.publish_info();
         Ok(owner)
@@ -259,7 +263,7 @@ impl Owner {
         commands: Vec<Command>,
         clock: &mut PhaseClock,
     ) -> Result<bool, StoreError> {
-        let stop = self.turn(commands, clock)?;
+        let stop = self.turn(commands, clock)? || self.broken;
         self.pump_syncs();
         clock.mark(&self.metrics, OwnerPhase::Sync);
         self.maybe_snapshot(false)?;
@@ -326,6 +330,10 @@ impl Owner {
                 Command::StepDown { why } => {
                     self.publish(&mut log, &mut acks, clock)?;
                     self.step_down(&why);
+                }
+                Command::LogFault { why } => {
+                    self.publish(&mut log, &mut acks, clock)?;
+                    self.refuse_log(&why);
                 }
                 Command::Join {
                     session,

@@ -107,7 +107,8 @@ impl Model {
                 Command::Forwarded { .. }
                 | Command::Replicate { .. }
                 | Command::TakeOver { .. }
-                | Command::StepDown { .. } => {}
+                | Command::StepDown { .. }
+                | Command::LogFault { .. } => {}
                 Command::Undo {
                     session,
                     client_seq,
