@@ -148,7 +148,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             usize::from(args.replicas),
         ))?;
         let exists = runtime
-            .block_on(cluster.scene_names())?
+            .block_on(brickcast_server::cluster::catalog::scene_names(&cluster))?
             .contains(&args.scene);
         if exists && !args.replace {
             anyhow::bail!(
@@ -206,7 +206,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Destination::Cluster(cluster) => {
             let (runtime, cluster) = *cluster;
             bars.start(Phase::Storing, 0);
-            runtime.block_on(cluster.create_scene(&args.scene, map, args.replace))?;
+            runtime.block_on(brickcast_server::cluster::catalog::create_scene(
+                &cluster,
+                &args.scene,
+                map,
+                args.replace,
+            ))?;
             bars.finish();
             "the cluster"
         }

@@ -203,7 +203,10 @@ impl App {
             return true;
         }
         match &self.node {
-            Some(node) => matches!(node.cluster.scene_entry(name).await, Ok(Some(_))),
+            Some(node) => matches!(
+                cluster::catalog::scene_entry(&node.cluster, name).await,
+                Ok(Some(_))
+            ),
             None => false,
         }
     }
@@ -222,7 +225,7 @@ impl App {
             self.owner_config.clone(),
             tokio::runtime::Handle::current(),
         )?;
-        self.serve_scene(name, handle, thread, None);
+        self.serve_scene(name, handle, thread, None, None);
         Ok(())
     }
 
@@ -231,9 +234,10 @@ impl App {
         name: String,
         handle: SceneHandle,
         thread: std::thread::JoinHandle<()>,
+        link: Option<cluster::SceneLink<cluster::Cluster>>,
         close: Option<Arc<watch::Sender<bool>>>,
     ) {
-        self.scenes.insert(name, handle, close);
+        self.scenes.insert(name, handle, link, close);
         self.owners
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -244,12 +248,12 @@ impl App {
     /// decides whether this node orders its edits) until it closes (see `served`).
     async fn add_cluster_scene(&self, name: String) -> anyhow::Result<()> {
         let node = self.node.as_ref().context("not a cluster node")?;
-        let loaded = cluster::log::load(&node.cluster.handles(&node.name), &name)
+        let loaded = cluster::log::load(&node.cluster, &name)
             .await
             .with_context(|| format!("loading scene {name} from the cluster"))?;
         tracing::info!(scene = %name, seq = loaded.loaded.seq, replayed = loaded.loaded.replayed, pos = loaded.pos, "scene loaded from the cluster");
         let (close, closed) = served::close_signal(&self.shutdown);
-        let (handle, thread) = cluster::start_scene(
+        let (handle, thread, link) = cluster::start_scene(
             &node.cluster,
             &node.name,
             name.clone(),
@@ -259,7 +263,7 @@ impl App {
             closed,
         )
         .await?;
-        self.serve_scene(name, handle, thread, Some(close));
+        self.serve_scene(name, handle, thread, Some(link), Some(close));
         Ok(())
     }
 
@@ -406,15 +410,21 @@ impl Server {
         let listen = listener.local_addr()?;
         let cluster = cluster::Cluster::connect(&cc.url, cc.replicas).await?;
         let name = cc.node.unwrap_or_else(|| default_node_name(listen));
-        let registration = cluster.register_node(&name, &listen.to_string()).await?;
-        tracing::info!(node = %name, nats = %cc.url, "joined the cluster");
-        if cluster.scene_names().await?.is_empty() {
+        let registration = cluster::name::register(
+            &cluster,
+            &name,
+            cluster::name::process_instance(),
+            &listen.to_string(),
+        )
+        .await?;
+        tracing::info!(node = %name, nats = %cluster.url, "joined the cluster");
+        if cluster::catalog::scene_names(&cluster).await?.is_empty() {
             let demo_size = config.demo_size;
             let map = tokio::task::spawn_blocking(move || {
                 brickcast_protocol::demo::demo_scene(demo_size)
             })
             .await??;
-            match cluster.create_scene("demo", &map, false).await {
+            match cluster::catalog::create_scene(&cluster, "demo", &map, false).await {
                 Ok(()) => tracing::info!(
                     bricks = map.brick_count(),
                     "created the built-in demo scene in the cluster"
@@ -454,6 +464,14 @@ impl Server {
             http: http_config,
         } = self;
         let spool = if let Some(node) = &app.node {
+            // `cluster status` asks every node where its scenes stand.
+            let scenes = app.clone();
+            tokio::spawn(cluster::status::answer(
+                node.cluster.clone(),
+                node.name.clone(),
+                Arc::new(move || scenes.scene_list()),
+                app.shutdown.clone(),
+            ));
             tokio::spawn(app.clone().tend_cluster_scenes(node.close_idle))
         } else {
             tokio::spawn(app.clone().watch_spool())
@@ -660,7 +678,8 @@ async fn websocket(
     ws.max_message_size(max)
         .max_frame_size(max)
         .on_upgrade(move |socket| async move {
-            session::run(socket, scene, app).await;
+            let link = using.link.clone();
+            session::run(socket, scene, link, app).await;
             drop((admitted, using));
         })
 }

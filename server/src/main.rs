@@ -80,12 +80,26 @@ enum Cmd {
 
 #[derive(Subcommand)]
 enum ClusterCmd {
-    /// Nodes, scenes, each scene's owner, log length and snapshot sequence.
+    /// Nodes (with each scene's sequence and map hash as the node holds it), scenes, each
+    /// scene's owner, log length and snapshot sequence.
     Status {
         /// The cluster's NATS URL.
         #[arg(long, value_name = "URL")]
         nats: String,
         /// Print one JSON object instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Drop the messages of a scene's log that no node can read (missing, not a turn, or not
+    /// continuing the scene's sequence), rebuilding the scene from its newest snapshot and the
+    /// rest of the log, and say what was dropped. Changes nothing when the log can be followed.
+    Repair {
+        /// The cluster's NATS URL.
+        #[arg(long, value_name = "URL")]
+        nats: String,
+        #[arg(long)]
+        scene: String,
+        /// Print one JSON object instead of lines.
         #[arg(long)]
         json: bool,
     },
@@ -157,17 +171,26 @@ fn main() -> anyhow::Result<()> {
         Cmd::Cluster {
             command: ClusterCmd::Status { nats, json },
         } => {
-            let runtime = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()?;
-            let status = runtime.block_on(async {
-                let cluster = brickcast_server::cluster::Cluster::connect(&nats, 1).await?;
-                anyhow::Ok(brickcast_server::cluster::status::status(&cluster).await?)
+            let status = on_cluster(&nats, |cluster| async move {
+                brickcast_server::cluster::status::status(&cluster).await
             })?;
             if json {
                 println!("{}", serde_json::to_string(&status)?);
             } else {
                 print!("{}", status.render());
+            }
+            Ok(())
+        }
+        Cmd::Cluster {
+            command: ClusterCmd::Repair { nats, scene, json },
+        } => {
+            let repaired = on_cluster(&nats, |cluster| async move {
+                brickcast_server::cluster::repair::repair(&cluster, &scene).await
+            })?;
+            if json {
+                println!("{}", serde_json::to_string(&repaired)?);
+            } else {
+                print!("{}", repaired.render());
             }
             Ok(())
         }
@@ -178,6 +201,25 @@ fn main() -> anyhow::Result<()> {
             json,
         } => import_cli::export(&scene, &out, &data, json),
     }
+}
+
+/// Connects to a cluster's NATS and runs `f` on it (`cluster` commands).
+fn on_cluster<T, F>(
+    nats: &str,
+    f: impl FnOnce(brickcast_server::cluster::Cluster) -> F,
+) -> anyhow::Result<T>
+where
+    F: std::future::Future<Output = Result<T, brickcast_server::cluster::ClusterError>>,
+{
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    let out = runtime.block_on(async {
+        let cluster = brickcast_server::cluster::Cluster::connect(nats, 1).await?;
+        f(cluster).await
+    });
+    runtime.shutdown_timeout(Duration::from_secs(2));
+    Ok(out?)
 }
 
 /// Opens the store for an offline command, explaining the usual failure.

@@ -23,6 +23,8 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::watch;
 
+use crate::cluster::catalog::{scene_entry, scene_names};
+use crate::cluster::{Cluster, SceneLink};
 use crate::metrics::Metrics;
 use crate::scene::{Command, SceneHandle};
 use crate::{App, CLUSTER_POLL, wait_or_shutdown};
@@ -46,6 +48,8 @@ pub struct Served {
 #[derive(Clone)]
 pub(crate) struct Entry {
     handle: SceneHandle,
+    /// Cluster: how sessions reach whichever node orders the scene's edits.
+    link: Option<SceneLink<Cluster>>,
     uses: Arc<Uses>,
     /// Cluster: ends the scene's lease, follower and relay tasks.
     close: Option<Arc<watch::Sender<bool>>>,
@@ -58,15 +62,22 @@ struct Uses {
 }
 
 /// One use of a served scene (a session, a thumbnail being drawn); the scene stays open while
-/// any is alive.
-pub struct SceneUse(Arc<Uses>);
+/// any is alive. In a cluster it carries how the user's edits reach the scene's owner.
+pub struct SceneUse {
+    uses: Arc<Uses>,
+    pub link: Option<SceneLink<Cluster>>,
+}
 
 impl Drop for SceneUse {
     fn drop(&mut self) {
         // The count and the time are read together only under the map's write lock, and a
         // use is only taken under its read lock: a scene with a use is never closed.
-        *self.0.idle_since.lock().unwrap_or_else(|e| e.into_inner()) = Instant::now();
-        self.0.count.fetch_sub(1, Relaxed);
+        *self
+            .uses
+            .idle_since
+            .lock()
+            .unwrap_or_else(|e| e.into_inner()) = Instant::now();
+        self.uses.count.fetch_sub(1, Relaxed);
     }
 }
 
@@ -108,7 +119,11 @@ impl Served {
         let open = self.read();
         let entry = open.get(name)?;
         entry.uses.count.fetch_add(1, Relaxed);
-        Some((entry.handle.clone(), SceneUse(entry.uses.clone())))
+        let using = SceneUse {
+            uses: entry.uses.clone(),
+            link: entry.link.clone(),
+        };
+        Some((entry.handle.clone(), using))
     }
 
     /// Every served scene, by name.
@@ -123,6 +138,7 @@ impl Served {
         &self,
         name: String,
         handle: SceneHandle,
+        link: Option<SceneLink<Cluster>>,
         close: Option<Arc<watch::Sender<bool>>>,
     ) {
         let uses = Arc::new(Uses {
@@ -133,6 +149,7 @@ impl Served {
             name,
             Entry {
                 handle,
+                link,
                 uses,
                 close,
             },
@@ -243,7 +260,7 @@ impl App {
             scene: name.to_string(),
             detail,
         };
-        match node.cluster.scene_entry(name).await {
+        match scene_entry(&node.cluster, name).await {
             Ok(Some(_)) => {}
             Ok(None) => return Ok(None),
             Err(e) => return Err(failed(e.to_string())),
@@ -288,11 +305,11 @@ impl App {
             .unwrap_or_else(|e| e.into_inner())
             .clone();
         let mut known = BTreeMap::new();
-        for name in cluster.scene_names().await? {
+        for name in scene_names(cluster).await? {
             let size = match before.get(&name) {
                 Some(&size) => Some(size),
                 // One bad entry does not hide the others.
-                None => match cluster.scene_entry(&name).await {
+                None => match scene_entry(cluster, &name).await {
                     Ok(entry) => entry.map(|e| e.size),
                     Err(e) => {
                         tracing::warn!(scene = %name, error = %e, "skipping a scene of the cluster's list");

@@ -20,9 +20,10 @@ use futures_util::{SinkExt, StreamExt};
 use crate::App;
 use crate::auth::Access;
 use crate::bucket::Bucket;
+use crate::cluster::{Cluster, SceneLink};
 use crate::identity::{Identity, identify};
 use crate::metrics::{Metrics, ReadError, SessionPhase};
-use crate::scene::{Command, Outbox, OutboxReceiver, SceneHandle, SessionId};
+use crate::scene::{Command, Outbox, OutboxReceiver, RequestItem, SceneHandle, SessionId};
 
 /// How long a closing connection keeps reading so its peer can receive the close.
 const CLOSE_GRACE: Duration = Duration::from_secs(2);
@@ -40,7 +41,14 @@ const CAMERA_INTERVAL: Duration = Duration::from_millis(50);
 const RESUME_INTERVAL: Duration = Duration::from_secs(5);
 
 /// Serves one connection to `scene` until either side closes or the server shuts down.
-pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
+/// `link`: in a cluster, how the session's edits reach the scene's owner (see
+/// `crate::cluster::forward`); `None` on a single node, where they go to the owner thread.
+pub async fn run(
+    socket: WebSocket,
+    scene: SceneHandle,
+    link: Option<SceneLink<Cluster>>,
+    app: Arc<App>,
+) {
     let id = app.next_session_id();
     app.metrics.connected_clients.fetch_add(1, Relaxed);
     let _guard = app.track_session();
@@ -86,6 +94,7 @@ pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
                 scene.presence.welcomed(id);
                 let session = Session {
                     scene: &scene,
+                    link: link.as_ref(),
                     app: &app,
                     out: &out,
                     id,
@@ -94,10 +103,10 @@ pub async fn run(socket: WebSocket, scene: SceneHandle, app: Arc<App>) {
                 };
                 read_loop(&mut stream, session).await;
                 let _ = scene.send(Command::Leave { session: id }).await;
-                if let Some(cluster) = &scene.cluster
+                if let Some(link) = &link
                     && !who.stable
                 {
-                    crate::cluster::forward::forget(cluster, who.user).await;
+                    crate::cluster::forward::forget(link, who.user).await;
                 }
             } else {
                 out.close(ErrorCode::ShuttingDown, "the scene is shutting down");
@@ -218,6 +227,7 @@ fn read_error(e: axum::Error, metrics: &Metrics) -> Option<(ErrorCode, String)> 
 /// A welcomed session, as its reader sees it.
 struct Session<'a> {
     scene: &'a SceneHandle,
+    link: Option<&'a SceneLink<Cluster>>,
     app: &'a App,
     out: &'a Outbox,
     id: SessionId,
@@ -259,6 +269,7 @@ async fn read_loop(
 ) {
     let Session {
         scene,
+        link,
         app,
         out,
         id,
@@ -287,7 +298,7 @@ async fn read_loop(
     let mut shutdown = app.shutdown.clone();
     // In a cluster, edits and undos go to the scene's owner over NATS, one at a time, in
     // order (`crate::cluster::forward`).
-    let forwarder = scene.cluster.as_ref().map(|c| {
+    let forwarder = link.map(|c| {
         crate::cluster::forward::SessionForwarder::start(
             c.clone(),
             id,
@@ -396,10 +407,7 @@ async fn read_loop(
                     continue;
                 }
                 let sent = match &forwarder {
-                    Some(f) => {
-                        f.send(client_seq, crate::cluster::forward::ForwardKind::Edit(ops))
-                            .await
-                    }
+                    Some(f) => f.send(client_seq, RequestItem::Edit(ops)).await,
                     None => scene
                         .send(Command::Edit {
                             session: id,
@@ -461,13 +469,7 @@ async fn read_loop(
                     continue;
                 }
                 let sent = match &forwarder {
-                    Some(f) => {
-                        f.send(
-                            client_seq,
-                            crate::cluster::forward::ForwardKind::Undo { redo },
-                        )
-                        .await
-                    }
+                    Some(f) => f.send(client_seq, RequestItem::Undo { redo }).await,
                     None => {
                         let cmd = Command::Undo {
                             session: id,

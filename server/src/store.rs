@@ -27,6 +27,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::record::LogRecord;
 use crate::scene::history::{HistoryWrites, Stacks, StepMeta};
+use crate::scene::{AnsweredEntry, LogError, SceneLog, SnapshotOf, TurnWrite};
 
 /// `undo/<scene>`: (user, step id) → bincode [`StepMeta`].
 type UndoIndex<'a> = TableDefinition<'a, (u64, u64), &'static [u8]>;
@@ -59,13 +60,6 @@ pub enum StoreError {
     /// reorder acknowledged edits, so the scene is not served until someone looks.
     #[error("scene {scene}: the edit log does not fit the snapshot: {detail}")]
     Inconsistent { scene: String, detail: String },
-    /// The cluster's NATS server failed a request (see `crate::cluster`).
-    #[error("cluster: {0}")]
-    Cluster(String),
-    /// Another node appended to the scene's log (or this node's lease ran out): this node is
-    /// no longer the scene's owner, and what it applied since its last append is not logged.
-    #[error("scene {scene}: this node is no longer the scene's owner: {detail}")]
-    Deposed { scene: String, detail: String },
 }
 
 impl StoreError {
@@ -199,6 +193,8 @@ pub struct Loaded {
     pub history: Vec<(UserId, Stacks)>,
     /// The highest history step id in use (0: none).
     pub last_step_id: u64,
+    /// Requests from other origins answered so far (a cluster's log; none on one node).
+    pub answered: Vec<AnsweredEntry>,
 }
 
 impl Store {
@@ -468,6 +464,7 @@ impl Store {
             replay_touched,
             history,
             last_step_id,
+            answered: Vec::new(),
         })
     }
 
@@ -629,6 +626,42 @@ impl Store {
         let log_name = log_table(scene);
         let log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
         Ok(log.len()?)
+    }
+}
+
+/// One scene of the redb store as its owner's [`SceneLog`]: a single node, where the owner is
+/// always the scene's only one and an append is one durable redb commit.
+pub struct StoreLog {
+    store: std::sync::Arc<Store>,
+    scene: String,
+}
+
+impl StoreLog {
+    pub fn new(store: std::sync::Arc<Store>, scene: String) -> StoreLog {
+        StoreLog { store, scene }
+    }
+}
+
+impl SceneLog for StoreLog {
+    fn append(&mut self, turn: TurnWrite<'_>) -> Result<(), LogError> {
+        Ok(self.store.append(&self.scene, turn.records, turn.history)?)
+    }
+
+    fn history_step(&self, id: u64) -> Result<Option<Vec<u8>>, LogError> {
+        Ok(self.store.history_step(&self.scene, id)?)
+    }
+
+    fn snapshot(&mut self, at: SnapshotOf<'_>) -> Result<bool, LogError> {
+        self.store.snapshot(&self.scene, at.map, at.cells, at.seq)?;
+        Ok(true)
+    }
+
+    fn may_order(&self) -> bool {
+        true
+    }
+
+    fn reload(&mut self) -> Result<Loaded, LogError> {
+        Ok(self.store.load_scene(&self.scene)?)
     }
 }
 

@@ -39,7 +39,7 @@ async fn first_seq_after_takeover(nats: &str, old: &str) -> u64 {
     let mut first = None;
     for pos in info.state.first_sequence..=info.state.last_sequence {
         let msg = stream.get_raw_message(pos).await.unwrap();
-        let turn = brickcast_server::cluster::Turn::decode(&msg.payload).unwrap();
+        let turn = brickcast_server::cluster::log::decode_turn(&msg.payload).unwrap();
         if turn.is_marker() && turn.node != old {
             marker_seen = true;
             first = None;

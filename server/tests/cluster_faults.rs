@@ -214,3 +214,120 @@ async fn a_node_whose_name_was_taken_while_it_was_paused_stops_when_it_wakes() {
     edit_within(&new, Duration::from_secs(10), spot(0, 0), 3).await;
     edit_within(&b, Duration::from_secs(10), spot(0, 1), 4).await;
 }
+/// A message that is not a turn lands in a scene's log (anyone who may publish to NATS can do
+/// this). Every node stops serving the scene at once and says why, naming the repair; the
+/// repair drops the message, says so, and the scene serves again with every edit.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_garbage_log_message_is_repaired_by_an_operator_never_silently() {
+    let nats = Nats::start(true);
+    let a = Node::start(&nats.url(), "a", &[]).await;
+    let b = Node::start(&nats.url(), "b", &[]).await;
+    let mut on_b = Client::connect(&b.url(), None).await.unwrap();
+    on_b.sync().await;
+    let mut last = 0;
+    for k in 0..3 {
+        last = set(&mut on_b, spot(0, k), k + 1).await;
+    }
+    let (ok, out, err) = cluster_cli(&nats.url(), &["repair", "--scene", "demo"]).await;
+    assert!(ok, "{err}");
+    assert!(out.contains("nothing to repair"), "{out}");
+
+    let client = async_nats::connect(nats.url()).await.unwrap();
+    let js = async_nats::jetstream::new(client);
+    let garbage = js
+        .publish("brickcast.log.demo", "not a turn".into())
+        .await
+        .unwrap()
+        .await
+        .unwrap()
+        .sequence;
+    // The client is told at once, not after the edit patience.
+    let told = tokio::time::timeout(Duration::from_secs(8), on_b.until_closed())
+        .await
+        .expect("the client was not told");
+    assert!(
+        told.iter()
+            .any(|(_, text)| text.contains(&format!("message {garbage}"))
+                && text.contains("cluster repair")),
+        "{told:?}"
+    );
+    // Neither node serves the scene now; opening it says why.
+    for n in [&a, &b] {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        loop {
+            match tokio_tungstenite::connect_async(n.url()).await {
+                Err(tokio_tungstenite::tungstenite::Error::Http(response)) => {
+                    assert_eq!(response.status(), 503);
+                    let body =
+                        String::from_utf8_lossy(response.body().as_deref().unwrap_or_default());
+                    assert!(body.contains("cluster repair"), "{body}");
+                    break;
+                }
+                other => {
+                    assert!(
+                        Instant::now() < deadline,
+                        "node {} still serves a scene with a corrupt log: {:?}",
+                        n.name,
+                        other.map(|_| ())
+                    );
+                    tokio::time::sleep(Duration::from_millis(200)).await;
+                }
+            }
+        }
+        assert!(n.log_text().contains("cluster repair"), "{}", n.log_text());
+    }
+
+    let (ok, out, err) = cluster_cli(&nats.url(), &["repair", "--scene", "demo"]).await;
+    assert!(ok, "{err}");
+    assert!(
+        out.contains(&format!("dropped log message {garbage}")),
+        "{out}"
+    );
+    // Every node serves the scene again, with every edit, and takes new ones.
+    for (i, n) in [&a, &b].into_iter().enumerate() {
+        let seq = edit_within(n, Duration::from_secs(15), spot(1, i as u32), 5).await;
+        assert!(seq > last);
+        let copy = copy_at(n, seq).await;
+        for k in 0..3 {
+            assert_eq!(copy.map.get(spot(0, k)), Some(common::colour(k + 1)));
+        }
+    }
+}
+
+/// With the NATS permissions the README gives, only the nodes' user may publish to the
+/// cluster's subjects: a stranger's garbage never reaches the log.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn with_the_readme_permissions_a_stranger_cannot_touch_the_log() {
+    let nats = Nats::start_with_config(include_str!("../../docs/nats-permissions.conf"));
+    let url = nats.url_as("brickcast", "node-secret");
+    let a = Node::start(&url, "a", &[]).await;
+    let mut c = Client::connect(&a.url(), None).await.unwrap();
+    c.sync().await;
+    set(&mut c, spot(0, 0), 1).await;
+    // The node's log shows no password.
+    assert!(!a.log_text().contains("node-secret"), "{}", a.log_text());
+
+    let stranger =
+        async_nats::ConnectOptions::with_user_and_password("viewer".into(), "viewer-secret".into())
+            .connect(nats.url())
+            .await
+            .unwrap();
+    let js = async_nats::jetstream::new(stranger.clone());
+    let publish = js.publish("brickcast.log.demo", "not a turn".into()).await;
+    let landed = match publish {
+        Ok(ack) => tokio::time::timeout(Duration::from_secs(3), ack)
+            .await
+            .is_ok_and(|a| a.is_ok()),
+        Err(_) => false,
+    };
+    assert!(!landed, "a stranger's message landed in the log");
+    // Forged edits on the edit subject are refused too.
+    let _ = stranger
+        .publish("brickcast.edit.demo.a", "forged".into())
+        .await;
+    let _ = stranger.flush().await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let seq = edit_within(&a, Duration::from_secs(10), spot(0, 1), 2).await;
+    assert_eq!(seq, 2, "the log holds the two edits and nothing else");
+    assert!(!a.log_text().contains("cannot read"), "{}", a.log_text());
+}

@@ -20,13 +20,14 @@
 
 use std::time::Duration;
 
-use brickcast_protocol::wire::{EditOp, ErrorCode, UserId};
+use brickcast_protocol::wire::{ErrorCode, UserId};
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 use tokio::sync::mpsc;
 
+use super::jet::Jet;
 use crate::metrics::Metrics;
-use crate::scene::{Outbox, SceneCluster};
+use crate::scene::{Outbox, Outcome, Request, RequestItem};
 
 /// How long a session keeps retrying an edit nobody owns (a failover in progress).
 pub const PATIENCE: Duration = Duration::from_secs(15);
@@ -40,39 +41,17 @@ const MAX_OPS_PER_REQUEST: usize = 8192;
 /// How often a request nobody took is tried again while the lease names nobody new.
 const RETRY_EVERY: Duration = Duration::from_millis(100);
 
-/// A session's queued edits and undos, forwarded to the owner together.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Forwarded {
-    /// The forwarding process and session, and this request's number among its requests
-    /// (see `answered.rs`: a retried request is answered, not applied again).
-    pub origin: String,
-    pub number: u64,
-    pub user: UserId,
-    /// Whether the user may edit (checked again by the owner, as for local sessions).
-    pub editor: bool,
-    /// In the order the client sent them: client sequence, what to do.
-    pub items: Vec<(u64, ForwardKind)>,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub enum ForwardKind {
-    Edit(Vec<EditOp>),
-    Undo {
-        redo: bool,
-    },
-    /// A user without a stable id left: its history goes (no reply is expected).
-    Forget,
-}
-
-/// The owner's answer.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub enum ForwardReply {
-    /// One encoded `ServerMsg` (`Ack` or `Undone`) per item, sent after the commit.
-    Done(Vec<Vec<u8>>),
-    /// This node does not own the scene (any more): nothing was applied.
-    NotOwner,
-    /// The owner lost the scene while logging the request: it may or may not have applied.
-    Unknown,
+/// How a session reaches a clustered scene's owner.
+#[derive(Clone)]
+pub struct SceneLink<J: Jet> {
+    pub jet: J,
+    /// The scene's edit subject; the owner listens on it plus `.<node>`.
+    pub subject: String,
+    /// The node the scene's lease names now (`None`: nobody holds it).
+    pub owner: tokio::sync::watch::Receiver<Option<String>>,
+    /// This process, told apart from an earlier one of the same node name (session ids start
+    /// again at 1 after a restart): the origin of its requests.
+    pub instance: String,
 }
 
 fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, String> {
@@ -86,22 +65,22 @@ fn decode<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Result<T, String> {
         .map_err(|e| e.to_string())
 }
 
-impl Forwarded {
-    pub fn encode(&self) -> Result<Vec<u8>, String> {
-        encode(self)
-    }
-    pub fn decode(bytes: &[u8]) -> Result<Forwarded, String> {
-        decode(bytes)
-    }
+/// A request as it travels over NATS.
+pub fn encode_request(request: &Request) -> Result<Vec<u8>, String> {
+    encode(request)
 }
 
-impl ForwardReply {
-    pub fn encode(&self) -> Result<Vec<u8>, String> {
-        encode(self)
-    }
-    pub fn decode(bytes: &[u8]) -> Result<ForwardReply, String> {
-        decode(bytes)
-    }
+pub fn decode_request(bytes: &[u8]) -> Result<Request, String> {
+    decode(bytes)
+}
+
+/// An owner's answer as it travels over NATS.
+pub fn encode_outcome(outcome: &Outcome) -> Result<Vec<u8>, String> {
+    encode(outcome)
+}
+
+pub fn decode_outcome(bytes: &[u8]) -> Result<Outcome, String> {
+    decode(bytes)
 }
 
 /// Why a forwarded edit got no answer.
@@ -119,11 +98,11 @@ pub fn owner_subject(scene_subject: &str, node: &str) -> String {
 }
 
 /// Sends one request to whichever node owns the scene, waiting for one while nobody does.
-pub async fn request(
-    link: &SceneCluster,
-    request: &Forwarded,
+pub async fn request<J: Jet>(
+    link: &SceneLink<J>,
+    request: &Request,
 ) -> Result<Vec<Vec<u8>>, ForwardError> {
-    let payload = Bytes::from(request.encode().map_err(ForwardError::Other)?);
+    let payload = Bytes::from(encode_request(request).map_err(ForwardError::Other)?);
     let started = tokio::time::Instant::now();
     let deadline = started + PATIENCE;
     let mut owner = link.owner.clone();
@@ -145,17 +124,15 @@ pub async fn request(
                 }
             };
             let sent = tokio::select! {
-                sent = tokio::time::timeout(
-                    ATTEMPT_TIMEOUT,
-                    link.client.request(subject, payload.clone()),
-                ) => sent.ok(),
+                biased;
+                sent = link.jet.request(subject, payload.clone(), ATTEMPT_TIMEOUT) => Some(sent),
                 () = moved => None,
             };
             // Anything but an answer is retried: see the module doc.
-            if let Some(Ok(message)) = sent {
-                match ForwardReply::decode(&message.payload) {
-                    Ok(ForwardReply::Done(msgs)) => return Ok(msgs),
-                    Ok(ForwardReply::NotOwner | ForwardReply::Unknown) => {}
+            if let Some(Ok(answer)) = sent {
+                match decode_outcome(&answer) {
+                    Ok(Outcome::Done(msgs)) => return Ok(msgs),
+                    Ok(Outcome::NotOwner | Outcome::Unknown) => {}
                     Err(e) => return Err(ForwardError::Other(format!("a bad reply: {e}"))),
                 }
             }
@@ -175,32 +152,20 @@ pub async fn request(
 /// A session's edits on their way to the owner: a queue, and the task that sends what is
 /// queued as one request, waits for its answer, and queues the replies to the client.
 pub struct SessionForwarder {
-    tx: mpsc::Sender<(u64, ForwardKind)>,
-}
-
-/// This process, told apart from an earlier one with the same node name (session ids start
-/// again at 1 after a restart).
-fn instance() -> &'static str {
-    static INSTANCE: std::sync::OnceLock<String> = std::sync::OnceLock::new();
-    INSTANCE.get_or_init(|| {
-        let nanos = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos());
-        format!("{}-{nanos:x}", std::process::id())
-    })
+    tx: mpsc::Sender<(u64, RequestItem)>,
 }
 
 impl SessionForwarder {
-    pub fn start(
-        link: SceneCluster,
+    pub fn start<J: Jet>(
+        link: SceneLink<J>,
         session: u64,
         user: UserId,
         editor: bool,
         out: Outbox,
         metrics: std::sync::Arc<Metrics>,
     ) -> SessionForwarder {
-        let (tx, mut rx) = mpsc::channel::<(u64, ForwardKind)>(QUEUE);
-        let origin = format!("{}/{session}", instance());
+        let (tx, mut rx) = mpsc::channel::<(u64, RequestItem)>(QUEUE);
+        let origin = format!("{}/{session}", link.instance);
         tokio::spawn(async move {
             let mut number = 0;
             while let Some(first) = rx.recv().await {
@@ -216,7 +181,7 @@ impl SessionForwarder {
                         Err(_) => break,
                     }
                 }
-                let req = Forwarded {
+                let req = Request {
                     origin: origin.clone(),
                     number,
                     user,
@@ -245,34 +210,34 @@ impl SessionForwarder {
     }
 
     /// Queues an edit or undo; false when the forwarding task is gone (the session closed).
-    pub async fn send(&self, client_seq: u64, kind: ForwardKind) -> bool {
+    pub async fn send(&self, client_seq: u64, kind: RequestItem) -> bool {
         self.tx.send((client_seq, kind)).await.is_ok()
     }
 }
 
-fn item_ops(kind: &ForwardKind) -> usize {
+fn item_ops(kind: &RequestItem) -> usize {
     match kind {
-        ForwardKind::Edit(ops) => ops.len().max(1),
+        RequestItem::Edit(ops) => ops.len().max(1),
         _ => 1,
     }
 }
 
 /// Asks the owner to drop the history of a user without a stable id, who left. Nobody waits
 /// for it: lost in a failover, the history stays until the owner's bounds drop it.
-pub async fn forget(link: &SceneCluster, user: UserId) {
-    let request = Forwarded {
-        origin: format!("{}/forget", instance()),
+pub async fn forget<J: Jet>(link: &SceneLink<J>, user: UserId) {
+    let request = Request {
+        origin: format!("{}/forget", link.instance),
         number: 0,
         user,
         editor: false,
-        items: vec![(0, ForwardKind::Forget)],
+        items: vec![(0, RequestItem::Forget)],
     };
     let Some(node) = link.owner.borrow().clone() else {
         return;
     };
-    if let Ok(bytes) = request.encode()
+    if let Ok(bytes) = encode_request(&request)
         && let Err(e) = link
-            .client
+            .jet
             .publish(owner_subject(&link.subject, &node), bytes.into())
             .await
     {

@@ -1,148 +1,168 @@
-//! One scene on one node of a cluster: the tasks around its owner thread.
+//! One scene on one node of a cluster: the tasks around its owner.
 //!
 //! * **Lease:** without the lease, try to create the scene's key in `brickcast_owners` every
 //!   [`CLAIM_POLL`]; with it, renew it (compare-and-set on its revision) every
-//!   [`RENEW_EVERY`]. Taking it makes the owner thread catch up to the log's end and append a
-//!   marker (`Command::TakeOver`); a failed renewal makes it stop appending
-//!   (`Command::StepDown`). The lease only says who *tries*; the log's expected-sequence fence
-//!   is what keeps two owners from both appending.
-//! * **Intake:** while leading, forwarded edits on `brickcast.edit.<scene>` go to the owner
-//!   thread in arrival order.
-//! * **Follower:** an ordered consumer of the scene's stream hands every turn to the owner
-//!   thread (`Command::Replicate`); the owner skips the ones it appended itself.
-//! * **Replies:** the owner thread's answers to forwarded edits, published in order.
+//!   [`RENEW_EVERY`]. Taking it makes the owner catch up to the log's end and append a marker
+//!   (`Command::Lead`); a failed renewal makes it stop appending (`Command::Follow`). A lease
+//!   held while the owner does not order (its append was refused after a pause just under the
+//!   lease's life) is used again: the owner is asked to lead once more. The lease only says
+//!   who *tries*; the log's expected-sequence fence is what keeps two owners from both
+//!   appending.
+//! * **Intake:** while leading, forwarded edits on `brickcast.edit.<scene>.<node>` go to the
+//!   owner in arrival order, and its answers go back in that order.
+//! * **Follower:** the scene's stream, in order, to the owner (`Command::Apply`); the owner
+//!   skips the turns it appended itself. A message that is not a turn stops the scene on this
+//!   node (`Command::Fault`), saying how to repair it.
+//! * **Closing** (the scene closing on this node, or the node shutting down): no more
+//!   forwarded edits; a held lease is kept while the owner commits and writes its last
+//!   snapshot, then handed over at once.
+//!
+//! Everything here runs on tokio's clock and reaches NATS through [`Jet`], so the cluster's
+//! simulation runs these same tasks.
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
-use std::time::Instant;
 
-use async_nats::jetstream::{self, consumer::pull, kv};
+use bytes::Bytes;
 use futures_util::StreamExt;
 use tokio::sync::{mpsc, oneshot, watch};
+use tokio::time::Instant;
 
-use super::forward::Forwarded;
-use super::log::{self as jetlog, ClusterLoaded, JetLog, LeaseClock, Turn};
+use super::forward::{SceneLink, decode_request, encode_outcome, owner_subject};
+use super::jet::{Bucket, Jet, LogStream};
+use super::log::{self as jetlog, ClusterLoaded, Exec, JetLog, LeaseClock, decode_turn};
 use super::{CLAIM_GRACE, CLAIM_POLL, Cluster, LEASE_MARGIN, LEASE_TTL, RENEW_EVERY};
 use crate::metrics::Metrics;
-use crate::scene::{self, Command, OwnerConfig, SceneCluster, SceneHandle};
+use crate::scene::{self, Clock, Command, Outcome, OwnerConfig, SceneHandle};
 
-/// Starts serving a scene loaded from the cluster: its owner thread (following the log) and
-/// the lease, intake, follower and reply tasks, which end at `shutdown` (the server's, or the
-/// scene's close on this node).
+/// A scene opened on a node: its owner (not yet running), the handle sessions reach it by,
+/// the commands it is sent, and how sessions reach whichever node orders its edits. Its
+/// lease and follower tasks run from the moment it is opened.
+pub struct Opened<J: Jet> {
+    pub owner: scene::Owner,
+    pub handle: SceneHandle,
+    pub commands: mpsc::Receiver<Command>,
+    pub link: SceneLink<J>,
+}
+
+/// Opens a scene loaded from the cluster on node `node` (process `instance`): its owner over a
+/// [`JetLog`], following the log, and the lease and follower tasks, which end at `shutdown`
+/// (the node's, or the scene's close on this node). Must run inside the runtime `exec` names.
 #[allow(clippy::too_many_arguments)]
-pub async fn start_scene(
-    cluster: &Cluster,
+pub async fn open_scene<J: Jet>(
+    jet: &J,
+    exec: Exec,
     node: &str,
+    instance: &str,
     name: String,
     mut loaded: ClusterLoaded,
     metrics: Arc<Metrics>,
     config: OwnerConfig,
+    clock: Clock,
     shutdown: watch::Receiver<bool>,
-) -> anyhow::Result<(SceneHandle, std::thread::JoinHandle<()>)> {
+) -> anyhow::Result<Opened<J>> {
     let lease = Arc::new(LeaseClock::default());
-    let (replies_tx, mut replies_rx) = mpsc::unbounded_channel::<(String, bytes::Bytes)>();
-    let log = JetLog::open(
-        cluster.handles(node),
-        &name,
-        &mut loaded,
-        lease.clone(),
-        replies_tx,
-    )
-    .await?;
-    let broken = log.broken.clone();
     let start = loaded.pos + 1;
-    let (owner_tx, owner_rx) = watch::channel(None);
-    let link = SceneCluster {
-        client: cluster.client.clone(),
-        subject: jetlog::edit_subject(&name),
-        owner: owner_rx,
-    };
-    let (handle, thread) = scene::spawn_with(
+    let log = JetLog::open(jet.clone(), exec, node, &name, &mut loaded, lease.clone()).await?;
+    let (owner, handle, commands) = scene::open(
         name.clone(),
         loaded.loaded,
-        scene::Backend::Jet(Box::new(log)),
-        Some(link),
+        Box::new(log),
         metrics.clone(),
         config,
-        tokio::runtime::Handle::current(),
+        clock,
     )?;
-
-    let client = cluster.client.clone();
-    tokio::spawn(async move {
-        while let Some((subject, bytes)) = replies_rx.recv().await {
-            if let Err(e) = client.publish(subject, bytes).await {
-                tracing::warn!(error = %e, "cannot send a reply to a forwarded edit");
-            }
-        }
-    });
-    let stream = cluster
-        .js
-        .get_stream(jetlog::stream_name(&name))
+    let (owner_tx, owner_rx) = watch::channel(None);
+    let link = SceneLink {
+        jet: jet.clone(),
+        subject: jetlog::edit_subject(&name),
+        owner: owner_rx,
+        instance: instance.to_string(),
+    };
+    let stream = jet
+        .stream(&name, false)
         .await
         .map_err(|e| anyhow::anyhow!("scene {name}: opening the log stream: {e}"))?;
-    tokio::spawn(follow(
-        stream,
-        start,
-        handle.clone(),
-        broken.clone(),
+    tokio::spawn(follow(stream, start, handle.clone(), shutdown.clone()));
+    tokio::spawn(hold_lease(LeaseTask {
+        scene: handle.clone(),
+        jet: jet.clone(),
+        node: node.to_string(),
+        owner: owner_tx,
+        clock: lease,
+        metrics,
+        shutdown,
+    }));
+    Ok(Opened {
+        owner,
+        handle,
+        commands,
+        link,
+    })
+}
+
+/// Starts serving a scene loaded from the cluster on this node: [`open_scene`], its owner on
+/// a thread of its own, and presence across nodes.
+pub async fn start_scene(
+    cluster: &Cluster,
+    node: &str,
+    name: String,
+    loaded: ClusterLoaded,
+    metrics: Arc<Metrics>,
+    config: OwnerConfig,
+    shutdown: watch::Receiver<bool>,
+) -> anyhow::Result<(SceneHandle, std::thread::JoinHandle<()>, SceneLink<Cluster>)> {
+    let runtime = tokio::runtime::Handle::current();
+    let opened = open_scene(
+        cluster,
+        Exec::Node(runtime.clone()),
+        node,
+        &super::name::process_instance(),
+        name,
+        loaded,
+        metrics.clone(),
+        config,
+        Arc::new(std::time::Instant::now),
         shutdown.clone(),
-    ));
+    )
+    .await?;
+    let Opened {
+        owner,
+        handle,
+        commands,
+        link,
+    } = opened;
+    let thread = scene::run_thread(owner, commands, &handle, runtime)?;
     super::presence::start(
         cluster.client.clone(),
         node.to_string(),
         &handle,
-        metrics.clone(),
-        shutdown.clone(),
-    );
-    tokio::spawn(hold_lease(LeaseTask {
-        scene: handle.clone(),
-        owners: cluster.owners.clone(),
-        client: cluster.client.clone(),
-        node: node.to_string(),
-        owner: owner_tx,
-        clock: lease,
-        broken,
         metrics,
         shutdown,
-    }));
-    Ok((handle, thread))
+    );
+    Ok((handle, thread, link))
 }
 
-/// Every turn of the scene's stream from `start`, in order, to the owner thread. An ordered
-/// consumer is recreated from the next position after any error.
-async fn follow(
-    stream: jetstream::stream::Stream,
+/// Every turn of the scene's stream from `next` on, in order, to the owner. Following again
+/// from the next position after any error.
+async fn follow<S: LogStream>(
+    stream: S,
     mut next: u64,
     scene: SceneHandle,
-    broken: Arc<std::sync::atomic::AtomicBool>,
     mut shutdown: watch::Receiver<bool>,
 ) {
     loop {
-        if *shutdown.borrow() || broken.load(Relaxed) {
+        if *shutdown.borrow() || scene.is_closed() {
             return;
         }
-        let consumer = stream
-            .create_consumer(pull::OrderedConfig {
-                deliver_policy: jetstream::consumer::DeliverPolicy::ByStartSequence {
-                    start_sequence: next,
-                },
-                ..Default::default()
-            })
-            .await;
-        let messages = match consumer {
-            Ok(c) => c.messages().await,
-            Err(e) => Err(async_nats::jetstream::consumer::StreamError::with_source(
-                async_nats::jetstream::consumer::StreamErrorKind::Other,
-                e,
-            )),
-        };
-        match messages {
+        match stream.follow(next).await {
             Ok(mut messages) => loop {
                 let item = tokio::select! {
-                    item = messages.next() => item,
+                    biased;
                     _ = shutdown.changed() => return,
+                    item = messages.next() => item,
                 };
-                let message = match item {
+                let (pos, bytes) = match item {
                     Some(Ok(m)) => m,
                     Some(Err(e)) => {
                         tracing::warn!(scene = %scene.name, error = %e, "following the log failed; following again");
@@ -150,16 +170,9 @@ async fn follow(
                     }
                     None => break,
                 };
-                let pos = match message.info() {
-                    Ok(info) => info.stream_sequence,
-                    Err(e) => {
-                        tracing::warn!(scene = %scene.name, error = %e, "a log message without its position");
-                        break;
-                    }
-                };
-                match Turn::decode(&message.payload) {
+                match decode_turn(&bytes) {
                     Ok(turn) => {
-                        let cmd = Command::Replicate {
+                        let cmd = Command::Apply {
                             pos,
                             turn: Box::new(turn),
                         };
@@ -173,8 +186,7 @@ async fn follow(
                             super::repair::hint(&scene.name)
                         );
                         tracing::error!(scene = %scene.name, pos, error = %e, "the scene's log holds a message this node cannot read");
-                        broken.store(true, Relaxed);
-                        let _ = scene.send(Command::LogFault { why }).await;
+                        let _ = scene.send(Command::Fault { why }).await;
                         return;
                     }
                 }
@@ -185,32 +197,34 @@ async fn follow(
             }
         }
         tokio::select! {
-            _ = tokio::time::sleep(CLAIM_POLL) => {}
+            biased;
             _ = shutdown.changed() => return,
+            _ = tokio::time::sleep(CLAIM_POLL) => {}
         }
     }
 }
 
-struct LeaseTask {
+struct LeaseTask<J: Jet> {
     scene: SceneHandle,
-    owners: kv::Store,
-    client: async_nats::Client,
+    jet: J,
     node: String,
     /// Who the lease names, for this node's sessions (see `forward.rs`).
     owner: watch::Sender<Option<String>>,
     clock: Arc<LeaseClock>,
-    broken: Arc<std::sync::atomic::AtomicBool>,
     metrics: Arc<Metrics>,
     shutdown: watch::Receiver<bool>,
 }
 
-impl LeaseTask {
+type Intake = Option<tokio::task::JoinHandle<()>>;
+
+impl<J: Jet> LeaseTask<J> {
     /// Renews a held lease; false when it is lost.
     async fn renew(&self, revision: &mut u64) -> bool {
         let sent = Instant::now();
+        let node = Bytes::from(self.node.clone());
         match self
-            .owners
-            .update(&self.scene.name, self.node.clone().into(), *revision)
+            .jet
+            .kv_update(Bucket::Owners, &self.scene.name, node, *revision)
             .await
         {
             Ok(r) => {
@@ -225,44 +239,38 @@ impl LeaseTask {
         }
     }
 
-    async fn lose(&self, intake: &mut Option<tokio::task::JoinHandle<()>>, why: String) {
+    async fn lose(&self, intake: &mut Intake, why: String) {
         self.clock.revoke();
         self.owner.send_replace(None);
         if let Some(task) = intake.take() {
             task.abort();
         }
-        let _ = self.scene.send(Command::StepDown { why }).await;
+        let _ = self.scene.send(Command::Follow { why }).await;
     }
-}
 
-impl LeaseTask {
     /// Hands a held lease back at once (delete with its revision: a key someone else took
     /// since is left alone).
     async fn release(&self, revision: u64) {
         let _ = self
-            .owners
-            .delete_expect_revision(&self.scene.name, Some(revision))
+            .jet
+            .kv_delete(Bucket::Owners, &self.scene.name, Some(revision))
             .await;
     }
 
-    /// With the lease held at `revision`: make the owner thread catch up and claim the log
-    /// (`Command::TakeOver`), renewing meanwhile. The revision while the owner leads, `None`
-    /// when it could not (the lease is then given back at once).
-    async fn lead(
-        &self,
-        mut revision: u64,
-        intake: &mut Option<tokio::task::JoinHandle<()>>,
-    ) -> Option<u64> {
+    /// With the lease held at `revision`: make the owner catch up and claim the log
+    /// (`Command::Lead`), renewing meanwhile. The revision while the owner leads, `None` when
+    /// it could not (the lease is then given back at once).
+    async fn lead(&self, mut revision: u64, intake: &mut Intake) -> Option<u64> {
         if intake.is_none() {
             *intake = Some(tokio::spawn(take_edits(
-                self.client.clone(),
+                self.jet.clone(),
                 self.scene.clone(),
                 self.node.clone(),
             )));
         }
         let (done, mut answer) = oneshot::channel();
-        if self.scene.send(Command::TakeOver { done }).await.is_err() {
-            // The owner thread is gone (the scene is closing): hand the key back now.
+        if self.scene.send(Command::Lead { done }).await.is_err() {
+            // The owner is gone (the scene is closing): hand the key back now.
             if let Some(edits) = intake.take() {
                 edits.abort();
             }
@@ -272,6 +280,7 @@ impl LeaseTask {
         // Catching up can take a while: keep the lease meanwhile.
         let claimed = loop {
             tokio::select! {
+                biased;
                 a = &mut answer => break a.unwrap_or(false),
                 _ = tokio::time::sleep(RENEW_EVERY) => {
                     if !self.renew(&mut revision).await {
@@ -293,15 +302,16 @@ impl LeaseTask {
     }
 
     /// The scene is closing on this node (or the node is shutting down): no more forwarded
-    /// edits; a held lease is kept, renewed, while the owner thread commits what it has and
-    /// writes its last snapshot, and handed over the moment it has stopped.
-    async fn close(&self, held: Option<u64>, intake: &mut Option<tokio::task::JoinHandle<()>>) {
+    /// edits; a held lease is kept, renewed, while the owner commits what it has and writes
+    /// its last snapshot, and handed over the moment it has stopped.
+    async fn close(&self, held: Option<u64>, intake: &mut Intake) {
         if let Some(edits) = intake.take() {
             edits.abort();
         }
         if let Some(mut revision) = held {
             let kept = loop {
                 tokio::select! {
+                    biased;
                     () = self.scene.closed() => break true,
                     _ = tokio::time::sleep(RENEW_EVERY) => {
                         if !self.renew(&mut revision).await {
@@ -319,11 +329,11 @@ impl LeaseTask {
     }
 }
 
-async fn hold_lease(mut task: LeaseTask) {
+async fn hold_lease<J: Jet>(mut task: LeaseTask<J>) {
     let mut held: Option<u64> = None;
     // Since when nobody holds the lease, while this node has no client on the scene.
     let mut free_since: Option<Instant> = None;
-    let mut intake: Option<tokio::task::JoinHandle<()>> = None;
+    let mut intake: Intake = None;
     loop {
         let wait = if held.is_some() {
             RENEW_EVERY
@@ -331,8 +341,9 @@ async fn hold_lease(mut task: LeaseTask) {
             CLAIM_POLL
         };
         tokio::select! {
-            _ = tokio::time::sleep(wait) => {}
+            biased;
             _ = task.shutdown.changed() => {}
+            _ = tokio::time::sleep(wait) => {}
         }
         if *task.shutdown.borrow() {
             return task.close(held, &mut intake).await;
@@ -344,17 +355,6 @@ async fn hold_lease(mut task: LeaseTask) {
                     .await;
                 continue;
             }
-            if task.broken.load(Relaxed) {
-                // This node cannot follow the log: it must not keep the scene from the others.
-                held = None;
-                task.lose(
-                    &mut intake,
-                    "the scene's log cannot be followed here".into(),
-                )
-                .await;
-                task.release(revision).await;
-                continue;
-            }
             held = if task.scene.info.leading.load(Relaxed) {
                 Some(revision)
             } else {
@@ -364,13 +364,16 @@ async fn hold_lease(mut task: LeaseTask) {
                 tracing::info!(scene = %task.scene.name, "the owner stopped ordering edits under a held lease; claiming the log again");
                 task.lead(revision, &mut intake).await
             };
+            if held.is_none() && task.scene.is_closed() {
+                return;
+            }
             continue;
         }
         // Who holds it now (for this node's sessions); nobody: try to take it.
-        match task.owners.get(&task.scene.name).await {
+        match task.jet.kv_get(Bucket::Owners, &task.scene.name).await {
             Ok(Some(holder)) => {
                 free_since = None;
-                let holder = String::from_utf8_lossy(&holder).into_owned();
+                let holder = String::from_utf8_lossy(&holder.value).into_owned();
                 task.owner.send_if_modified(|o| {
                     let changed = o.as_deref() != Some(holder.as_str());
                     *o = Some(holder);
@@ -392,13 +395,14 @@ async fn hold_lease(mut task: LeaseTask) {
             }
             Err(_) => continue,
         }
-        if task.broken.load(Relaxed) {
-            continue;
+        if task.scene.is_closed() {
+            return;
         }
         let sent = Instant::now();
+        let node = Bytes::from(task.node.clone());
         let Ok(revision) = task
-            .owners
-            .create(&task.scene.name, task.node.clone().into())
+            .jet
+            .kv_create(Bucket::Owners, &task.scene.name, node)
             .await
         else {
             // Another node holds it (or NATS is away): look again later.
@@ -412,31 +416,62 @@ async fn hold_lease(mut task: LeaseTask) {
     }
 }
 
-/// Forwarded edits for the scene, while this node leads it.
-async fn take_edits(client: async_nats::Client, scene: SceneHandle, node: String) {
-    let subject = super::forward::owner_subject(&jetlog::edit_subject(&scene.name), &node);
-    let mut sub = match client.subscribe(subject).await {
+/// Forwarded edits for the scene, while this node leads it, in arrival order; each answer is
+/// published once the owner gives it, in the same order.
+async fn take_edits<J: Jet>(jet: J, scene: SceneHandle, node: String) {
+    let subject = owner_subject(&jetlog::edit_subject(&scene.name), &node);
+    let mut sub = match jet.subscribe(subject).await {
         Ok(s) => s,
         Err(e) => {
             tracing::error!(scene = %scene.name, error = %e, "cannot take the scene's edits");
             return;
         }
     };
+    let (answers, waiting) = mpsc::unbounded_channel();
+    tokio::spawn(publish_answers(jet, waiting));
     while let Some(message) = sub.next().await {
-        let reply = message.reply.map(|r| r.to_string());
-        match Forwarded::decode(&message.payload) {
-            Ok(request) => {
-                if scene
-                    .send(Command::Forwarded { reply, request })
-                    .await
-                    .is_err()
-                {
-                    return;
-                }
-            }
+        let request = match decode_request(&message.payload) {
+            Ok(request) => request,
             Err(e) => {
                 tracing::warn!(scene = %scene.name, error = %e, "a forwarded edit that does not decode");
+                continue;
             }
+        };
+        let (reply, answer) = match message.reply {
+            Some(to) => {
+                let (tx, rx) = oneshot::channel();
+                (Some(tx), Some((to, rx)))
+            }
+            None => (None, None),
+        };
+        if scene
+            .send(Command::Request { request, reply })
+            .await
+            .is_err()
+        {
+            return;
+        }
+        if let Some(answer) = answer {
+            let _ = answers.send(answer);
+        }
+    }
+}
+
+/// Publishes the owner's answers to forwarded edits, in the order the edits came.
+async fn publish_answers<J: Jet>(
+    jet: J,
+    mut waiting: mpsc::UnboundedReceiver<(String, oneshot::Receiver<Outcome>)>,
+) {
+    while let Some((to, answer)) = waiting.recv().await {
+        // No answer (a copy its sender no longer waits for): the sender's retry gets one.
+        let Ok(outcome) = answer.await else { continue };
+        match encode_outcome(&outcome) {
+            Ok(bytes) => {
+                if let Err(e) = jet.publish(to, Bytes::from(bytes)).await {
+                    tracing::warn!(error = %e, "cannot send a reply to a forwarded edit");
+                }
+            }
+            Err(e) => tracing::error!(error = %e, "cannot encode a reply to a forwarded edit"),
         }
     }
 }

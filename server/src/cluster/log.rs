@@ -9,34 +9,39 @@
 //!
 //! **A message is a turn** ([`Turn`]): the log records of one group commit (the same versioned
 //! [`LogRecord`] bytes the redb store writes, replayed through the same
-//! [`LogRecord::replay`]) and the turn's undo-history changes, zstd-compressed. One message per
-//! turn makes the records and their history durable together, as one redb transaction does.
-//! A turn larger than the server's `max_payload` is split between messages at record
-//! boundaries (history in the last). A turn with no records is a lease marker: a new owner
+//! [`LogRecord::replay`]), the turn's undo-history changes and the requests it answered,
+//! zstd-compressed. One message per turn makes them durable together, as one redb transaction
+//! does. A turn larger than the server's `max_payload` is split between messages at record
+//! boundaries (history in the last). A turn with none of them is a lease marker: a new owner
 //! appends one first, so an owner that lost its lease finds its next append refused.
 //!
 //! **Snapshots** (`snapshot.rs`): a whole base, then deltas of the bricks changed since, each
 //! with the scene sequence and stream position it covers and the undo stacks. The owner thread
 //! only copies what a snapshot holds; a task encodes and uploads it and only then purges the
 //! stream below it.
+//!
+//! [`JetLog`] is the owner's [`SceneLog`] in a cluster; [`load`] reads a scene (snapshot, then
+//! the turns after it), and [`Replay`] is that reading's one replay loop, which `cluster
+//! repair` shares.
 
 use std::collections::{BTreeMap, HashMap};
+use std::future::Future;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use async_nats::jetstream::{self, object_store::ObjectStore, stream::Stream};
 use brickcast_protocol::BrickMap;
 use brickcast_protocol::wire::UserId;
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
-use tokio::sync::mpsc;
+use tokio::time::Instant;
 
-use super::answered::{Answered, AnsweredEntry};
-use super::forward::ForwardReply;
+use super::ClusterError;
+use super::jet::{Jet, LogStream, PortError};
 use super::snapshot;
 use crate::record::LogRecord;
-use crate::scene::history::{History, HistoryWrites, Stacks, StepMeta};
+use crate::scene::history::{HistoryWrites, Stacks, StepMeta};
+use crate::scene::{Answered, LogError, SceneLog, SnapshotOf, Turn, TurnWrite};
 use crate::store::{Loaded, SceneMeta, StoreError};
 
 /// First bytes of a turn message: a tag and the format version.
@@ -49,34 +54,21 @@ const HEADER_ROOM: usize = 4096;
 /// network blip) before the owner gives the scene up. The same message id is sent each time,
 /// so JetStream's duplicate window keeps a retried append from landing twice.
 const APPEND_PATIENCE: Duration = Duration::from_secs(20);
+/// How long a stopping owner waits for its last snapshot's upload.
+const UPLOAD_PATIENCE: Duration = Duration::from_secs(20);
+/// How long an owner waits before it tries an unreachable log again.
+const RETRY_PAUSE: Duration = Duration::from_millis(500);
+/// How many times a load starts over when the snapshot moved on while it was read.
+const LOAD_ATTEMPTS: u32 = 5;
 
-/// One group commit of a scene, as the log stream holds it.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct Turn {
-    /// The node that appended it.
-    pub node: String,
-    /// Scene sequence → [`LogRecord`] bytes, in order.
-    pub records: Vec<(u64, Vec<u8>)>,
-    /// The turn's undo-history changes.
-    pub history: HistoryWrites,
-    /// The forwarded requests the turn applied, with the replies their senders got
-    /// (`answered.rs`).
-    pub requests: Vec<AnsweredEntry>,
+/// A turn as a log message.
+pub fn encode_turn(turn: &Turn) -> Result<Vec<u8>, String> {
+    encode_as(TURN_MAGIC, turn)
 }
 
-impl Turn {
-    /// A lease marker: what a new owner appends first (no records, no history, no requests).
-    pub fn is_marker(&self) -> bool {
-        self.records.is_empty() && self.history.is_empty() && self.requests.is_empty()
-    }
-
-    pub fn encode(&self) -> Result<Vec<u8>, String> {
-        encode_as(TURN_MAGIC, self)
-    }
-
-    pub fn decode(bytes: &[u8]) -> Result<Turn, String> {
-        decode_as(TURN_MAGIC, bytes, "turn")
-    }
+/// A log message as a turn: an error for anything that is not one.
+pub fn decode_turn(bytes: &[u8]) -> Result<Turn, String> {
+    decode_as(TURN_MAGIC, bytes, "turn")
 }
 
 /// `value` in bincode, packed under `magic`.
@@ -114,9 +106,11 @@ fn pack(magic: [u8; 2], raw: &[u8]) -> Result<Vec<u8>, String> {
 
 fn unpack(magic: [u8; 2], bytes: &[u8], what: &str) -> Result<Vec<u8>, String> {
     if bytes.len() < 10 || bytes[..2] != magic {
+        let start: Vec<String> = bytes.iter().take(4).map(|b| format!("{b:02x}")).collect();
         return Err(format!(
-            "{what}: not a brickcast {what} (format {:?})",
-            bytes.get(..2)
+            "not a brickcast {what} ({} bytes, starting {})",
+            bytes.len(),
+            start.join(" ")
         ));
     }
     let len = u64::from_le_bytes(bytes[2..10].try_into().expect("8 bytes"));
@@ -133,18 +127,22 @@ fn unpack(magic: [u8; 2], bytes: &[u8], what: &str) -> Result<Vec<u8>, String> {
 
 /// A turn cut into messages of at most `limit` bytes, at record boundaries (the history and
 /// the requests go with the last part). A single record over the limit is an error.
-fn split(turn: Turn, limit: usize, scene: &str) -> Result<Vec<Vec<u8>>, StoreError> {
-    let whole = turn
-        .encode()
-        .map_err(|e| StoreError::Cluster(format!("encoding a turn: {e}")))?;
+fn split(turn: Turn, limit: usize, scene: &str) -> Result<Vec<Vec<u8>>, LogError> {
+    let whole = encode_turn(&turn).map_err(|e| LogError::Unsupported {
+        scene: scene.into(),
+        detail: format!("encoding a turn: {e}"),
+    })?;
     if whole.len() <= limit {
         return Ok(vec![whole]);
     }
     if turn.records.len() <= 1 {
-        return Err(StoreError::Cluster(format!(
-            "scene {scene}: one log entry needs {} bytes compressed, over the NATS server's max_payload; raise max_payload (8MB is recommended)",
-            whole.len(),
-        )));
+        return Err(LogError::Unsupported {
+            scene: scene.into(),
+            detail: format!(
+                "one log entry needs {} bytes compressed, over the NATS server's max_payload; raise max_payload (8MB is recommended)",
+                whole.len()
+            ),
+        });
     }
     let mid = turn.records.len() / 2;
     let mut first = Turn {
@@ -183,10 +181,16 @@ pub fn edit_subject(scene: &str) -> String {
     format!("brickcast.edit.{}", token(scene))
 }
 
+/// Where a node answers `cluster status`.
+pub fn status_subject(node: &str) -> String {
+    format!("brickcast.status.{}", token(node))
+}
+
 /// Until when this node may append: the lease task moves it on every renewal (the time the
 /// renewal was *sent* plus the lease's life, less a margin), and revokes it when the lease is
 /// lost. A node stopped past its lease (SIGSTOP, a long pause) reads a passed deadline when it
-/// wakes and appends nothing, before JetStream's own fence is even needed.
+/// wakes and appends nothing, before JetStream's own fence is even needed. Read on tokio's
+/// clock (inside the runtime: the simulation's clocks are its runtimes').
 #[derive(Debug)]
 pub struct LeaseClock {
     base: Instant,
@@ -217,57 +221,223 @@ impl LeaseClock {
     }
 }
 
-/// What a node needs to reach a scene's log.
+/// Where a log's async work runs: on a node, the node's runtime, which the owner thread (not
+/// one of its own) blocks on; in the simulation, a runtime per node that the simulation drives.
 #[derive(Clone)]
-pub struct LogHandles {
-    pub js: jetstream::Context,
-    pub snapshots: ObjectStore,
-    pub rt: tokio::runtime::Handle,
-    pub node: String,
-    /// Copies of a new scene's stream (`--replicas`).
-    pub replicas: usize,
+pub enum Exec {
+    Node(tokio::runtime::Handle),
+    #[cfg(test)]
+    Own(Arc<tokio::runtime::Runtime>),
 }
 
-/// A scene as loaded from the cluster: the map and history, plus where in the stream it is.
+impl Exec {
+    pub fn block_on<F: Future>(&self, future: F) -> F::Output {
+        match self {
+            Exec::Node(h) => h.block_on(future),
+            #[cfg(test)]
+            Exec::Own(rt) => rt.block_on(future),
+        }
+    }
+
+    pub fn spawn<F>(&self, future: F) -> tokio::task::JoinHandle<F::Output>
+    where
+        F: Future + Send + 'static,
+        F::Output: Send + 'static,
+    {
+        match self {
+            Exec::Node(h) => h.spawn(future),
+            #[cfg(test)]
+            Exec::Own(rt) => rt.spawn(future),
+        }
+    }
+}
+
+/// A scene as loaded from the cluster: the map and history, plus where in the stream it is
+/// and the undo step bodies (the redb store's `history/` table).
 pub struct ClusterLoaded {
     pub loaded: Loaded,
     pub pos: u64,
     pub steps: HashMap<u64, Vec<u8>>,
-    pub answered: Answered,
 }
 
 /// The stream and the snapshot object of a scene, created for a new scene.
-pub async fn create(h: &LogHandles, scene: &str, map: &BrickMap) -> Result<(), StoreError> {
-    let cluster = |e: String| StoreError::Cluster(format!("scene {scene}: {e}"));
-    h.js.get_or_create_stream(jetstream::stream::Config {
-        name: stream_name(scene),
-        subjects: vec![log_subject(scene)],
-        storage: jetstream::stream::StorageType::File,
-        num_replicas: h.replicas,
-        duplicate_window: Duration::from_secs(120),
-        ..Default::default()
-    })
-    .await
-    .map_err(|e| cluster(format!("creating the log stream: {e}")))?;
-    let first = snapshot::first(map).encode(scene, None).map_err(cluster)?;
-    snapshot::put(&h.snapshots, &first).await.map_err(cluster)
+pub async fn create(jet: &impl Jet, scene: &str, map: &BrickMap) -> Result<(), ClusterError> {
+    let failed = |e: String| ClusterError::Nats(format!("scene {scene}: {e}"));
+    jet.stream(scene, true)
+        .await
+        .map_err(|e| failed(format!("creating the log stream: {e}")))?;
+    let first = snapshot::first(map).encode(scene, None).map_err(failed)?;
+    snapshot::put(jet, &first)
+        .await
+        .map_err(|e| failed(e.to_string()))
 }
 
-/// How many times a load starts over when the snapshot moved on while it was read.
-const LOAD_ATTEMPTS: u32 = 5;
+/// A scene's snapshot with the turns after it replayed onto it, one at a time ([`load`]
+/// refuses a turn that does not fit; `cluster repair` drops it and goes on).
+pub struct Replay {
+    scene: String,
+    map: BrickMap,
+    size: [u32; 3],
+    snapshot_seq: u64,
+    pub seq: u64,
+    pub pos: u64,
+    pub replayed: u64,
+    rows: BTreeMap<u64, (UserId, StepMeta)>,
+    steps: HashMap<u64, Vec<u8>>,
+    last_step_id: u64,
+    answered: Answered,
+}
+
+impl Replay {
+    /// The newest snapshot of `scene`, to replay turns onto.
+    pub async fn from_snapshot(jet: &impl Jet, scene: &str) -> Result<Replay, LogError> {
+        let snapshot::Restored {
+            mut map,
+            size,
+            seq,
+            pos,
+            rows,
+            steps,
+            last_step_id,
+            answered,
+            ..
+        } = snapshot::read(jet, scene).await?;
+        map.record_touched(true);
+        Ok(Replay {
+            scene: scene.into(),
+            map,
+            size,
+            snapshot_seq: seq,
+            seq,
+            pos,
+            replayed: 0,
+            rows,
+            steps,
+            last_step_id,
+            answered: Answered::from_entries(answered),
+        })
+    }
+
+    /// The scene sequence and stream position of the snapshot this replay started from.
+    pub fn snapshot_seq(&self) -> u64 {
+        self.snapshot_seq
+    }
+
+    /// Why `turn` cannot follow what is replayed so far (checked before anything of it is
+    /// applied): a record that does not decode, or a sequence that does not go on by one.
+    pub fn check(&self, pos: u64, turn: &Turn) -> Result<Vec<(u64, LogRecord)>, String> {
+        let mut records = Vec::with_capacity(turn.records.len());
+        for (next, (s, bytes)) in (self.seq + 1..).zip(&turn.records) {
+            if *s != next {
+                return Err(format!(
+                    "log message {pos} holds sequence {s} after {}: the log has a gap or repeats",
+                    next - 1
+                ));
+            }
+            let record = LogRecord::decode(bytes)
+                .map_err(|e| format!("log entry {s} does not decode: {e}"))?;
+            records.push((*s, record));
+        }
+        Ok(records)
+    }
+
+    /// Replays the turn at `pos` (its records as [`Replay::check`] returned them).
+    pub fn apply(
+        &mut self,
+        pos: u64,
+        turn: Turn,
+        records: Vec<(u64, LogRecord)>,
+    ) -> Result<(), String> {
+        let limits = LogRecord::replay_limits();
+        for (s, record) in records {
+            self.map.set_sequence(s);
+            record
+                .replay(&mut self.map, &limits)
+                .map_err(|e| format!("log entry {s} no longer applies: {e}"))?;
+            self.seq = s;
+            self.replayed += 1;
+        }
+        for (id, user) in &turn.history.removed {
+            if self.rows.get(id).is_some_and(|(u, _)| u == user) {
+                self.rows.remove(id);
+                self.steps.remove(id);
+            }
+        }
+        for (id, (user, meta, body)) in turn.history.steps {
+            self.rows.insert(id, (user, meta));
+            self.steps.insert(id, body);
+            self.last_step_id = self.last_step_id.max(id);
+        }
+        for (origin, number, replies) in turn.requests {
+            self.answered.record(origin, number, replies);
+        }
+        self.pos = pos;
+        Ok(())
+    }
+
+    /// Skips the message at `pos` (`cluster repair`: it holds nothing that is kept).
+    pub fn skip(&mut self, pos: u64) {
+        self.pos = pos;
+    }
+
+    /// The scene as replayed.
+    pub fn finish(self) -> ClusterLoaded {
+        let Replay {
+            mut map,
+            size,
+            snapshot_seq,
+            seq,
+            pos,
+            replayed,
+            rows,
+            steps,
+            last_step_id,
+            answered,
+            ..
+        } = self;
+        map.rebuild_clearance();
+        let replay_touched = map.take_touched();
+        map.record_touched(false);
+        let mut by_user: BTreeMap<UserId, Vec<(u64, StepMeta)>> = BTreeMap::new();
+        for (id, (user, meta)) in rows {
+            by_user.entry(user).or_default().push((id, meta));
+        }
+        let history = by_user
+            .into_iter()
+            .map(|(u, rows)| (u, Stacks::from_rows(rows)))
+            .collect();
+        ClusterLoaded {
+            loaded: Loaded {
+                map,
+                meta: SceneMeta { size, snapshot_seq },
+                seq,
+                replayed,
+                replay_touched,
+                history,
+                last_step_id,
+                answered: answered.entries(),
+            },
+            pos,
+            steps,
+        }
+    }
+
+    pub fn scene(&self) -> &str {
+        &self.scene
+    }
+}
 
 /// Loads a scene: its newest snapshot (base and deltas), then every turn after it, checked
 /// for gaps. A gap right after the snapshot, with a newer snapshot in the store by then, means
 /// the owner wrote one and trimmed the log while this node read: it reads again.
-pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreError> {
+pub async fn load(jet: &impl Jet, scene: &str) -> Result<ClusterLoaded, LogError> {
     let mut attempt = 1;
     loop {
-        let before = snapshot::newest(&h.snapshots, scene).await;
-        match load_once(h, scene).await {
-            Err(StoreError::Inconsistent { .. } | StoreError::Cluster(_))
-                if attempt < LOAD_ATTEMPTS
-                    && snapshot::newest(&h.snapshots, scene).await != before =>
-            {
+        let before = snapshot::newest(jet, scene).await;
+        match load_once(jet, scene).await {
+            Err(
+                LogError::Store(StoreError::Inconsistent { .. }) | LogError::Unavailable { .. },
+            ) if attempt < LOAD_ATTEMPTS && snapshot::newest(jet, scene).await != before => {
                 tracing::info!(
                     scene,
                     attempt,
@@ -280,141 +450,70 @@ pub async fn load(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreErr
     }
 }
 
-async fn load_once(h: &LogHandles, scene: &str) -> Result<ClusterLoaded, StoreError> {
-    let corrupt = |detail: String| StoreError::Corrupt {
-        scene: scene.into(),
-        detail,
+async fn load_once(jet: &impl Jet, scene: &str) -> Result<ClusterLoaded, LogError> {
+    let corrupt = |detail: String| {
+        LogError::from(StoreError::Corrupt {
+            scene: scene.into(),
+            detail: format!("{detail}; {}", super::repair::hint(scene)),
+        })
     };
-    let inconsistent = |detail: String| StoreError::Inconsistent {
+    let unavailable = |e: PortError| LogError::Unavailable {
         scene: scene.into(),
-        detail,
+        detail: format!("reading the log stream: {e}"),
     };
-    let cluster = |e: String| StoreError::Cluster(format!("scene {scene}: {e}"));
-    let snapshot::Restored {
-        mut map,
-        size,
-        seq: snapshot_seq,
-        pos: snapshot_pos,
-        mut rows,
-        mut steps,
-        mut last_step_id,
-        answered,
-        ..
-    } = snapshot::read(&h.snapshots, scene).await?;
-    let mut answered = Answered::from_entries(answered);
-
-    // Every turn after the snapshot, in order.
-    let stream =
-        h.js.get_stream(stream_name(scene))
-            .await
-            .map_err(|e| cluster(format!("opening the log stream: {e}")))?;
-    let info = stream
-        .get_info()
-        .await
-        .map_err(|e| cluster(format!("reading the log stream: {e}")))?;
-    let (first, last) = (info.state.first_sequence, info.state.last_sequence);
-    let mut pos = snapshot_pos;
-    let mut seq = snapshot_seq;
-    let mut replayed = 0;
+    let mut replay = Replay::from_snapshot(jet, scene).await?;
+    let stream = jet.stream(scene, false).await.map_err(unavailable)?;
+    let (first, last, _) = stream.bounds().await.map_err(unavailable)?;
+    let pos = replay.pos;
     if last > pos && first > pos + 1 {
-        return Err(inconsistent(format!(
-            "the snapshot holds the log up to message {pos} but the stream starts at {first}: messages {}..{first} are missing",
-            pos + 1
-        )));
+        return Err(StoreError::Inconsistent {
+            scene: scene.into(),
+            detail: format!(
+                "the snapshot holds the log up to message {pos} but the stream starts at {first}: messages {}..{first} are missing",
+                pos + 1
+            ),
+        }
+        .into());
     }
-    let limits = LogRecord::replay_limits();
-    map.record_touched(true);
-    while pos < last {
-        let next = pos + 1;
-        let message = stream
-            .get_raw_message(next)
-            .await
-            .map_err(|e| cluster(format!("reading log message {next}: {e}")))?;
-        let turn = Turn::decode(&message.payload)
-            .map_err(|e| corrupt(format!("log message {next}: {e}")))?;
-        for (s, bytes) in &turn.records {
-            if *s != seq + 1 {
-                return Err(inconsistent(format!(
-                    "log message {next} holds sequence {s} after {seq}: the log has a gap or repeats"
-                )));
+    while replay.pos < last {
+        let next = replay.pos + 1;
+        let bytes = match stream.get(next).await {
+            Ok(bytes) => bytes,
+            Err(PortError::NotFound(_)) => {
+                return Err(corrupt(format!("log message {next} is missing (deleted)")));
             }
-            let record =
-                LogRecord::decode(bytes).map_err(|e| corrupt(format!("log entry {s}: {e}")))?;
-            map.set_sequence(*s);
-            record
-                .replay(&mut map, &limits)
-                .map_err(|e| corrupt(format!("log entry {s} no longer applies: {e}")))?;
-            seq = *s;
-            replayed += 1;
-        }
-        for (id, user) in &turn.history.removed {
-            if rows.get(id).is_some_and(|(u, _)| u == user) {
-                rows.remove(id);
-                steps.remove(id);
-            }
-        }
-        for (id, (user, meta, body)) in &turn.history.steps {
-            rows.insert(*id, (*user, *meta));
-            steps.insert(*id, body.clone());
-            last_step_id = last_step_id.max(*id);
-        }
-        for (origin, number, replies) in turn.requests {
-            answered.record(origin, number, replies);
-        }
-        pos = next;
+            Err(e) => return Err(unavailable(e)),
+        };
+        let turn = decode_turn(&bytes)
+            .map_err(|e| corrupt(format!("log message {next} is corrupt ({e})")))?;
+        let records = replay.check(next, &turn).map_err(|detail| {
+            LogError::from(StoreError::Inconsistent {
+                scene: scene.into(),
+                detail,
+            })
+        })?;
+        replay.apply(next, turn, records).map_err(corrupt)?;
     }
-    map.rebuild_clearance();
-    let replay_touched = map.take_touched();
-    map.record_touched(false);
-    let mut by_user: BTreeMap<UserId, Vec<(u64, StepMeta)>> = BTreeMap::new();
-    for (id, (user, meta)) in rows {
-        by_user.entry(user).or_default().push((id, meta));
-    }
-    let history = by_user
-        .into_iter()
-        .map(|(u, rows)| (u, Stacks::from_rows(rows)))
-        .collect();
-    Ok(ClusterLoaded {
-        loaded: Loaded {
-            map,
-            meta: SceneMeta { size, snapshot_seq },
-            seq,
-            replayed,
-            replay_touched,
-            history,
-            last_step_id,
-        },
-        pos,
-        steps,
-        answered,
-    })
+    Ok(replay.finish())
 }
 
 /// A scene's log as its owner thread uses it: append while leading, follow otherwise.
 ///
-/// Every call blocks the owner thread on the node's tokio runtime (the owner is a plain
-/// thread, like the redb store's fsyncs block it).
-pub struct JetLog {
+/// Every call blocks the owner thread on the node's runtime (the owner is a plain thread,
+/// like the redb store's fsyncs block it).
+pub struct JetLog<J: Jet> {
     scene: String,
-    h: LogHandles,
-    stream: Stream,
-    subject: String,
+    node: String,
+    jet: J,
+    stream: J::Stream,
+    exec: Exec,
     max_payload: usize,
-    /// The stream sequence of the last turn this replica holds.
+    /// The stream position of the last turn this replica holds.
     pos: u64,
     leading: bool,
     lease: Arc<LeaseClock>,
     /// Undo step bodies (the redb store's `history/` table).
     steps: HashMap<u64, Vec<u8>>,
-    /// Forwarded requests answered, so a retry is not applied twice.
-    pub answered: Answered,
-    /// The requests (and replies) of the turn being appended.
-    staged: Vec<AnsweredEntry>,
-    /// Replies to forwarded edits, published in order by a task.
-    replies: mpsc::UnboundedSender<(String, Bytes)>,
-    /// Set when the log cannot be followed (corrupt, a gap): the node neither applies nor
-    /// leads this scene until restarted.
-    pub broken: Arc<std::sync::atomic::AtomicBool>,
     appends: u64,
     /// The snapshot being uploaded: one at a time, so an older one can never land after (and
     /// over) a newer one whose trim already happened.
@@ -424,211 +523,87 @@ pub struct JetLog {
     chain: Arc<std::sync::Mutex<ChainState>>,
 }
 
-impl JetLog {
+impl<J: Jet> JetLog<J> {
+    /// The log of a loaded scene (taking its position and step bodies), for `node`.
     pub async fn open(
-        h: LogHandles,
+        jet: J,
+        exec: Exec,
+        node: &str,
         scene: &str,
         loaded: &mut ClusterLoaded,
         lease: Arc<LeaseClock>,
-        replies: mpsc::UnboundedSender<(String, Bytes)>,
-    ) -> Result<JetLog, StoreError> {
-        let stream = h.js.get_stream(stream_name(scene)).await.map_err(|e| {
-            StoreError::Cluster(format!("scene {scene}: opening the log stream: {e}"))
-        })?;
-        let max_payload = h.js.client().server_info().max_payload;
+    ) -> Result<JetLog<J>, LogError> {
+        let stream = jet
+            .stream(scene, false)
+            .await
+            .map_err(|e| LogError::Unavailable {
+                scene: scene.into(),
+                detail: format!("opening the log stream: {e}"),
+            })?;
         Ok(JetLog {
             scene: scene.to_string(),
+            node: node.to_string(),
+            max_payload: jet.max_payload(),
+            jet,
             stream,
-            subject: log_subject(scene),
-            max_payload,
+            exec,
             pos: loaded.pos,
             leading: false,
             lease,
             steps: std::mem::take(&mut loaded.steps),
-            answered: std::mem::take(&mut loaded.answered),
-            staged: Vec::new(),
-            replies,
-            broken: Arc::default(),
             appends: 0,
             uploading: None,
             chain: Arc::default(),
-            h,
         })
     }
 
-    pub fn scene(&self) -> &str {
-        &self.scene
-    }
-
-    pub fn node(&self) -> &str {
-        &self.h.node
-    }
-
-    pub fn pos(&self) -> u64 {
-        self.pos
-    }
-
-    pub fn set_pos(&mut self, pos: u64) {
-        self.pos = pos;
-    }
-
-    pub fn leading(&self) -> bool {
-        self.leading
-    }
-
-    /// Stops appending (the lease is gone, or another node appended).
-    pub fn follow(&mut self) {
-        self.leading = false;
-        self.forget_chain();
-    }
-
-    pub fn history_step(&self, id: u64) -> Option<Vec<u8>> {
-        self.steps.get(&id).cloned()
-    }
-
-    /// Keeps the step bodies of a turn another node committed.
-    pub fn apply_committed(&mut self, writes: &HistoryWrites) {
-        for id in writes.removed.keys() {
-            self.steps.remove(id);
-        }
-        for (id, (_, _, body)) in &writes.steps {
-            self.steps.insert(*id, body.clone());
-        }
-    }
-
-    /// The requests (with their replies) the next append logs.
-    pub fn stage(&mut self, requests: Vec<AnsweredEntry>) {
-        self.staged = requests;
-    }
-
-    /// Queues a reply to a forwarded edit.
-    pub fn reply(&self, subject: String, reply: &ForwardReply) {
-        match reply.encode() {
-            Ok(bytes) => {
-                let _ = self.replies.send((subject, Bytes::from(bytes)));
-            }
-            Err(e) => {
-                tracing::error!(scene = %self.scene, error = %e, "cannot encode a reply to a forwarded edit")
-            }
-        }
-    }
-
-    /// Appends a turn, fenced on this replica's position. Refused (`Deposed`) when the lease
-    /// has run out or another node appended since.
-    pub fn append(
-        &mut self,
-        records: &[(u64, LogRecord)],
-        history: &HistoryWrites,
-    ) -> Result<(), StoreError> {
-        let mut encoded = Vec::with_capacity(records.len());
-        let mut buf = Vec::new();
-        for (seq, record) in records {
-            record
-                .encode(&mut buf)
-                .map_err(|e| StoreError::Cluster(format!("encoding log entry {seq}: {e}")))?;
-            encoded.push((*seq, buf.clone()));
-        }
-        let turn = Turn {
-            node: self.h.node.clone(),
-            records: encoded,
-            history: history.clone(),
-            requests: std::mem::take(&mut self.staged),
-        };
-        let limit = self.max_payload.saturating_sub(HEADER_ROOM);
-        for (i, part) in split(turn, limit, &self.scene)?.into_iter().enumerate() {
-            match self.append_message(part) {
-                Ok(()) => {}
-                // Part of the turn is in the log: its edits may replay; not "not applied".
-                Err(StoreError::Deposed { detail, .. }) if i > 0 => {
-                    return Err(StoreError::Cluster(format!(
-                        "scene {}: a turn was logged in part ({detail}); its outcome is unknown",
-                        self.scene
-                    )));
-                }
-                Err(e) => return Err(e),
-            }
-        }
-        for (id, (_, _, body)) in &history.steps {
-            self.steps.insert(*id, body.clone());
-        }
-        for id in history.removed.keys() {
-            self.steps.remove(id);
-        }
-        Ok(())
-    }
-
-    /// Appends the empty turn that claims the log for this node: after it, an owner that lost
-    /// its lease finds its next append refused.
-    pub fn claim(&mut self) -> Result<(), StoreError> {
-        self.leading = true;
-        // What changed before this node led is not in the owner's changed-brick set.
-        self.forget_chain();
-        let marker = Turn {
-            node: self.h.node.clone(),
-            ..Default::default()
-        };
-        let bytes = marker
-            .encode()
-            .map_err(|e| StoreError::Cluster(format!("encoding a lease marker: {e}")))?;
-        if let Err(e) = self.append_message(bytes) {
-            self.leading = false;
-            return Err(e);
-        }
-        Ok(())
-    }
-
-    fn append_message(&mut self, bytes: Vec<u8>) -> Result<(), StoreError> {
-        let deposed = |detail: String| StoreError::Deposed {
+    fn deposed(&self, detail: impl Into<String>) -> LogError {
+        LogError::Deposed {
             scene: self.scene.clone(),
-            detail,
-        };
-        if !self.leading {
-            return Err(deposed("it does not hold the lease".into()));
+            detail: detail.into(),
         }
-        if !self.lease.valid() {
-            self.leading = false;
-            return Err(deposed("its lease ran out before the append".into()));
+    }
+
+    fn forget_chain(&self) {
+        let mut state = self.chain.lock().unwrap_or_else(|e| e.into_inner());
+        state.generation += 1;
+        state.chain = None;
+    }
+
+    fn append_message(&mut self, bytes: Vec<u8>) -> Result<(), LogError> {
+        if !self.leading {
+            return Err(self.deposed("it does not hold the lease"));
         }
         let expected = self.pos;
         self.appends += 1;
         // Unique per node, scene position and attempt series: a retry after a lost ack is a
         // duplicate JetStream drops, never a second copy.
-        let id = format!("{}:{}:{}", self.h.node, expected, self.appends);
+        let id = format!("{}:{}:{}", self.node, expected, self.appends);
         let payload = Bytes::from(bytes);
-        let started = Instant::now();
-        let result = self.h.rt.clone().block_on(async {
+        let (stream, lease, scene) = (self.stream.clone(), self.lease.clone(), self.scene.clone());
+        let result = self.exec.block_on(async move {
+            let deposed = |detail: String| LogError::Deposed {
+                scene: scene.clone(),
+                detail,
+            };
+            // Read on waking, before anything is sent: a node stopped past its lease sees it.
+            if !lease.valid() {
+                return Err(deposed("its lease ran out before the append".into()));
+            }
+            let started = Instant::now();
             // Whether an attempt may have landed (its ack was lost): then a later refusal
             // does not mean "not appended".
             let mut maybe_landed = false;
             loop {
-                let publish = jetstream::message::PublishMessage::build()
-                    .payload(payload.clone())
-                    .message_id(id.clone())
-                    .expected_last_sequence(expected);
-                let sent = self
-                    .h
-                    .js
-                    .send_publish(self.subject.clone(), publish)
-                    .await;
-                let outcome = match sent {
-                    Ok(ack) => ack.await,
-                    Err(e) => Err(e),
-                };
-                match outcome {
-                    Ok(ack) => return Ok(ack.sequence),
-                    Err(e)
-                        if !maybe_landed
-                            && matches!(
-                                e.kind(),
-                                jetstream::context::PublishErrorKind::WrongLastSequence
-                            ) =>
-                    {
+                match stream.append(payload.clone(), &id, expected).await {
+                    Ok(pos) => return Ok(pos),
+                    Err(PortError::Conflict(_)) if !maybe_landed => {
                         return Err(deposed(format!(
                             "another node appended after message {expected}"
                         )));
                     }
-                    Err(e) if started.elapsed() < APPEND_PATIENCE && self.lease.valid() => {
-                        tracing::warn!(scene = %self.scene, error = %e, "log append failed; retrying");
+                    Err(e) if started.elapsed() < APPEND_PATIENCE && lease.valid() => {
+                        tracing::warn!(scene = %scene, error = %e, "log append failed; retrying");
                         maybe_landed = true;
                         tokio::time::sleep(Duration::from_millis(200)).await;
                     }
@@ -636,17 +611,17 @@ impl JetLog {
                         return Err(deposed(format!("the log append failed: {e}")));
                     }
                     Err(e) => {
-                        return Err(StoreError::Cluster(format!(
-                            "scene {}: the log append's outcome is unknown: {e}",
-                            self.scene
-                        )));
+                        return Err(LogError::Unknown {
+                            scene: scene.clone(),
+                            detail: format!("the log append failed ({e})"),
+                        });
                     }
                 }
             }
         });
         match result {
-            Ok(seq) => {
-                self.pos = seq;
+            Ok(pos) => {
+                self.pos = pos;
                 Ok(())
             }
             Err(e) => {
@@ -655,75 +630,72 @@ impl JetLog {
             }
         }
     }
+}
 
-    /// The turns after this replica's position, up to the stream's end (a new owner catches
-    /// up before it claims the log). `Err` when one is gone (trimmed below a snapshot): the
-    /// caller reloads.
-    pub fn tail(&self) -> Result<Vec<(u64, Turn)>, StoreError> {
-        let cluster = |e: String| StoreError::Cluster(format!("scene {}: {e}", self.scene));
-        self.h.rt.clone().block_on(async {
-            let info = self
-                .stream
-                .get_info()
-                .await
-                .map_err(|e| cluster(format!("reading the log stream: {e}")))?;
-            let mut out = Vec::new();
-            for next in self.pos + 1..=info.state.last_sequence {
-                let message = self
-                    .stream
-                    .get_raw_message(next)
-                    .await
-                    .map_err(|e| cluster(format!("reading log message {next}: {e}")))?;
-                let turn = Turn::decode(&message.payload).map_err(|e| StoreError::Corrupt {
-                    scene: self.scene.clone(),
-                    detail: format!("log message {next}: {e}"),
-                })?;
-                out.push((next, turn));
+impl<J: Jet> SceneLog for JetLog<J> {
+    /// Appends a turn, fenced on this replica's position. Refused (`Deposed`) when the lease
+    /// has run out or another node appended since.
+    fn append(&mut self, turn: TurnWrite<'_>) -> Result<(), LogError> {
+        let mut encoded = Vec::with_capacity(turn.records.len());
+        let mut buf = Vec::new();
+        for (seq, record) in turn.records {
+            record.encode(&mut buf).map_err(|e| LogError::Unsupported {
+                scene: self.scene.clone(),
+                detail: format!("encoding log entry {seq}: {e}"),
+            })?;
+            encoded.push((*seq, buf.clone()));
+        }
+        let message = Turn {
+            node: self.node.clone(),
+            records: encoded,
+            history: turn.history.clone(),
+            requests: turn.answered.to_vec(),
+        };
+        let limit = self.max_payload.saturating_sub(HEADER_ROOM);
+        for (i, part) in split(message, limit, &self.scene)?.into_iter().enumerate() {
+            match self.append_message(part) {
+                Ok(()) => {}
+                // Part of the turn is in the log: its edits may replay; not "not applied".
+                Err(LogError::Deposed { detail, .. }) if i > 0 => {
+                    return Err(LogError::Unknown {
+                        scene: self.scene.clone(),
+                        detail: format!("a turn was logged in part ({detail})"),
+                    });
+                }
+                Err(e) => return Err(e),
             }
-            Ok(out)
-        })
+        }
+        for (id, (_, _, body)) in &turn.history.steps {
+            self.steps.insert(*id, body.clone());
+        }
+        for id in turn.history.removed.keys() {
+            self.steps.remove(id);
+        }
+        Ok(())
     }
 
-    /// Loads the scene again from the cluster (after a gap, or an append that lost the lease).
-    fn forget_chain(&self) {
-        let mut state = self.chain.lock().unwrap_or_else(|e| e.into_inner());
-        state.generation += 1;
-        state.chain = None;
-    }
-
-    pub fn reload(&mut self) -> Result<Loaded, StoreError> {
-        self.forget_chain();
-        let mut loaded = self.h.rt.clone().block_on(load(&self.h, &self.scene))?;
-        self.pos = loaded.pos;
-        self.steps = std::mem::take(&mut loaded.steps);
-        self.answered = std::mem::take(&mut loaded.answered);
-        self.staged.clear();
-        self.leading = false;
-        Ok(loaded.loaded)
+    fn history_step(&self, id: u64) -> Result<Option<Vec<u8>>, LogError> {
+        Ok(self.steps.get(&id).cloned())
     }
 
     /// Writes a snapshot at `seq` (this replica's position) in the background: a delta of
-    /// the bricks at `changed` (linear cells changed since the last snapshot) when this node
-    /// wrote the chain it follows, else a base. The stream is trimmed below it once it is
-    /// stored. Only the owner snapshots, one at a time: false when this call wrote nothing.
-    pub fn snapshot(
-        &mut self,
-        map: &BrickMap,
-        changed: &[u32],
-        seq: u64,
-        history: &History,
-    ) -> Result<bool, StoreError> {
+    /// the bricks changed since the last snapshot when this node wrote the chain it follows,
+    /// else a base. The stream is trimmed below it once it is stored. Only the owner
+    /// snapshots, one at a time: false when this call wrote nothing.
+    fn snapshot(&mut self, at: SnapshotOf<'_>) -> Result<bool, LogError> {
         if !self.leading || self.uploading.as_ref().is_some_and(|t| !t.is_finished()) {
             return Ok(false);
         }
-        if map.sequence() != seq {
+        if at.map.sequence() != at.seq {
             return Err(StoreError::Inconsistent {
                 scene: self.scene.clone(),
                 detail: format!(
-                    "refusing a snapshot at sequence {seq} of a map stamped {}",
-                    map.sequence()
+                    "refusing a snapshot at sequence {} of a map stamped {}",
+                    at.seq,
+                    at.map.sequence()
                 ),
-            });
+            }
+            .into());
         }
         let state = self.chain.clone();
         let (generation, before) = {
@@ -732,15 +704,15 @@ impl JetLog {
         };
         let prepared = snapshot::prepare(
             before.as_ref(),
-            map,
-            changed,
-            seq,
+            at.map,
+            at.cells,
+            at.seq,
             self.pos,
-            history,
+            at.history,
             &self.steps,
-            self.answered.entries(),
+            at.answered.entries(),
         );
-        let store = self.h.snapshots.clone();
+        let jet = self.jet.clone();
         let stream = self.stream.clone();
         let scene = self.scene.clone();
         let lease = self.lease.clone();
@@ -755,21 +727,19 @@ impl JetLog {
         };
         // The owner thread only copies the bricks; encoding and compressing (the larger part:
         // seconds for a big scene's base) runs off it, so edits keep flowing.
-        self.uploading = Some(self.h.rt.spawn(async move {
+        self.uploading = Some(self.exec.spawn(async move {
             let forget = || state.lock().unwrap_or_else(|e| e.into_inner()).chain = None;
             let name = scene.clone();
-            let encoded =
-                tokio::task::spawn_blocking(move || prepared.encode(&name, before)).await;
-            let encoded = match encoded {
-                Ok(Ok(encoded)) => encoded,
-                Ok(Err(e)) => {
+            let encoded = match jet.offload(move || prepared.encode(&name, before)).await {
+                Some(Ok(encoded)) => encoded,
+                Some(Err(e)) => {
                     forget();
                     tracing::error!(scene = %scene, error = %e, "cannot encode a snapshot; the log keeps everything");
                     return;
                 }
-                Err(e) => {
+                None => {
                     forget();
-                    tracing::error!(scene = %scene, error = %e, "encoding a snapshot failed; the log keeps everything");
+                    tracing::error!(scene = %scene, "encoding a snapshot failed; the log keeps everything");
                     return;
                 }
             };
@@ -778,7 +748,7 @@ impl JetLog {
                 tracing::info!(scene = %scene, "a snapshot not written: this node no longer leads the scene");
                 return;
             }
-            if let Err(e) = snapshot::put(&store, &encoded).await {
+            if let Err(e) = snapshot::put(&jet, &encoded).await {
                 forget();
                 tracing::warn!(scene = %scene, error = %e, "snapshot not written; the log keeps everything");
                 return;
@@ -792,16 +762,133 @@ impl JetLog {
             }
             // Messages after the snapshot stay; the ones it holds go.
             let (seq, pos) = (encoded.seq, encoded.pos);
-            match stream.purge().sequence(pos + 1).await {
-                Ok(_) => tracing::debug!(scene = %scene, seq, pos, object = %encoded.name, bytes = encoded.bytes.len(), "snapshot written, log trimmed"),
+            match stream.purge_before(pos + 1).await {
+                Ok(()) => tracing::debug!(scene = %scene, seq, pos, object = %encoded.name, bytes = encoded.bytes.len(), "snapshot written, log trimmed"),
                 Err(e) => tracing::warn!(scene = %scene, error = %e, "snapshot written, log not trimmed"),
             }
             if encoded.is_base {
                 // The new base holds everything: the old chain's deltas are leftovers.
-                snapshot::delete_deltas(&store, &scene).await;
+                snapshot::delete_deltas(&jet, &scene).await;
             }
         }));
         Ok(true)
+    }
+
+    fn may_order(&self) -> bool {
+        self.leading
+    }
+
+    fn shared(&self) -> bool {
+        true
+    }
+
+    fn position(&self) -> u64 {
+        self.pos
+    }
+
+    /// The turns after this replica's position, up to the stream's end. `Err` when one is
+    /// gone (trimmed below a snapshot): the owner reloads.
+    fn tail(&mut self) -> Result<Vec<(u64, Turn)>, LogError> {
+        let (stream, scene, from) = (self.stream.clone(), self.scene.clone(), self.pos + 1);
+        self.exec.block_on(async move {
+            let unavailable = |e: PortError| LogError::Unavailable {
+                scene: scene.clone(),
+                detail: format!("reading the log stream: {e}"),
+            };
+            let (_, last, _) = stream.bounds().await.map_err(unavailable)?;
+            let mut out = Vec::new();
+            for next in from..=last {
+                let bytes = stream.get(next).await.map_err(unavailable)?;
+                let turn = decode_turn(&bytes).map_err(|e| StoreError::Corrupt {
+                    scene: scene.clone(),
+                    detail: format!(
+                        "log message {next} is corrupt ({e}); {}",
+                        super::repair::hint(&scene)
+                    ),
+                })?;
+                out.push((next, turn));
+            }
+            Ok(out)
+        })
+    }
+
+    /// Appends the empty turn that claims the log for this node: after it, an owner that lost
+    /// its lease finds its next append refused.
+    fn claim(&mut self) -> Result<(), LogError> {
+        self.leading = true;
+        // What changed before this node led is not in the owner's changed-brick set.
+        self.forget_chain();
+        let marker = Turn {
+            node: self.node.clone(),
+            ..Default::default()
+        };
+        let bytes = encode_turn(&marker).map_err(|e| LogError::Unsupported {
+            scene: self.scene.clone(),
+            detail: format!("encoding a lease marker: {e}"),
+        })?;
+        if let Err(e) = self.append_message(bytes) {
+            self.leading = false;
+            return Err(e);
+        }
+        Ok(())
+    }
+
+    fn follow(&mut self) {
+        self.leading = false;
+        self.forget_chain();
+    }
+
+    fn applied(&mut self, pos: u64, turn: &Turn) {
+        for id in turn.history.removed.keys() {
+            self.steps.remove(id);
+        }
+        for (id, (_, _, body)) in &turn.history.steps {
+            self.steps.insert(*id, body.clone());
+        }
+        self.pos = pos;
+    }
+
+    /// Loads the scene again from the cluster (after a gap, or an append that lost the lease).
+    fn reload(&mut self) -> Result<Loaded, LogError> {
+        self.forget_chain();
+        self.leading = false;
+        let (jet, scene) = (self.jet.clone(), self.scene.clone());
+        let mut loaded = self
+            .exec
+            .block_on(async move { load(&jet, &scene).await })?;
+        self.pos = loaded.pos;
+        self.steps = std::mem::take(&mut loaded.steps);
+        Ok(loaded.loaded)
+    }
+
+    fn pause(&mut self) {
+        self.exec.block_on(tokio::time::sleep(RETRY_PAUSE));
+    }
+
+    /// A snapshot still uploading when the owner stops (the scene closing on this node, the
+    /// server shutting down) is waited for: the next node to open the scene then reads it
+    /// instead of replaying the log, and a process exiting does not cut the upload short.
+    fn close(&mut self) {
+        let Some(upload) = self.uploading.take() else {
+            return;
+        };
+        // Only a thread outside the runtime may wait (blocking inside it would panic).
+        if upload.is_finished() || tokio::runtime::Handle::try_current().is_ok() {
+            return;
+        }
+        // The timeout is made inside the runtime: this thread is not one of its own.
+        let waited = self
+            .exec
+            .block_on(async { tokio::time::timeout(UPLOAD_PATIENCE, upload).await });
+        if waited.is_err() {
+            tracing::warn!(scene = %self.scene, "the last snapshot's upload did not finish in time; the log keeps everything");
+        }
+    }
+}
+
+impl<J: Jet> Drop for JetLog<J> {
+    fn drop(&mut self) {
+        self.close();
     }
 }
 
@@ -813,32 +900,6 @@ impl JetLog {
 struct ChainState {
     generation: u64,
     chain: Option<snapshot::Chain>,
-}
-
-/// How long a stopping owner waits for its last snapshot's upload.
-const UPLOAD_PATIENCE: Duration = Duration::from_secs(20);
-
-impl Drop for JetLog {
-    /// A snapshot still uploading when the owner stops (the scene closing on this node, the
-    /// server shutting down) is waited for: the next node to open the scene then reads it
-    /// instead of replaying the log, and a process exiting does not cut the upload short.
-    fn drop(&mut self) {
-        let Some(upload) = self.uploading.take() else {
-            return;
-        };
-        // Only the owner thread may wait (blocking inside the runtime would panic).
-        if upload.is_finished() || tokio::runtime::Handle::try_current().is_ok() {
-            return;
-        }
-        // The timeout is made inside the runtime: this thread is not one of its own.
-        let waited = self
-            .h
-            .rt
-            .block_on(async { tokio::time::timeout(UPLOAD_PATIENCE, upload).await });
-        if waited.is_err() {
-            tracing::warn!(scene = %self.scene, "the last snapshot's upload did not finish in time; the log keeps everything");
-        }
-    }
 }
 
 #[cfg(test)]
@@ -865,18 +926,19 @@ mod tests {
             history,
             requests: vec![("p/1".into(), 2, vec![vec![1, 2]])],
         };
-        let bytes = turn.encode().unwrap();
-        assert_eq!(Turn::decode(&bytes).unwrap(), turn);
+        let bytes = encode_turn(&turn).unwrap();
+        assert_eq!(decode_turn(&bytes).unwrap(), turn);
         assert!(!turn.is_marker());
         assert!(Turn::default().is_marker());
-        assert!(Turn::decode(b"not a turn").is_err());
+        let garbage = decode_turn(b"not a turn").unwrap_err();
+        assert!(garbage.contains("not a brickcast turn"), "{garbage}");
         // A length claim beyond the bound is refused before anything is allocated.
         let mut lying = bytes.clone();
         lying[2..10].copy_from_slice(&u64::MAX.to_le_bytes());
-        assert!(Turn::decode(&lying).unwrap_err().contains("claims"));
+        assert!(decode_turn(&lying).unwrap_err().contains("claims"));
         let mut cut = bytes;
         cut.truncate(12);
-        assert!(Turn::decode(&cut).is_err());
+        assert!(decode_turn(&cut).is_err());
     }
 
     #[test]
@@ -901,7 +963,7 @@ mod tests {
         };
         let parts = split(turn.clone(), 7000, "s").unwrap();
         assert!(parts.len() >= 4, "{} parts", parts.len());
-        let turns: Vec<Turn> = parts.iter().map(|p| Turn::decode(p).unwrap()).collect();
+        let turns: Vec<Turn> = parts.iter().map(|p| decode_turn(p).unwrap()).collect();
         assert!(parts.iter().all(|p| p.len() <= 7000));
         let records: Vec<_> = turns.iter().flat_map(|t| t.records.clone()).collect();
         assert_eq!(records, turn.records, "every record once, in order");

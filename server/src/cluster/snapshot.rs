@@ -21,15 +21,15 @@
 use std::collections::{BTreeMap, HashMap};
 use std::hash::{BuildHasher, Hasher};
 
-use async_nats::jetstream::{self, object_store::ObjectStore};
 use brickcast_protocol::BrickMap;
 use brickcast_protocol::brick::BrickData;
 use brickcast_protocol::wire::UserId;
 use serde::{Deserialize, Serialize};
-use tokio::io::AsyncReadExt;
 
-use super::answered::AnsweredEntry;
+use super::jet::{Jet, PortError};
 use super::log::{decode_as, encode_as};
+use crate::scene::AnsweredEntry;
+use crate::scene::LogError;
 use crate::scene::history::{History, StepMeta};
 use crate::store::{StoreError, decode_brick, encode_brick};
 
@@ -125,7 +125,7 @@ enum Kind {
 pub struct Encoded {
     pub name: String,
     pub description: String,
-    pub bytes: Vec<u8>,
+    pub bytes: bytes::Bytes,
     pub seq: u64,
     pub pos: u64,
     /// What the chain looks like once it is stored.
@@ -273,7 +273,7 @@ impl Prepared {
         let (seq, pos) = (self.seq, self.pos);
         match self.kind {
             Kind::Base(base) => {
-                let bytes = encode_as(BASE_MAGIC, &base)?;
+                let bytes = bytes::Bytes::from(encode_as(BASE_MAGIC, &base)?);
                 Ok(Encoded {
                     name: scene.to_string(),
                     description: format!("seq={seq} pos={pos} id={}", base.id),
@@ -291,7 +291,7 @@ impl Prepared {
                 })
             }
             Kind::Delta(delta) => {
-                let bytes = encode_as(DELTA_MAGIC, &delta)?;
+                let bytes = bytes::Bytes::from(encode_as(DELTA_MAGIC, &delta)?);
                 let before = chain
                     .filter(|c| c.base == delta.base && c.next == delta.number)
                     .ok_or("the delta does not follow the chain it was encoded with")?;
@@ -415,38 +415,27 @@ impl Restored {
     }
 }
 
-fn not_found(e: &jetstream::object_store::GetError) -> bool {
-    matches!(e.kind(), jetstream::object_store::GetErrorKind::NotFound)
-}
-
-async fn fetch(store: &ObjectStore, name: &str) -> Result<Option<Vec<u8>>, String> {
-    let mut object = match store.get(name).await {
-        Ok(o) => o,
-        Err(e) if not_found(&e) => return Ok(None),
-        Err(e) => return Err(format!("reading snapshot object {name}: {e}")),
-    };
-    let mut bytes = Vec::new();
-    object
-        .read_to_end(&mut bytes)
-        .await
-        .map_err(|e| format!("reading snapshot object {name}: {e}"))?;
-    Ok(Some(bytes))
-}
-
 /// The scene as its base and deltas hold it.
-pub async fn read(store: &ObjectStore, scene: &str) -> Result<Restored, StoreError> {
-    let cluster = |e: String| StoreError::Cluster(format!("scene {scene}: {e}"));
+pub async fn read(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
+    let unavailable = |e: PortError| LogError::Unavailable {
+        scene: scene.into(),
+        detail: format!("reading its snapshot: {e}"),
+    };
     let corrupt = |detail: String| StoreError::Corrupt {
         scene: scene.into(),
         detail,
     };
-    let Some(bytes) = fetch(store, scene).await.map_err(cluster)? else {
-        return Err(StoreError::UnknownScene(scene.into()));
+    let Some(bytes) = jet.object_get(scene).await.map_err(unavailable)? else {
+        return Err(StoreError::UnknownScene(scene.into()).into());
     };
     let mut restored = Restored::from_base(&bytes).map_err(corrupt)?;
     drop(bytes);
     for n in 1..=MAX_DELTAS {
-        let Some(bytes) = fetch(store, &delta_name(scene, n)).await.map_err(cluster)? else {
+        let Some(bytes) = jet
+            .object_get(&delta_name(scene, n))
+            .await
+            .map_err(unavailable)?
+        else {
             break;
         };
         if !restored.apply_delta(n, &bytes).map_err(corrupt)? {
@@ -458,23 +447,15 @@ pub async fn read(store: &ObjectStore, scene: &str) -> Result<Restored, StoreErr
 }
 
 /// Stores an encoded snapshot.
-pub async fn put(store: &ObjectStore, encoded: &Encoded) -> Result<(), String> {
-    let meta = jetstream::object_store::ObjectMetadata {
-        name: encoded.name.clone(),
-        description: Some(encoded.description.clone()),
-        ..Default::default()
-    };
-    store
-        .put(meta, &mut encoded.bytes.as_slice())
+pub async fn put(jet: &impl Jet, encoded: &Encoded) -> Result<(), PortError> {
+    jet.object_put(&encoded.name, &encoded.description, encoded.bytes.clone())
         .await
-        .map(|_| ())
-        .map_err(|e| format!("writing snapshot object {}: {e}", encoded.name))
 }
 
 /// Deletes a scene's deltas (after a new base, or with the scene), up to the first missing.
-pub async fn delete_deltas(store: &ObjectStore, scene: &str) {
+pub async fn delete_deltas(jet: &impl Jet, scene: &str) {
     for n in 1..=MAX_DELTAS + 1 {
-        if store.delete(delta_name(scene, n)).await.is_err() {
+        if jet.object_delete(&delta_name(scene, n)).await.is_err() {
             return;
         }
     }
@@ -482,22 +463,20 @@ pub async fn delete_deltas(store: &ObjectStore, scene: &str) {
 
 /// The newest snapshot's scene sequence, stream position and deltas, from object
 /// descriptions alone (`cluster status`).
-pub async fn newest(store: &ObjectStore, scene: &str) -> Option<(u64, u64, u32)> {
-    let info = store.info(scene).await.ok()?;
+pub async fn newest(jet: &impl Jet, scene: &str) -> Option<(u64, u64, u32)> {
+    let base = jet.object_description(scene).await.ok()??;
     let described = |d: &str, key: &str| {
         d.split_whitespace()
             .find_map(|p| p.strip_prefix(key))
             .and_then(|v| v.parse::<u64>().ok())
     };
-    let base = info.description.unwrap_or_default();
     let (mut seq, mut pos) = (described(&base, "seq=")?, described(&base, "pos=")?);
     let id = described(&base, "id=");
     let mut deltas = 0;
     for n in 1..=MAX_DELTAS {
-        let Ok(info) = store.info(delta_name(scene, n)).await else {
+        let Ok(Some(d)) = jet.object_description(&delta_name(scene, n)).await else {
             break;
         };
-        let d = info.description.unwrap_or_default();
         let follows = id.is_some() && described(&d, "base=") == id;
         match (follows, described(&d, "seq="), described(&d, "pos=")) {
             (true, Some(s), Some(p)) if s >= seq && p >= pos => {

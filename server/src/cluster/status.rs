@@ -1,14 +1,32 @@
-//! `brickcast-server cluster status`: what the cluster holds, read from NATS alone.
+//! `brickcast-server cluster status`: what the cluster holds, from NATS, and where each node's
+//! copy of each scene stands, from the nodes themselves.
+//!
+//! Each node answers on `brickcast.status.<node>` with, per scene it serves, the sequence, the
+//! map's content hash, the log position and whether it orders the scene's edits: replicas at
+//! one sequence must have one hash, so convergence can be checked without a client.
 
 use std::fmt::Write;
+use std::sync::Arc;
+use std::time::Duration;
 
+use bytes::Bytes;
 use futures_util::StreamExt;
+use serde::{Deserialize, Serialize};
+use tokio::sync::{oneshot, watch};
 
-use super::log::stream_name;
-use super::{Cluster, ClusterError, NodeEntry, SceneEntry};
+use super::catalog::scene_names;
+use super::jet::{Bucket, Jet, LogStream};
+use super::log::status_subject;
+use super::{ClusterError, NodeEntry, SceneEntry};
+use crate::scene::{Command, Described, SceneHandle};
+
+/// How long `cluster status` waits for each node's answer.
+const ANSWER_WAIT: Duration = Duration::from_secs(3);
+/// How long a node waits for one scene's owner to describe it.
+const DESCRIBE_WAIT: Duration = Duration::from_secs(2);
 
 /// One scene's line.
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, Serialize)]
 pub struct SceneStatus {
     pub name: String,
     pub size: [u32; 3],
@@ -24,52 +42,77 @@ pub struct SceneStatus {
     pub snapshot_deltas: Option<u32>,
 }
 
+/// One scene as one node holds it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Replica {
+    pub scene: String,
+    #[serde(flatten)]
+    pub described: Described,
+}
+
+/// One node: where it listens, and (when it answered) each scene it serves.
+#[derive(Debug, Clone, Serialize)]
+pub struct NodeStatus {
+    pub name: String,
+    pub listen: String,
+    /// `None`: the node did not answer in time.
+    pub scenes: Option<Vec<Replica>>,
+}
+
 /// Nodes and scenes.
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, Serialize)]
 pub struct Status {
-    pub nodes: Vec<(String, String)>,
+    pub nodes: Vec<NodeStatus>,
     pub scenes: Vec<SceneStatus>,
 }
 
-pub async fn status(cluster: &Cluster) -> Result<Status, ClusterError> {
-    let err = |what: &str, e: &dyn std::fmt::Display| ClusterError::Nats(format!("{what}: {e}"));
+pub async fn status(jet: &impl Jet) -> Result<Status, ClusterError> {
     let mut nodes = Vec::new();
-    if let Ok(mut keys) = cluster.nodes.keys().await {
-        while let Some(Ok(key)) = keys.next().await {
-            let listen = match cluster.nodes.get(&key).await {
-                Ok(Some(v)) => serde_json::from_slice::<NodeEntry>(&v)
-                    .map(|e| e.listen)
-                    .unwrap_or_default(),
-                _ => continue,
-            };
-            nodes.push((key, listen));
-        }
+    let mut names = jet.kv_keys(Bucket::Nodes).await.unwrap_or_default();
+    names.sort();
+    for name in names {
+        let Ok(Some(entry)) = jet.kv_get(Bucket::Nodes, &name).await else {
+            continue;
+        };
+        let listen = serde_json::from_slice::<NodeEntry>(&entry.value)
+            .map(|e| e.listen)
+            .unwrap_or_default();
+        let scenes = match jet
+            .request(status_subject(&name), Bytes::new(), ANSWER_WAIT)
+            .await
+        {
+            Ok(answer) => serde_json::from_slice::<Vec<Replica>>(&answer).ok(),
+            Err(_) => None,
+        };
+        nodes.push(NodeStatus {
+            name,
+            listen,
+            scenes,
+        });
     }
-    nodes.sort();
     let mut scenes = Vec::new();
-    for name in cluster.scene_names().await? {
-        let size = match cluster.scenes.get(&name).await {
-            Ok(Some(v)) => serde_json::from_slice::<SceneEntry>(&v)
+    for name in scene_names(jet).await? {
+        let size = match jet.kv_get(Bucket::Scenes, &name).await {
+            Ok(Some(v)) => serde_json::from_slice::<SceneEntry>(&v.value)
                 .map(|e| e.size)
                 .unwrap_or([0; 3]),
             Ok(None) => continue,
-            Err(e) => return Err(err("reading the scene list", &e)),
+            Err(e) => return Err(ClusterError::Nats(format!("reading the scene list: {e}"))),
         };
-        let owner = cluster
-            .owners
-            .get(&name)
+        let owner = jet
+            .kv_get(Bucket::Owners, &name)
             .await
             .ok()
             .flatten()
-            .map(|v| String::from_utf8_lossy(&v).into_owned());
-        let (log_messages, log_last) = match cluster.js.get_stream(stream_name(&name)).await {
-            Ok(stream) => match stream.get_info().await {
-                Ok(info) => (info.state.messages, info.state.last_sequence),
-                Err(e) => return Err(err("reading a log stream", &e)),
+            .map(|v| String::from_utf8_lossy(&v.value).into_owned());
+        let (log_messages, log_last) = match jet.stream(&name, false).await {
+            Ok(stream) => match stream.bounds().await {
+                Ok((_, last, messages)) => (messages, last),
+                Err(e) => return Err(ClusterError::Nats(format!("reading a log stream: {e}"))),
             },
             Err(_) => (0, 0),
         };
-        let described = super::snapshot::newest(&cluster.snapshots, &name).await;
+        let described = super::snapshot::newest(jet, &name).await;
         scenes.push(SceneStatus {
             name,
             size,
@@ -89,8 +132,28 @@ impl Status {
     pub fn render(&self) -> String {
         let mut out = String::new();
         let _ = writeln!(out, "nodes ({}):", self.nodes.len());
-        for (name, listen) in &self.nodes {
-            let _ = writeln!(out, "  {name:<20} {listen}");
+        for n in &self.nodes {
+            let _ = writeln!(out, "  {:<20} {}", n.name, n.listen);
+            match &n.scenes {
+                None => {
+                    let _ = writeln!(out, "    (did not answer)");
+                }
+                Some(scenes) => {
+                    for r in scenes {
+                        let d = &r.described;
+                        let _ = writeln!(
+                            out,
+                            "    {:<18} seq {:>10}  hash {:016x}  log position {:>8}  {}{} clients",
+                            r.scene,
+                            d.seq,
+                            d.hash,
+                            d.position,
+                            if d.leading { "owner  " } else { "" },
+                            d.clients
+                        );
+                    }
+                }
+            }
         }
         let _ = writeln!(out, "scenes ({}):", self.scenes.len());
         let _ = writeln!(
@@ -114,5 +177,53 @@ impl Status {
             );
         }
         out
+    }
+}
+
+/// The scenes a node serves now.
+pub type ScenesNow = Arc<dyn Fn() -> Vec<(String, SceneHandle)> + Send + Sync>;
+
+/// A node's side of `cluster status`: answers on its status subject with where each scene it
+/// serves stands, until `shutdown`.
+pub async fn answer<J: Jet>(
+    jet: J,
+    node: String,
+    scenes: ScenesNow,
+    mut shutdown: watch::Receiver<bool>,
+) {
+    let mut asks = match jet.subscribe(status_subject(&node)).await {
+        Ok(s) => s,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot answer `cluster status`");
+            return;
+        }
+    };
+    loop {
+        let ask = tokio::select! {
+            biased;
+            _ = shutdown.changed() => return,
+            ask = asks.next() => ask,
+        };
+        let Some(ask) = ask else { return };
+        let Some(to) = ask.reply else { continue };
+        let mut replicas = Vec::new();
+        for (name, handle) in scenes() {
+            let (done, described) = oneshot::channel();
+            if handle.send(Command::Describe { done }).await.is_err() {
+                continue;
+            }
+            if let Ok(Ok(described)) = tokio::time::timeout(DESCRIBE_WAIT, described).await {
+                replicas.push(Replica {
+                    scene: name,
+                    described,
+                });
+            }
+        }
+        match serde_json::to_vec(&replicas) {
+            Ok(bytes) => {
+                let _ = jet.publish(to, Bytes::from(bytes)).await;
+            }
+            Err(e) => tracing::error!(error = %e, "cannot encode a status answer"),
+        }
     }
 }

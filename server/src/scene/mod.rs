@@ -18,19 +18,24 @@
 //! * `outbox.rs`: a session's byte-counted outgoing queue.
 //! * `cells.rs`: the set of bricks the next snapshot writes.
 //! * `history.rs`: per-user undo and redo stacks and what undoing a step does.
-//! * `backend.rs`: where turns are made durable (redb, or the cluster's JetStream log).
-//! * `follow.rs`: the owner in a cluster: forwarded edits, following another owner's log,
-//!   taking the scene over and losing it.
+//! * `log.rs`: the one interface to where turns are made durable ([`SceneLog`]: the redb
+//!   store, or a cluster's JetStream stream), and its typed errors.
+//! * `replica.rs`: the owner over a shared log: requests from other origins, following
+//!   another owner's turns, claiming the scene and losing it.
+//! * `request.rs`, `answered.rs`: requests from other origins, and which were answered (so a
+//!   retry applies once).
 //!
 //! This file holds what sessions see (commands, the handle) and the thread that feeds commands
 //! to the owner.
 
-mod backend;
+pub mod answered;
 mod cells;
-mod follow;
 pub mod history;
+pub mod log;
 mod outbox;
 mod owner;
+mod replica;
+pub mod request;
 mod sync;
 
 use std::sync::Arc;
@@ -41,11 +46,13 @@ use brickcast_protocol::wire::{EditOp, Limits, Peer, Role};
 use tokio::sync::{mpsc, oneshot};
 
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
-use crate::store::Store;
+use crate::store::{Store, StoreLog};
 
-pub use backend::Backend;
+pub use answered::{Answered, AnsweredEntry, Lookup};
+pub use log::{LogError, SceneLog, SnapshotOf, Turn, TurnWrite};
 pub use outbox::{Outbox, OutboxReceiver};
 pub use owner::Owner;
+pub use request::{Outcome, Request, RequestItem};
 
 /// Identifies a session within the server.
 pub type SessionId = u64;
@@ -109,31 +116,50 @@ pub enum Command {
     },
     /// Apply what is queued, commit, snapshot, and stop.
     Shutdown,
-    /// Cluster: an edit, undo or history drop another node (or this one) forwarded to the
-    /// scene's owner; answered on `reply` after the commit, or at once with "not the owner".
-    Forwarded {
-        reply: Option<String>,
-        request: crate::cluster::forward::Forwarded,
+    /// A request from another origin (in a cluster: a session of any node, forwarded), answered
+    /// on `reply` after the commit, or at once with [`Outcome::NotOwner`] when this owner does
+    /// not order edits. `reply: None`: nobody waits for an answer (a history drop).
+    Request {
+        request: Request,
+        reply: Option<oneshot::Sender<Outcome>>,
     },
-    /// Cluster: the turn at stream position `pos` of the scene's log.
-    Replicate {
+    /// Shared log: the turn at position `pos`, appended by whichever owner ordered it.
+    Apply {
         pos: u64,
-        turn: Box<crate::cluster::Turn>,
+        turn: Box<Turn>,
     },
-    /// Cluster: this node took the lease; catch up to the log's end and claim it. Answers
-    /// whether this owner now orders edits.
-    TakeOver {
+    /// Shared log: this owner may order edits (it holds the lease): catch up to the log's end
+    /// and claim it. Answers whether this owner now orders edits.
+    Lead {
         done: oneshot::Sender<bool>,
     },
-    /// Cluster: the lease is gone; stop appending.
-    StepDown {
+    /// Shared log: stop ordering edits (the lease is gone).
+    Follow {
         why: String,
     },
-    /// Cluster: the log holds something this replica cannot follow (a message that does not
-    /// decode): stop serving the scene here, saying why.
-    LogFault {
+    /// Shared log: it holds something this replica cannot follow (a message that does not
+    /// decode): stop serving the scene here, telling every session why.
+    Fault {
         why: String,
     },
+    /// Where the scene stands here (for `cluster status`: checking that replicas agree
+    /// without a client). Hashes the whole map: a few milliseconds per 100k bricks.
+    Describe {
+        done: oneshot::Sender<Described>,
+    },
+}
+
+/// Where one replica of a scene stands ([`Command::Describe`]).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Described {
+    pub seq: u64,
+    /// `BrickMap::content_hash` of the committed map.
+    pub hash: u64,
+    /// The position in the log of the last turn applied.
+    pub position: u64,
+    /// Whether this owner orders the scene's edits.
+    pub leading: bool,
+    pub clients: u64,
 }
 
 /// Who a joining session is.
@@ -253,20 +279,7 @@ pub struct SceneHandle {
     pub info: Arc<SceneInfo>,
     /// Who is here and what they look at (lives beside the owner, see `crate::presence`).
     pub presence: Arc<crate::presence::Hub>,
-    /// In a cluster: where this scene's edits go (sessions forward them, see
-    /// `crate::cluster::forward`). `None` on a single node: edits go to the owner thread.
-    pub cluster: Option<SceneCluster>,
     tx: mpsc::Sender<Command>,
-}
-
-/// How a session reaches a clustered scene's owner.
-#[derive(Clone)]
-pub struct SceneCluster {
-    pub client: async_nats::Client,
-    /// The scene's edit subject; the owner listens on it plus `.<node>`.
-    pub subject: String,
-    /// The node the scene's lease names now (`None`: nobody holds it).
-    pub owner: tokio::sync::watch::Receiver<Option<String>>,
 }
 
 impl SceneHandle {
@@ -324,65 +337,79 @@ pub fn spawn(
     config: OwnerConfig,
     runtime: tokio::runtime::Handle,
 ) -> std::io::Result<(SceneHandle, std::thread::JoinHandle<()>)> {
-    let backend = Backend::Redb {
-        store,
-        scene: name.clone(),
-    };
-    spawn_with(name, loaded, backend, None, metrics, config, runtime)
+    let log = Box::new(StoreLog::new(store, name.clone()));
+    spawn_with(name, loaded, log, metrics, config, runtime)
 }
 
-/// Starts the owner thread for a loaded scene over any backend.
+/// Starts the owner thread for a loaded scene over any [`SceneLog`].
 pub fn spawn_with(
     name: String,
     loaded: crate::store::Loaded,
-    backend: Backend,
-    cluster: Option<SceneCluster>,
+    log: Box<dyn SceneLog>,
     metrics: Arc<Metrics>,
     config: OwnerConfig,
     runtime: tokio::runtime::Handle,
 ) -> std::io::Result<(SceneHandle, std::thread::JoinHandle<()>)> {
-    let (tx, rx) = mpsc::channel(1024);
-    let limits = config.limits.clone();
-    let budget = config.budget.clone();
-    let max_queue_bytes = config.max_queue_bytes;
-    let mut owner = Owner::with_backend(
-        name.clone(),
-        loaded,
-        backend,
-        metrics,
-        config,
-        Arc::new(Instant::now),
-    )?;
-    let presence = Arc::new(crate::presence::Hub::new(limits.presence_hz));
+    let (owner, handle, rx) = open(name, loaded, log, metrics, config, Arc::new(Instant::now))?;
+    let thread = run_thread(owner, rx, &handle, runtime)?;
+    Ok((handle, thread))
+}
+
+/// Runs an opened owner on a thread of its own (and its presence hub on `runtime`) until
+/// shutdown, a storage failure, or every handle gone.
+pub fn run_thread(
+    mut owner: Owner,
+    mut rx: mpsc::Receiver<Command>,
+    handle: &SceneHandle,
+    runtime: tokio::runtime::Handle,
+) -> std::io::Result<std::thread::JoinHandle<()>> {
     runtime.spawn(crate::presence::run(
-        presence.clone(),
+        handle.presence.clone(),
         owner.metrics.clone(),
     ));
-    let handle = SceneHandle {
-        name: name.clone(),
-        size: owner.map().size(),
-        limits,
-        budget,
-        max_queue_bytes,
-        info: owner.info(),
-        presence: presence.clone(),
-        cluster,
-        tx,
-    };
-    let thread = std::thread::Builder::new()
+    let presence = handle.presence.clone();
+    let name = handle.name.clone();
+    std::thread::Builder::new()
         .name(format!("scene-{name}"))
         .spawn(move || {
-            let mut rx = rx;
             if let Err(e) = run(&mut owner, &mut rx, &runtime) {
                 tracing::error!(scene = %name, error = %e, "scene owner stopped on a storage error");
                 owner.fail_all(&e.to_string());
             }
             presence.close();
-            // The owner first (in a cluster it waits for a snapshot still uploading), so the
+            // The owner first (its log waits for a snapshot still being stored), so the
             // handle reads as closed only once it is gone.
             drop(owner);
-        })?;
-    Ok((handle, thread))
+        })
+}
+
+/// A scene's owner, the handle sessions reach it by and the channel its commands arrive on,
+/// without a thread: [`spawn_with`] runs the owner on one, the cluster's simulation steps it
+/// itself. `clock` is where the owner reads the time.
+pub fn open(
+    name: String,
+    loaded: crate::store::Loaded,
+    log: Box<dyn SceneLog>,
+    metrics: Arc<Metrics>,
+    config: OwnerConfig,
+    clock: Clock,
+) -> std::io::Result<(Owner, SceneHandle, mpsc::Receiver<Command>)> {
+    let (tx, rx) = mpsc::channel(1024);
+    let limits = config.limits.clone();
+    let budget = config.budget.clone();
+    let max_queue_bytes = config.max_queue_bytes;
+    let owner = Owner::with_log(name.clone(), loaded, log, metrics, config, clock)?;
+    let handle = SceneHandle {
+        name,
+        size: owner.map().size(),
+        presence: Arc::new(crate::presence::Hub::new(limits.presence_hz)),
+        limits,
+        budget,
+        max_queue_bytes,
+        info: owner.info(),
+        tx,
+    };
+    Ok((owner, handle, rx))
 }
 
 /// The owner thread: wait for commands, hand each group to the owner, stop on shutdown or when
@@ -391,7 +418,7 @@ fn run(
     owner: &mut Owner,
     rx: &mut mpsc::Receiver<Command>,
     runtime: &tokio::runtime::Handle,
-) -> Result<(), crate::store::StoreError> {
+) -> Result<(), LogError> {
     let metrics = owner.metrics.clone();
     let size = owner.map().size();
     loop {

@@ -25,13 +25,15 @@ use brickcast_protocol::wire::{
 };
 use bytes::Bytes;
 
-use super::backend::Backend;
+use super::answered::Answered;
 use super::cells::CellSet;
 use super::history::{Direction, History, Step, plan_revert, write_bricks};
-use super::{Clock, Command, OwnerConfig, SceneInfo, SessionId, Subscriber};
+use super::log::{LogError, SceneLog, SnapshotOf, TurnWrite};
+use super::request::Outcome;
+use super::{Clock, Command, Described, OwnerConfig, SceneInfo, SessionId, Subscriber};
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
 use crate::record::LogRecord;
-use crate::store::{Loaded, Store, StoreError};
+use crate::store::{Loaded, Store, StoreLog};
 
 /// Voxels visited per single-voxel op of replay time (~10 ns per brushed voxel against ~300 ns
 /// per op).
@@ -61,7 +63,8 @@ pub struct Owner {
     pub(super) map: BrickMap,
     /// The last sequence number given to a batch that applied something.
     pub(super) seq: u64,
-    pub(super) backend: Backend,
+    /// Where turns are made durable: the only store the owner knows.
+    pub(super) log: Box<dyn SceneLog>,
     pub(super) metrics: Arc<Metrics>,
     pub(super) info: Arc<SceneInfo>,
     pub(super) config: OwnerConfig,
@@ -82,7 +85,7 @@ pub struct Owner {
     /// How long the last snapshot took (see [`SNAPSHOT_SPACING`]).
     last_snapshot_took: Duration,
     last_snapshot: Instant,
-    clock: Clock,
+    pub(super) clock: Clock,
     /// Every user's undo and redo stacks.
     pub(super) history: History,
     /// Undo work each user may still ask for (voxels compared), and when it was counted: undo
@@ -90,6 +93,11 @@ pub struct Owner {
     pub(super) undo_budget: HashMap<u64, (f64, Instant)>,
     /// Shutting down: a lost lease is not followed by a reload.
     pub(super) stopping: bool,
+    /// Requests from other origins answered so far (a shared log: a retry is answered from
+    /// here, not applied again).
+    pub(super) answered: Answered,
+    /// The requests from other origins applied in this turn, waiting for its commit.
+    pub(super) requests: Vec<Remote>,
     /// The log cannot be followed (cluster): the owner stops after this turn, and the scene
     /// is served again only from a fresh load.
     pub(super) broken: bool,
@@ -101,20 +109,22 @@ pub(super) struct PendingAck {
     pub(super) msg: ServerMsg,
 }
 
-/// Who a reply goes to: a session on this node, or (in a cluster) the reply subject of an
-/// edit another node forwarded.
+/// Who a reply goes to: a session of this owner, or a request from another origin (its index
+/// in [`Owner::requests`]).
+#[derive(Clone, Copy, Debug)]
 pub(super) enum AckTo {
     Session(SessionId),
-    Remote(Remote),
+    Remote(usize),
 }
 
-/// A forwarded request waiting for its turn's commit: where its answer goes, and its origin
-/// and number (recorded with the turn, `crate::cluster::Answered`).
-#[derive(Clone, Debug, PartialEq)]
+/// A request from another origin waiting for its turn's commit: its origin and number (logged
+/// with the turn, `answered.rs`), where its answer goes, and its replies so far.
+#[derive(Debug)]
 pub(super) struct Remote {
-    pub(super) subject: String,
     pub(super) origin: String,
     pub(super) number: u64,
+    pub(super) reply: Option<tokio::sync::oneshot::Sender<Outcome>>,
+    pub(super) replies: Vec<Vec<u8>>,
 }
 
 /// What this turn logs, in order.
@@ -149,18 +159,15 @@ impl Owner {
         config: OwnerConfig,
         clock: Clock,
     ) -> std::io::Result<Owner> {
-        let backend = Backend::Redb {
-            store,
-            scene: name.clone(),
-        };
-        Owner::with_backend(name, loaded, backend, metrics, config, clock)
+        let log = Box::new(StoreLog::new(store, name.clone()));
+        Owner::with_log(name, loaded, log, metrics, config, clock)
     }
 
-    /// An owner over any [`Backend`]: the cluster's JetStream log, or redb.
-    pub fn with_backend(
+    /// An owner over any [`SceneLog`]: the redb store, or a cluster's JetStream stream.
+    pub fn with_log(
         name: String,
         loaded: Loaded,
-        backend: Backend,
+        log: Box<dyn SceneLog>,
         metrics: Arc<Metrics>,
         config: OwnerConfig,
         clock: Clock,
@@ -172,6 +179,7 @@ impl Owner {
             replay_touched,
             history,
             last_step_id,
+            answered,
             ..
         } = loaded;
         let history = History::new(
@@ -187,7 +195,7 @@ impl Owner {
             name,
             map,
             seq,
-            backend,
+            log,
             metrics,
             info: Arc::new(SceneInfo::default()),
             config,
@@ -207,6 +215,8 @@ impl Owner {
             history,
             undo_budget: HashMap::new(),
             stopping: false,
+            answered: Answered::from_entries(answered),
+            requests: Vec::new(),
             broken: false,
         };
         owner.publish_info();
@@ -262,7 +272,7 @@ impl Owner {
         &mut self,
         commands: Vec<Command>,
         clock: &mut PhaseClock,
-    ) -> Result<bool, StoreError> {
+    ) -> Result<bool, LogError> {
         let stop = self.turn(commands, clock)? || self.broken;
         self.pump_syncs();
         clock.mark(&self.metrics, OwnerPhase::Sync);
@@ -277,7 +287,7 @@ impl Owner {
     /// Edits are applied in order and committed together; what a join or resume shows its
     /// client (the Welcome's sequence, removals, bricks) must already be durable, so one of
     /// those after uncommitted edits first commits and publishes them.
-    fn turn(&mut self, commands: Vec<Command>, clock: &mut PhaseClock) -> Result<bool, StoreError> {
+    fn turn(&mut self, commands: Vec<Command>, clock: &mut PhaseClock) -> Result<bool, LogError> {
         if !commands.is_empty() {
             Metrics::add(&self.metrics.owner_turns, 1);
         }
@@ -312,28 +322,39 @@ impl Owner {
                         acks.push(self.undo(to, user, editor, client_seq, redo, &mut log));
                     }
                 }
-                Command::Forwarded { reply, request } => {
+                Command::Request { request, reply } => {
                     if self.pending_request(&request) {
                         self.publish(&mut log, &mut acks, clock)?;
                     }
-                    self.forwarded(reply, request, &mut acks, &mut log);
+                    self.request(reply, request, &mut acks, &mut log);
                 }
-                Command::Replicate { pos, turn } => {
+                Command::Apply { pos, turn } => {
                     // What is already applied was published; apply the rest in order.
                     self.publish(&mut log, &mut acks, clock)?;
                     self.replicate(pos, *turn);
                 }
-                Command::TakeOver { done } => {
+                Command::Lead { done } => {
                     self.publish(&mut log, &mut acks, clock)?;
                     let _ = done.send(self.take_over());
                 }
-                Command::StepDown { why } => {
+                Command::Follow { why } => {
                     self.publish(&mut log, &mut acks, clock)?;
                     self.step_down(&why);
                 }
-                Command::LogFault { why } => {
+                Command::Fault { why } => {
                     self.publish(&mut log, &mut acks, clock)?;
                     self.refuse_log(&why);
+                }
+                Command::Describe { done } => {
+                    // Only what is committed is described.
+                    self.publish(&mut log, &mut acks, clock)?;
+                    let _ = done.send(Described {
+                        seq: self.seq,
+                        hash: self.map.content_hash(),
+                        position: self.log.position(),
+                        leading: self.log.shared() && self.log.may_order(),
+                        clients: self.subs.len() as u64,
+                    });
                 }
                 Command::Join {
                     session,
@@ -351,7 +372,7 @@ impl Owner {
                 Command::Leave { session } => {
                     if let Some(sub) = self.subs.remove(&session) {
                         // In a cluster the session asks the owner to forget (forwarded).
-                        if !sub.stable && !self.backend.clustered() {
+                        if !sub.stable && !self.log.shared() {
                             self.history.forget(sub.user);
                         }
                         if !self.subs.values().any(|s| s.user == sub.user) {
@@ -404,23 +425,29 @@ impl Owner {
         log: &mut Log,
         acks: &mut Vec<PendingAck>,
         clock: &mut PhaseClock,
-    ) -> Result<(), StoreError> {
+    ) -> Result<(), LogError> {
         clock.mark(&self.metrics, OwnerPhase::Apply);
-        // Forwarded requests' replies, encoded now: the cluster logs them with the turn.
-        let remote = self.take_remote(acks);
-        if !log.is_empty() || self.history.has_writes() {
+        // Replies to requests from other origins, encoded now: a shared log records them with
+        // the turn.
+        self.take_remote(acks);
+        let answered = self.answered_entries();
+        if !log.is_empty() || self.history.has_writes() || !answered.is_empty() {
             let started = Instant::now();
             let history = self.history.take_writes();
-            self.stage_remote(&remote);
-            if let Err(e) = self.backend.append(log, &history) {
-                if self.backend.jet().is_none() {
+            let turn = TurnWrite {
+                records: log,
+                history: &history,
+                answered: &answered,
+            };
+            if let Err(e) = self.log.append(turn) {
+                if !self.log.shared() {
                     return Err(e);
                 }
-                // A cluster owner that lost the scene: nothing of this turn is acknowledged,
-                // and the map goes back to what the log holds.
+                // An owner that lost the scene: nothing of this turn is acknowledged, and the
+                // map goes back to what the log holds.
                 log.clear();
                 acks.clear();
-                self.lost_lead(&remote, &e);
+                self.lost_lead(&e);
                 return Ok(());
             }
             self.metrics.observe_commit(started.elapsed());
@@ -435,7 +462,7 @@ impl Owner {
                 sub.out.send(&ack.msg, &self.metrics);
             }
         }
-        self.answer_remote(remote);
+        self.answer_remote();
         clock.mark(&self.metrics, OwnerPhase::Ack);
         self.broadcast_delta(clock);
         Ok(())
@@ -565,9 +592,9 @@ impl Owner {
             return reply(None, 0, 0, Some(Refusal::RateLimited));
         }
         *tokens -= cost.min(burst);
-        let backend = &self.backend;
+        let store = &self.log;
         let popped = self.history.pop(user, direction, |id| {
-            backend.history_step(id).map_err(|e| e.to_string())
+            store.history_step(id).map_err(|e| e.to_string())
         });
         let step = match popped {
             Ok(Some(step)) => step,
@@ -683,22 +710,26 @@ impl Owner {
     /// Snapshots when forced or due. Due means: replaying the log would cost more than the
     /// budget (and the last snapshot was long enough ago), or the log has entries and the last
     /// snapshot is older than `snapshot_every`.
-    pub(super) fn maybe_snapshot(&mut self, force: bool) -> Result<(), StoreError> {
+    pub(super) fn maybe_snapshot(&mut self, force: bool) -> Result<(), LogError> {
         let now = (self.clock)();
         let since = now.saturating_duration_since(self.last_snapshot);
         let due = (self.replay_cost() >= self.config.snapshot_replay_budget
             && since >= self.last_snapshot_took * SNAPSHOT_SPACING)
             || (self.log_entries > 0 && since >= self.config.snapshot_every);
-        // In a cluster only the owner snapshots.
-        if !(force || due) || !self.backend.leading() {
+        // Over a shared log only the owner that orders snapshots.
+        if !(force || due) || !self.log.may_order() {
             return Ok(());
         }
         let cells = self.unsnapshotted.take_sorted();
         let started = Instant::now();
-        match self
-            .backend
-            .snapshot(&self.map, &cells, self.seq, &self.history)
-        {
+        let at = SnapshotOf {
+            map: &self.map,
+            cells: &cells,
+            seq: self.seq,
+            history: &self.history,
+            answered: &self.answered,
+        };
+        match self.log.snapshot(at) {
             Ok(true) => {}
             Ok(false) => {
                 // Not this node's to write (a cluster replica), or one is still uploading.
@@ -742,7 +773,7 @@ impl Owner {
         self.info.seq.store(self.seq, Relaxed);
         self.info
             .leading
-            .store(self.backend.clustered() && self.backend.leading(), Relaxed);
+            .store(self.log.shared() && self.log.may_order(), Relaxed);
         self.info.bricks.store(self.map.brick_count(), Relaxed);
         self.info.voxels.store(self.map.solid_voxels(), Relaxed);
         self.info.clients.store(self.subs.len() as u64, Relaxed);
@@ -752,12 +783,14 @@ impl Owner {
     }
 
     /// Applies and commits `rest` (what was still queued), then leaves a snapshot behind.
-    pub fn stop(&mut self, rest: Vec<Command>) -> Result<(), StoreError> {
+    pub fn stop(&mut self, rest: Vec<Command>) -> Result<(), LogError> {
         self.stopping = true;
         self.turn(rest, &mut PhaseClock::start())?;
-        if self.log_entries > 0 {
+        if self.log_entries > 0 && !self.broken {
             self.maybe_snapshot(true)?;
         }
+        // A snapshot still being stored is waited for: the next owner reads it.
+        self.log.close();
         tracing::info!(scene = %self.name, seq = self.seq, "scene owner stopped");
         Ok(())
     }

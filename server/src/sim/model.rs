@@ -102,13 +102,15 @@ impl Model {
                     self.users.remove(session);
                 }
                 // Both publish what is queued before they are served.
-                Command::Resume { .. } | Command::Thumbnail { .. } => self.commit_point(),
-                // Cluster commands: the simulation runs one node on redb.
-                Command::Forwarded { .. }
-                | Command::Replicate { .. }
-                | Command::TakeOver { .. }
-                | Command::StepDown { .. }
-                | Command::LogFault { .. } => {}
+                Command::Resume { .. } | Command::Thumbnail { .. } | Command::Describe { .. } => {
+                    self.commit_point()
+                }
+                // Commands of a shared log: this simulation runs one owner on redb.
+                Command::Request { .. }
+                | Command::Apply { .. }
+                | Command::Lead { .. }
+                | Command::Follow { .. }
+                | Command::Fault { .. } => {}
                 Command::Undo {
                     session,
                     client_seq,
