@@ -235,7 +235,7 @@ impl App {
         handle: SceneHandle,
         thread: std::thread::JoinHandle<()>,
         link: Option<cluster::SceneLink<cluster::Cluster>>,
-        close: Option<Arc<watch::Sender<bool>>>,
+        close: Option<Arc<cluster::signal::Sender<bool>>>,
     ) {
         self.scenes.insert(name, handle, link, close);
         self.owners
@@ -524,7 +524,7 @@ impl Server {
         let _ = tokio::time::timeout(Duration::from_secs(5), sessions.wait_for(|&n| n == 0)).await;
         let mut name_lost = None;
         if let Some(node) = &app.node {
-            name_lost = node.registration.lost.borrow().clone();
+            name_lost = node.registration.lost.get();
             // Free the name for a restart (unless another process holds it now).
             node.registration.release().await;
             let _ = node.cluster.client.flush().await;

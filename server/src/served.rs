@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::watch;
 
 use crate::cluster::catalog::{scene_entry, scene_names};
-use crate::cluster::{Cluster, SceneLink};
+use crate::cluster::{Cluster, SceneLink, signal};
 use crate::metrics::Metrics;
 use crate::scene::{Command, SceneHandle};
 use crate::{App, CLUSTER_POLL, wait_or_shutdown};
@@ -52,7 +52,7 @@ pub(crate) struct Entry {
     link: Option<SceneLink<Cluster>>,
     uses: Arc<Uses>,
     /// Cluster: ends the scene's lease, follower and relay tasks.
-    close: Option<Arc<watch::Sender<bool>>>,
+    close: Option<Arc<signal::Sender<bool>>>,
 }
 
 /// Who uses a scene on this node now, and since when nobody does.
@@ -139,7 +139,7 @@ impl Served {
         name: String,
         handle: SceneHandle,
         link: Option<SceneLink<Cluster>>,
-        close: Option<Arc<watch::Sender<bool>>>,
+        close: Option<Arc<signal::Sender<bool>>>,
     ) {
         let uses = Arc::new(Uses {
             count: AtomicUsize::new(0),
@@ -438,8 +438,8 @@ fn give_back_memory() {
 /// A per-scene stop signal that also fires at the server's shutdown.
 pub fn close_signal(
     shutdown: &watch::Receiver<bool>,
-) -> (Arc<watch::Sender<bool>>, watch::Receiver<bool>) {
-    let (tx, rx) = watch::channel(false);
+) -> (Arc<signal::Sender<bool>>, signal::Receiver<bool>) {
+    let (tx, rx) = signal::channel(false);
     let tx = Arc::new(tx);
     let mut global = shutdown.clone();
     let forward = tx.clone();

@@ -683,18 +683,27 @@ async fn a_scene_loads_from_a_base_and_its_deltas_with_its_history() {
     snapshot_after(&a).await;
     c.close().await;
     let client = async_nats::connect(nats.url()).await.unwrap();
-    let store = async_nats::jetstream::new(client)
-        .get_object_store("brickcast_snapshots")
-        .await
-        .unwrap();
-    // The uploads finish after the counter moves.
+    let js = async_nats::jetstream::new(client);
+    let store = js.get_object_store("brickcast_snapshots").await.unwrap();
+    let heads = js.get_key_value("brickcast_snapshot_heads").await.unwrap();
+    // The uploads finish after the counter moves; the head names the chain once they have.
     let deadline = Instant::now() + Duration::from_secs(20);
-    while store.info("demo+2").await.is_err() {
+    let head = loop {
+        let head: Option<serde_json::Value> = heads
+            .get("demo")
+            .await
+            .unwrap()
+            .map(|v| serde_json::from_slice(&v).unwrap());
+        if let Some(head) = head.filter(|h| h["deltas"].as_u64() >= Some(2)) {
+            break head;
+        }
         assert!(Instant::now() < deadline, "no second delta was written");
         tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    let base = store.info("demo").await.unwrap().size;
-    let delta = store.info("demo+1").await.unwrap().size;
+    };
+    let id = head["base"].as_u64().unwrap();
+    use brickcast_server::cluster::snapshot::{base_name, delta_name};
+    let base = store.info(base_name("demo", id)).await.unwrap().size;
+    let delta = store.info(delta_name("demo", id, 1)).await.unwrap().size;
     assert!(
         delta * 10 < base,
         "a delta of {delta} bytes on a base of {base}"

@@ -56,8 +56,7 @@ pub async fn create_scene(
             .await
             .map_err(|e| ClusterError::Nats(format!("removing the old scene: {e}")))?;
         let _ = jet.delete_stream(name).await;
-        let _ = jet.object_delete(name).await;
-        snapshot::delete_deltas(jet, name).await;
+        snapshot::delete_all(jet, name).await;
     }
     log::create(jet, name, map)
         .await

@@ -48,7 +48,7 @@ pub struct SceneLink<J: Jet> {
     /// The scene's edit subject; the owner listens on it plus `.<node>`.
     pub subject: String,
     /// The node the scene's lease names now (`None`: nobody holds it).
-    pub owner: tokio::sync::watch::Receiver<Option<String>>,
+    pub owner: super::signal::Receiver<Option<String>>,
     /// This process, told apart from an earlier one of the same node name (session ids start
     /// again at 1 after a restart): the origin of its requests.
     pub instance: String,
@@ -90,6 +90,8 @@ pub enum ForwardError {
     NoOwner(Duration),
     #[error("cannot forward the edit: {0}")]
     Other(String),
+    #[error("the scene is no longer served on this node; its edits may or may not have applied")]
+    Closed,
 }
 
 /// The subject a scene's owner `node` takes edits on.
@@ -107,7 +109,7 @@ pub async fn request<J: Jet>(
     let deadline = started + PATIENCE;
     let mut owner = link.owner.clone();
     loop {
-        let current = owner.borrow_and_update().clone();
+        let current = owner.get_and_update();
         if let Some(node) = current {
             let subject = owner_subject(&link.subject, &node);
             // Until the answer, a timeout, or the lease naming another node (the one asked
@@ -118,7 +120,7 @@ pub async fn request<J: Jet>(
                     if watch.changed().await.is_err() {
                         return std::future::pending().await;
                     }
-                    if watch.borrow().as_deref().is_some_and(|n| n != node) {
+                    if watch.get().as_deref().is_some_and(|n| n != node) {
                         return;
                     }
                 }
@@ -141,11 +143,15 @@ pub async fn request<J: Jet>(
             return Err(ForwardError::NoOwner(PATIENCE));
         }
         // Wait for the lease to name someone (else) or a short while, then try again.
-        let _ = tokio::time::timeout_at(
+        let waited = tokio::time::timeout_at(
             (tokio::time::Instant::now() + RETRY_EVERY).min(deadline),
             owner.changed(),
         )
         .await;
+        if let Ok(Err(_)) = waited {
+            // Nobody will name an owner any more: the scene closed on this node.
+            return Err(ForwardError::Closed);
+        }
     }
 }
 
@@ -232,7 +238,7 @@ pub async fn forget<J: Jet>(link: &SceneLink<J>, user: UserId) {
         editor: false,
         items: vec![(0, RequestItem::Forget)],
     };
-    let Some(node) = link.owner.borrow().clone() else {
+    let Some(node) = link.owner.get() else {
         return;
     };
     if let Ok(bytes) = encode_request(&request)

@@ -49,6 +49,8 @@ pub enum Bucket {
     Nodes,
     /// Scene → its size: the cluster's scene list (never expires).
     Scenes,
+    /// Scene → its newest snapshot (`snapshot.rs`; never expires).
+    Heads,
 }
 
 /// A live key's value and revision.

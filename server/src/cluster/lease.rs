@@ -25,12 +25,13 @@ use std::sync::atomic::Ordering::Relaxed;
 
 use bytes::Bytes;
 use futures_util::StreamExt;
-use tokio::sync::{mpsc, oneshot, watch};
+use tokio::sync::{mpsc, oneshot};
 use tokio::time::Instant;
 
 use super::forward::{SceneLink, decode_request, encode_outcome, owner_subject};
 use super::jet::{Bucket, Jet, LogStream};
 use super::log::{self as jetlog, ClusterLoaded, Exec, JetLog, LeaseClock, decode_turn};
+use super::signal;
 use super::{CLAIM_GRACE, CLAIM_POLL, Cluster, LEASE_MARGIN, LEASE_TTL, RENEW_EVERY};
 use crate::metrics::Metrics;
 use crate::scene::{self, Clock, Command, Outcome, OwnerConfig, SceneHandle};
@@ -59,7 +60,7 @@ pub async fn open_scene<J: Jet>(
     metrics: Arc<Metrics>,
     config: OwnerConfig,
     clock: Clock,
-    shutdown: watch::Receiver<bool>,
+    shutdown: signal::Receiver<bool>,
 ) -> anyhow::Result<Opened<J>> {
     let lease = Arc::new(LeaseClock::default());
     let start = loaded.pos + 1;
@@ -72,7 +73,7 @@ pub async fn open_scene<J: Jet>(
         config,
         clock,
     )?;
-    let (owner_tx, owner_rx) = watch::channel(None);
+    let (owner_tx, owner_rx) = signal::channel(None);
     let link = SceneLink {
         jet: jet.clone(),
         subject: jetlog::edit_subject(&name),
@@ -110,7 +111,7 @@ pub async fn start_scene(
     loaded: ClusterLoaded,
     metrics: Arc<Metrics>,
     config: OwnerConfig,
-    shutdown: watch::Receiver<bool>,
+    shutdown: signal::Receiver<bool>,
 ) -> anyhow::Result<(SceneHandle, std::thread::JoinHandle<()>, SceneLink<Cluster>)> {
     let runtime = tokio::runtime::Handle::current();
     let opened = open_scene(
@@ -143,16 +144,20 @@ pub async fn start_scene(
     Ok((handle, thread, link))
 }
 
+/// How long the follower waits for a turn before it looks whether the log moved on without it.
+const QUIET_CHECK: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// Every turn of the scene's stream from `next` on, in order, to the owner. Following again
-/// from the next position after any error.
+/// from the next position after any error; when nothing comes for a while, it looks whether
+/// the log was trimmed past this replica (`Command::Behind`) or holds turns it was not given.
 async fn follow<S: LogStream>(
     stream: S,
     mut next: u64,
     scene: SceneHandle,
-    mut shutdown: watch::Receiver<bool>,
+    mut shutdown: signal::Receiver<bool>,
 ) {
     loop {
-        if *shutdown.borrow() || scene.is_closed() {
+        if shutdown.get() || scene.is_closed() {
             return;
         }
         match stream.follow(next).await {
@@ -160,15 +165,31 @@ async fn follow<S: LogStream>(
                 let item = tokio::select! {
                     biased;
                     _ = shutdown.changed() => return,
-                    item = messages.next() => item,
+                    item = messages.next() => Some(item),
+                    _ = tokio::time::sleep(QUIET_CHECK) => None,
                 };
                 let (pos, bytes) = match item {
-                    Some(Ok(m)) => m,
-                    Some(Err(e)) => {
+                    Some(Some(Ok(m))) => m,
+                    Some(Some(Err(e))) => {
                         tracing::warn!(scene = %scene.name, error = %e, "following the log failed; following again");
                         break;
                     }
-                    None => break,
+                    Some(None) => break,
+                    None => {
+                        // Quiet: has the log moved on without this replica (trimmed past it
+                        // while it was paused, or a stalled consumer)?
+                        match stream.bounds().await {
+                            Ok((first, _, _)) if first > next => {
+                                if scene.send(Command::Behind { first }).await.is_err() {
+                                    return;
+                                }
+                                next = first;
+                            }
+                            Ok((_, last, _)) if last >= next => break,
+                            _ => {}
+                        }
+                        continue;
+                    }
                 };
                 match decode_turn(&bytes) {
                     Ok(turn) => {
@@ -209,10 +230,10 @@ struct LeaseTask<J: Jet> {
     jet: J,
     node: String,
     /// Who the lease names, for this node's sessions (see `forward.rs`).
-    owner: watch::Sender<Option<String>>,
+    owner: signal::Sender<Option<String>>,
     clock: Arc<LeaseClock>,
     metrics: Arc<Metrics>,
-    shutdown: watch::Receiver<bool>,
+    shutdown: signal::Receiver<bool>,
 }
 
 type Intake = Option<tokio::task::JoinHandle<()>>;
@@ -345,7 +366,7 @@ async fn hold_lease<J: Jet>(mut task: LeaseTask<J>) {
             _ = task.shutdown.changed() => {}
             _ = tokio::time::sleep(wait) => {}
         }
-        if *task.shutdown.borrow() {
+        if task.shutdown.get() {
             return task.close(held, &mut intake).await;
         }
         if let Some(mut revision) = held {

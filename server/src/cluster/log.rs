@@ -267,9 +267,14 @@ pub async fn create(jet: &impl Jet, scene: &str, map: &BrickMap) -> Result<(), C
         .await
         .map_err(|e| failed(format!("creating the log stream: {e}")))?;
     let first = snapshot::first(map).encode(scene, None).map_err(failed)?;
-    snapshot::put(jet, &first)
-        .await
-        .map_err(|e| failed(e.to_string()))
+    match snapshot::store(jet, &first).await {
+        Ok(snapshot::Stored::Moved { .. }) => Ok(()),
+        Ok(snapshot::Stored::Stale { head }) => Err(failed(format!(
+            "the scene already has a snapshot (at log message {})",
+            head.pos
+        ))),
+        Err(e) => Err(failed(format!("storing its first snapshot: {e}"))),
+    }
 }
 
 /// A scene's snapshot with the turns after it replayed onto it, one at a time ([`load`]
@@ -748,17 +753,25 @@ impl<J: Jet> SceneLog for JetLog<J> {
                 tracing::info!(scene = %scene, "a snapshot not written: this node no longer leads the scene");
                 return;
             }
-            if let Err(e) = snapshot::put(&jet, &encoded).await {
-                forget();
-                tracing::warn!(scene = %scene, error = %e, "snapshot not written; the log keeps everything");
-                return;
-            }
-            {
-                let mut s = state.lock().unwrap_or_else(|e| e.into_inner());
-                if s.generation != generation {
+            let before = match snapshot::store(&jet, &encoded).await {
+                Ok(snapshot::Stored::Moved { before }) => before,
+                Ok(snapshot::Stored::Stale { head }) => {
+                    // It landed late: a newer snapshot (another owner's) is the scene's now.
+                    forget();
+                    tracing::info!(scene = %scene, pos = encoded.pos, newest = head.pos, "a snapshot landed after a newer one; it is dropped");
                     return;
                 }
-                s.chain = Some(encoded.chain.clone());
+                Err(e) => {
+                    forget();
+                    tracing::warn!(scene = %scene, error = %e, "snapshot not written; the log keeps everything");
+                    return;
+                }
+            };
+            {
+                let mut s = state.lock().unwrap_or_else(|e| e.into_inner());
+                if s.generation == generation {
+                    s.chain = Some(encoded.chain.clone());
+                }
             }
             // Messages after the snapshot stay; the ones it holds go.
             let (seq, pos) = (encoded.seq, encoded.pos);
@@ -766,9 +779,9 @@ impl<J: Jet> SceneLog for JetLog<J> {
                 Ok(()) => tracing::debug!(scene = %scene, seq, pos, object = %encoded.name, bytes = encoded.bytes.len(), "snapshot written, log trimmed"),
                 Err(e) => tracing::warn!(scene = %scene, error = %e, "snapshot written, log not trimmed"),
             }
-            if encoded.is_base {
-                // The new base holds everything: the old chain's deltas are leftovers.
-                snapshot::delete_deltas(&jet, &scene).await;
+            // The new base holds everything: the chain it replaced is leftovers.
+            if let Some(old) = before.filter(|b| encoded.is_base && b.base != encoded.chain.base) {
+                snapshot::delete_chain(&jet, &scene, old.base, old.deltas).await;
             }
         }));
         Ok(true)
@@ -862,7 +875,9 @@ impl<J: Jet> SceneLog for JetLog<J> {
     }
 
     fn pause(&mut self) {
-        self.exec.block_on(tokio::time::sleep(RETRY_PAUSE));
+        // The sleep is made inside the runtime: this thread is not one of its own.
+        self.exec
+            .block_on(async { tokio::time::sleep(RETRY_PAUSE).await });
     }
 
     /// A snapshot still uploading when the owner stops (the scene closing on this node, the

@@ -46,7 +46,9 @@ pub mod name;
 pub mod nats;
 pub mod presence;
 pub mod repair;
-
+pub mod signal;
+#[cfg(test)]
+mod sim;
 pub mod snapshot;
 pub mod status;
 
@@ -78,6 +80,7 @@ pub const OWNERS_BUCKET: &str = "brickcast_owners";
 pub const NODES_BUCKET: &str = "brickcast_nodes";
 pub const SCENES_BUCKET: &str = "brickcast_scenes";
 pub const SNAPSHOT_BUCKET: &str = "brickcast_snapshots";
+pub const HEADS_BUCKET: &str = "brickcast_snapshot_heads";
 
 /// Why joining or asking the cluster failed.
 #[derive(Debug, thiserror::Error)]

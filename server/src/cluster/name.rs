@@ -8,17 +8,17 @@
 use std::time::Duration;
 
 use bytes::Bytes;
-use tokio::sync::{oneshot, watch};
+use tokio::sync::oneshot;
 
 use super::jet::{Bucket, Jet, PortError};
-use super::{ClusterError, NODE_TTL, NodeEntry};
+use super::{ClusterError, NODE_TTL, NodeEntry, signal};
 
 /// This process's hold on its node name ([`register`]).
 pub struct NodeName {
     release: std::sync::Mutex<Option<oneshot::Sender<()>>>,
     task: tokio::sync::Mutex<Option<tokio::task::JoinHandle<()>>>,
     /// Why this process must stop, once another process took its name.
-    pub lost: watch::Receiver<Option<String>>,
+    pub lost: signal::Receiver<Option<String>>,
 }
 
 impl NodeName {
@@ -86,7 +86,7 @@ pub async fn register<J: Jet>(
         }
     };
     let (release, released) = oneshot::channel();
-    let (lost_tx, lost) = watch::channel(None);
+    let (lost_tx, lost) = signal::channel(None);
     let task = tokio::spawn(hold(
         jet.clone(),
         name.to_string(),
@@ -111,7 +111,7 @@ async fn hold<J: Jet>(
     value: Bytes,
     mut revision: u64,
     mut released: oneshot::Receiver<()>,
-    lost: watch::Sender<Option<String>>,
+    lost: signal::Sender<Option<String>>,
 ) {
     loop {
         tokio::select! {

@@ -12,7 +12,8 @@ use tokio::io::AsyncReadExt;
 use super::jet::{Bucket, Incoming, Jet, KvEntry, LogStream, PortError, PortResult};
 use super::log::{log_subject, stream_name};
 use super::{
-    ClusterError, LEASE_TTL, NODE_TTL, NODES_BUCKET, OWNERS_BUCKET, SCENES_BUCKET, SNAPSHOT_BUCKET,
+    ClusterError, HEADS_BUCKET, LEASE_TTL, NODE_TTL, NODES_BUCKET, OWNERS_BUCKET, SCENES_BUCKET,
+    SNAPSHOT_BUCKET,
 };
 
 /// How long a scene's stream remembers an append's id (a retried append lands once).
@@ -28,6 +29,7 @@ pub struct Cluster {
     owners: kv::Store,
     nodes: kv::Store,
     scenes: kv::Store,
+    heads: kv::Store,
     snapshots: ObjectStore,
     /// Copies of each stream this node creates (`--replicas`).
     pub replicas: usize,
@@ -150,6 +152,7 @@ impl Cluster {
         let owners = bucket(&js, OWNERS_BUCKET, LEASE_TTL, replicas).await?;
         let nodes = bucket(&js, NODES_BUCKET, NODE_TTL, replicas).await?;
         let scenes = bucket(&js, SCENES_BUCKET, Duration::ZERO, replicas).await?;
+        let heads = bucket(&js, HEADS_BUCKET, Duration::ZERO, replicas).await?;
         let snapshots = match js.get_object_store(SNAPSHOT_BUCKET).await {
             Ok(s) => s,
             Err(_) => js
@@ -176,6 +179,7 @@ impl Cluster {
             owners,
             nodes,
             scenes,
+            heads,
             snapshots,
             replicas,
         })
@@ -186,6 +190,7 @@ impl Cluster {
             Bucket::Owners => &self.owners,
             Bucket::Nodes => &self.nodes,
             Bucket::Scenes => &self.scenes,
+            Bucket::Heads => &self.heads,
         }
     }
 }

@@ -25,10 +25,10 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use super::signal;
 use brickcast_protocol::wire::{Peer, PeerId, PeerState, check_display_name};
 use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
-use tokio::sync::watch;
 
 use crate::metrics::Metrics;
 use crate::presence::{Hub, REMOTE_IDS};
@@ -214,7 +214,7 @@ pub fn start(
     node: String,
     scene: &SceneHandle,
     metrics: Arc<Metrics>,
-    shutdown: watch::Receiver<bool>,
+    shutdown: signal::Receiver<bool>,
 ) {
     let hub = scene.presence.clone();
     hub.relay_local();
@@ -275,7 +275,7 @@ impl Relayer {
     async fn run(
         &self,
         mut remotes: Remotes,
-        mut shutdown: watch::Receiver<bool>,
+        mut shutdown: signal::Receiver<bool>,
     ) -> Result<(), async_nats::SubscribeError> {
         let mut incoming = self.client.subscribe(self.subject.clone()).await?;
         let mut ticks = tokio::time::interval(self.hub.interval());
@@ -285,7 +285,7 @@ impl Relayer {
         // not again until someone joins.
         let mut had_peers = false;
         loop {
-            if *shutdown.borrow() || self.hub.is_closed() {
+            if shutdown.get() || self.hub.is_closed() {
                 break;
             }
             tokio::select! {

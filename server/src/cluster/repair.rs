@@ -288,10 +288,23 @@ async fn rebuild<J: Jet>(jet: &J, scene: &str) -> Result<Repaired, ClusterError>
     )
     .encode(scene, None)
     .map_err(|e| failed("encoding the new snapshot", &e))?;
-    snapshot::put(jet, &base)
+    let before = match snapshot::store(jet, &base)
         .await
-        .map_err(|e| failed("storing the new snapshot", &e))?;
-    snapshot::delete_deltas(jet, scene).await;
+        .map_err(|e| failed("storing the new snapshot", &e))?
+    {
+        snapshot::Stored::Moved { before } => before,
+        snapshot::Stored::Stale { head } => {
+            return Err(ClusterError::Nats(format!(
+                "scene {scene}: a snapshot at log message {} appeared while the repair ran; try again",
+                head.pos
+            )));
+        }
+    };
+    if let Some(old) = before {
+        snapshot::delete_chain(jet, scene, old.base, old.deltas).await;
+    }
+    // A chain written before heads existed is not read any more.
+    let _ = jet.object_delete(scene).await;
     stream
         .purge_before(pos + 1)
         .await

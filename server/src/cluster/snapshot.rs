@@ -1,22 +1,31 @@
 //! A scene's snapshots in the cluster: a whole **base** and a chain of **deltas** after it, in
-//! the object store `brickcast_snapshots`.
+//! the object store `brickcast_snapshots`, and the scene's **head** in the key-value bucket
+//! `brickcast_snapshot_heads`, which names the chain and how far it goes.
 //!
 //! **Why deltas:** a snapshot lets a node opening the scene skip most of the log, and lets the
 //! owner trim the log. A whole scene is big (the 1024³ demo scene: 31 ms to copy on the owner
 //! thread, 104 ms to encode, and the upload, kept three times over with `--replicas 3`), while
 //! what changed since the last snapshot is usually a few bricks. So the owner writes a base
-//! (object `<scene>`: every brick) and then deltas (`<scene>+1`, `+2`, …: the bricks changed
-//! since the previous snapshot, the cells emptied, the whole undo index and answered requests,
-//! and the step bodies added since), each one trimming the log below it. A new base replaces
-//! the chain when the deltas add up to half the base, after [`MAX_DELTAS`], when most bricks
-//! changed, or when the owner cannot vouch for what changed since the last snapshot: it just
-//! took the scene over, or an upload failed (the changed-brick set it handed over is gone).
-//! `+` cannot occur in a scene name, so one scene's objects never collide with another's.
+//! (every brick) and then deltas (the bricks changed since the previous snapshot, the cells
+//! emptied, the whole undo index and answered requests, and the step bodies added since),
+//! each one trimming the log below it. A new base replaces the chain when the deltas add up
+//! to half the base, after [`MAX_DELTAS`], when most bricks changed, or when the owner cannot
+//! vouch for what changed since the last snapshot: it just took the scene over, or an upload
+//! failed (the changed-brick set it handed over is gone).
 //!
-//! **Reading:** the base, then `+1`, `+2`, … while each names that base (its random id) and
-//! follows on (sequence and stream position never go back); the first that does not ends the
-//! chain, so leftovers of an older chain are ignored. A chain replaced while it was being read
-//! shows up as a gap between the snapshot and the log: `log::load` then reads again.
+//! **Why a head:** an upload can land late: an owner paused (or slow) between deciding to
+//! write and its write arriving, while a newer owner snapshotted and trimmed the log below
+//! its own snapshot. Objects of one chain are named by its base's random id
+//! (`<scene>@<id>`, `<scene>@<id>+1`, …; `@` and `+` cannot occur in a scene name), so no
+//! upload replaces another chain's; a snapshot counts only once the head moves to it, by
+//! compare-and-set, and only forward (a later log position, and a delta only on the chain and
+//! delta the head names). A late upload finds the head past it and is dropped; the log is
+//! trimmed only below a snapshot the head names.
+//!
+//! **Reading:** the head, then its base and exactly its deltas. A chain replaced while it
+//! was being read (its objects deleted) fails the read: `log::load` reads again. Scenes
+//! written before heads existed (objects `<scene>`, `<scene>+1`, …) are read as they were: the
+//! base, then each delta that names that base and follows on.
 
 use std::collections::{BTreeMap, HashMap};
 use std::hash::{BuildHasher, Hasher};
@@ -26,7 +35,7 @@ use brickcast_protocol::brick::BrickData;
 use brickcast_protocol::wire::UserId;
 use serde::{Deserialize, Serialize};
 
-use super::jet::{Jet, PortError};
+use super::jet::{Bucket, Jet, PortError};
 use super::log::{decode_as, encode_as};
 use crate::scene::AnsweredEntry;
 use crate::scene::LogError;
@@ -99,7 +108,7 @@ struct Delta {
 /// What the owner wrote last, so that the next snapshot can be a delta on it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Chain {
-    base: u64,
+    pub(super) base: u64,
     base_bytes: u64,
     /// Number of the next delta.
     next: u32,
@@ -123,6 +132,7 @@ enum Kind {
 
 /// A snapshot encoded: its object name, description and bytes.
 pub struct Encoded {
+    pub scene: String,
     pub name: String,
     pub description: String,
     pub bytes: bytes::Bytes,
@@ -131,6 +141,43 @@ pub struct Encoded {
     /// What the chain looks like once it is stored.
     pub chain: Chain,
     pub is_base: bool,
+}
+
+impl Encoded {
+    /// The head that names this snapshot.
+    fn head(&self) -> Head {
+        Head {
+            version: HEAD_VERSION,
+            base: self.chain.base,
+            deltas: self.chain.next - 1,
+            seq: self.seq,
+            pos: self.pos,
+        }
+    }
+}
+
+/// Format of [`Head`].
+const HEAD_VERSION: u32 = 1;
+
+/// What `brickcast_snapshot_heads` says of a scene: its newest snapshot is base `base` and its
+/// deltas `1..=deltas`, at scene sequence `seq` and log position `pos`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Head {
+    pub version: u32,
+    pub base: u64,
+    pub deltas: u32,
+    pub seq: u64,
+    pub pos: u64,
+}
+
+impl Head {
+    /// Whether `next` may follow this head: further on in the log, and (a delta) on this
+    /// chain, right after its last delta.
+    fn may_move_to(&self, next: &Head) -> bool {
+        next.pos > self.pos
+            && next.seq >= self.seq
+            && (next.deltas == 0 || (next.base == self.base && next.deltas == self.deltas + 1))
+    }
 }
 
 /// A scene as its snapshots hold it.
@@ -149,8 +196,18 @@ pub struct Restored {
     base: u64,
 }
 
-/// The name of a scene's delta `n`.
-pub fn delta_name(scene: &str, n: u32) -> String {
+/// The object of a scene's base `base`.
+pub fn base_name(scene: &str, base: u64) -> String {
+    format!("{scene}@{base:016x}")
+}
+
+/// The object of delta `n` on base `base`.
+pub fn delta_name(scene: &str, base: u64, n: u32) -> String {
+    format!("{scene}@{base:016x}+{n}")
+}
+
+/// Delta `n` of a scene written before heads existed (after the base object `<scene>`).
+fn legacy_delta_name(scene: &str, n: u32) -> String {
     format!("{scene}+{n}")
 }
 
@@ -275,7 +332,8 @@ impl Prepared {
             Kind::Base(base) => {
                 let bytes = bytes::Bytes::from(encode_as(BASE_MAGIC, &base)?);
                 Ok(Encoded {
-                    name: scene.to_string(),
+                    scene: scene.to_string(),
+                    name: base_name(scene, base.id),
                     description: format!("seq={seq} pos={pos} id={}", base.id),
                     chain: Chain {
                         base: base.id,
@@ -296,7 +354,8 @@ impl Prepared {
                     .filter(|c| c.base == delta.base && c.next == delta.number)
                     .ok_or("the delta does not follow the chain it was encoded with")?;
                 Ok(Encoded {
-                    name: delta_name(scene, delta.number),
+                    scene: scene.to_string(),
+                    name: delta_name(scene, delta.base, delta.number),
                     description: format!(
                         "seq={seq} pos={pos} base={} n={}",
                         delta.base, delta.number
@@ -415,8 +474,78 @@ impl Restored {
     }
 }
 
-/// The scene as its base and deltas hold it.
+/// A scene's head; `None` for a scene written before heads existed.
+pub async fn head(jet: &impl Jet, scene: &str) -> Result<Option<(Head, u64)>, PortError> {
+    let Some(entry) = jet.kv_get(Bucket::Heads, scene).await? else {
+        return Ok(None);
+    };
+    match serde_json::from_slice::<Head>(&entry.value) {
+        Ok(head) => Ok(Some((head, entry.revision))),
+        Err(e) => Err(PortError::Refused(format!(
+            "the snapshot head of {scene} does not decode: {e}"
+        ))),
+    }
+}
+
+/// The scene as its newest snapshot holds it.
 pub async fn read(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
+    let unavailable = |e: PortError| LogError::Unavailable {
+        scene: scene.into(),
+        detail: format!("reading its snapshot: {e}"),
+    };
+    let corrupt = |detail: String| StoreError::Corrupt {
+        scene: scene.into(),
+        detail,
+    };
+    let head = head(jet, scene).await.map_err(unavailable)?;
+    let Some((head, _)) = head else {
+        return read_legacy(jet, scene).await;
+    };
+    if head.version != HEAD_VERSION {
+        return Err(corrupt(format!(
+            "its snapshot head has format {} (this brickcast reads {HEAD_VERSION}): upgrade every node",
+            head.version
+        ))
+        .into());
+    }
+    // A chain replaced (and deleted) while it is read: the load reads again.
+    let gone = |name: &str| LogError::Unavailable {
+        scene: scene.into(),
+        detail: format!("snapshot object {name} is gone (a newer snapshot replaced it)"),
+    };
+    let name = base_name(scene, head.base);
+    let bytes = jet
+        .object_get(&name)
+        .await
+        .map_err(unavailable)?
+        .ok_or_else(|| gone(&name))?;
+    let mut restored = Restored::from_base(&bytes).map_err(corrupt)?;
+    drop(bytes);
+    for n in 1..=head.deltas {
+        let name = delta_name(scene, head.base, n);
+        let bytes = jet
+            .object_get(&name)
+            .await
+            .map_err(unavailable)?
+            .ok_or_else(|| gone(&name))?;
+        if !restored.apply_delta(n, &bytes).map_err(corrupt)? {
+            return Err(corrupt(format!("snapshot delta {name} does not follow its base")).into());
+        }
+    }
+    if (restored.seq, restored.pos) != (head.seq, head.pos) {
+        return Err(corrupt(format!(
+            "its snapshot is at sequence {} (log message {}) but its head says {} ({})",
+            restored.seq, restored.pos, head.seq, head.pos
+        ))
+        .into());
+    }
+    restored.map.prune_tombstones(restored.seq);
+    Ok(restored)
+}
+
+/// A scene written before heads existed: the base `<scene>`, then each delta `<scene>+N`
+/// that names that base and follows on.
+async fn read_legacy(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
     let unavailable = |e: PortError| LogError::Unavailable {
         scene: scene.into(),
         detail: format!("reading its snapshot: {e}"),
@@ -432,7 +561,7 @@ pub async fn read(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
     drop(bytes);
     for n in 1..=MAX_DELTAS {
         let Some(bytes) = jet
-            .object_get(&delta_name(scene, n))
+            .object_get(&legacy_delta_name(scene, n))
             .await
             .map_err(unavailable)?
         else {
@@ -446,24 +575,87 @@ pub async fn read(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
     Ok(restored)
 }
 
-/// Stores an encoded snapshot.
-pub async fn put(jet: &impl Jet, encoded: &Encoded) -> Result<(), PortError> {
-    jet.object_put(&encoded.name, &encoded.description, encoded.bytes.clone())
-        .await
+/// What storing a snapshot came to.
+#[derive(Debug, PartialEq)]
+pub enum Stored {
+    /// The head names it now (it named `before`).
+    Moved { before: Option<Head> },
+    /// The head had moved past it (a newer snapshot, another chain): it counts for nothing,
+    /// and its object is gone again.
+    Stale { head: Head },
 }
 
-/// Deletes a scene's deltas (after a new base, or with the scene), up to the first missing.
-pub async fn delete_deltas(jet: &impl Jet, scene: &str) {
+/// Stores an encoded snapshot: its object, then the head moved to it (compare-and-set, only
+/// forward). Only a snapshot the head names may trim the log.
+pub async fn store(jet: &impl Jet, encoded: &Encoded) -> Result<Stored, PortError> {
+    jet.object_put(&encoded.name, &encoded.description, encoded.bytes.clone())
+        .await?;
+    let next = encoded.head();
+    let value = bytes::Bytes::from(
+        serde_json::to_vec(&next).map_err(|e| PortError::Refused(e.to_string()))?,
+    );
+    for _ in 0..8 {
+        let moved = match head(jet, &encoded.scene).await? {
+            Some((head, _)) if !head.may_move_to(&next) => {
+                let _ = jet.object_delete(&encoded.name).await;
+                return Ok(Stored::Stale { head });
+            }
+            Some((head, revision)) => jet
+                .kv_update(Bucket::Heads, &encoded.scene, value.clone(), revision)
+                .await
+                .map(|_| Some(head)),
+            None => jet
+                .kv_create(Bucket::Heads, &encoded.scene, value.clone())
+                .await
+                .map(|_| None),
+        };
+        match moved {
+            Ok(before) => return Ok(Stored::Moved { before }),
+            // Another snapshot moved the head meanwhile: look again.
+            Err(PortError::Conflict(_)) => continue,
+            Err(e) => return Err(e),
+        }
+    }
+    Err(PortError::Unavailable(
+        "the snapshot head kept moving".into(),
+    ))
+}
+
+/// Deletes a chain's objects: its base and deltas `1..=deltas` (after a new base, or with the
+/// scene). Best effort: leftovers are never read.
+pub async fn delete_chain(jet: &impl Jet, scene: &str, base: u64, deltas: u32) {
+    for n in (1..=deltas).rev() {
+        let _ = jet.object_delete(&delta_name(scene, base, n)).await;
+    }
+    let _ = jet.object_delete(&base_name(scene, base)).await;
+}
+
+/// Deletes a scene's snapshots: its head's chain and a chain written before heads existed.
+pub async fn delete_all(jet: &impl Jet, scene: &str) {
+    if let Ok(Some((head, _))) = head(jet, scene).await {
+        delete_chain(jet, scene, head.base, head.deltas).await;
+    }
+    let _ = jet.kv_delete(Bucket::Heads, scene, None).await;
+    let _ = jet.object_delete(scene).await;
     for n in 1..=MAX_DELTAS + 1 {
-        if jet.object_delete(&delta_name(scene, n)).await.is_err() {
-            return;
+        if jet
+            .object_delete(&legacy_delta_name(scene, n))
+            .await
+            .is_err()
+        {
+            break;
         }
     }
 }
 
-/// The newest snapshot's scene sequence, stream position and deltas, from object
-/// descriptions alone (`cluster status`).
+/// The newest snapshot's scene sequence, stream position and deltas (`cluster status`, and
+/// a load telling whether the snapshot moved while it read).
 pub async fn newest(jet: &impl Jet, scene: &str) -> Option<(u64, u64, u32)> {
+    match head(jet, scene).await {
+        Ok(Some((head, _))) => return Some((head.seq, head.pos, head.deltas)),
+        Ok(None) => {}
+        Err(_) => return None,
+    }
     let base = jet.object_description(scene).await.ok()??;
     let described = |d: &str, key: &str| {
         d.split_whitespace()
@@ -474,7 +666,7 @@ pub async fn newest(jet: &impl Jet, scene: &str) -> Option<(u64, u64, u32)> {
     let id = described(&base, "id=");
     let mut deltas = 0;
     for n in 1..=MAX_DELTAS {
-        let Ok(Some(d)) = jet.object_description(&delta_name(scene, n)).await else {
+        let Ok(Some(d)) = jet.object_description(&legacy_delta_name(scene, n)).await else {
             break;
         };
         let follows = id.is_some() && described(&d, "base=") == id;
@@ -528,7 +720,7 @@ mod tests {
         );
         let (base, chain) = chain_of(base, "s", None);
         assert!(base.is_base);
-        assert_eq!(base.name, "s");
+        assert!(base.name.starts_with("s@"), "{}", base.name);
 
         // Change some bricks: a new one, an emptied one, a changed one.
         map.record_touched(true);
@@ -556,7 +748,7 @@ mod tests {
         );
         let (delta, chain2) = chain_of(delta, "s", Some(chain.clone()));
         assert!(!delta.is_base);
-        assert_eq!(delta.name, "s+1");
+        assert_eq!(delta.name, format!("{}+1", base.name));
         assert!(delta.bytes.len() < base.bytes.len());
         assert_eq!(chain2.next, 2);
 
@@ -626,6 +818,36 @@ mod tests {
         );
         assert_eq!(restored.steps.get(&3), Some(&vec![1, 2, 3]));
         assert_eq!(restored.base, 0, "no delta follows an old base");
+    }
+
+    #[test]
+    fn the_head_moves_only_forward_and_deltas_only_on_its_chain() {
+        let head = Head {
+            version: HEAD_VERSION,
+            base: 7,
+            deltas: 2,
+            seq: 50,
+            pos: 40,
+        };
+        let next = |base, deltas, seq, pos| Head {
+            version: HEAD_VERSION,
+            base,
+            deltas,
+            seq,
+            pos,
+        };
+        assert!(head.may_move_to(&next(7, 3, 55, 45)), "the next delta");
+        assert!(head.may_move_to(&next(9, 0, 55, 45)), "a new base");
+        assert!(!head.may_move_to(&next(7, 3, 50, 40)), "not further on");
+        assert!(
+            !head.may_move_to(&next(7, 2, 60, 41)),
+            "a delta the chain has"
+        );
+        assert!(
+            !head.may_move_to(&next(8, 3, 60, 41)),
+            "a delta of another chain"
+        );
+        assert!(!head.may_move_to(&next(9, 0, 45, 39)), "a late base");
     }
 
     #[test]

@@ -137,6 +137,11 @@ pub enum Command {
     Follow {
         why: String,
     },
+    /// Shared log: it now starts at position `first`. What this replica had not read yet
+    /// below that was trimmed (a snapshot holds it): load the scene again.
+    Behind {
+        first: u64,
+    },
     /// Shared log: it holds something this replica cannot follow (a message that does not
     /// decode): stop serving the scene here, telling every session why.
     Fault {

@@ -228,6 +228,11 @@ impl Owner {
         self.seq
     }
 
+    /// The position in its log of the last turn applied (a shared log; 0 otherwise).
+    pub fn position(&self) -> u64 {
+        self.log.position()
+    }
+
     /// The authoritative map.
     pub fn map(&self) -> &BrickMap {
         &self.map
@@ -340,6 +345,10 @@ impl Owner {
                 Command::Follow { why } => {
                     self.publish(&mut log, &mut acks, clock)?;
                     self.step_down(&why);
+                }
+                Command::Behind { first } => {
+                    self.publish(&mut log, &mut acks, clock)?;
+                    self.behind(first);
                 }
                 Command::Fault { why } => {
                     self.publish(&mut log, &mut acks, clock)?;
@@ -721,7 +730,8 @@ impl Owner {
             return Ok(());
         }
         let cells = self.unsnapshotted.take_sorted();
-        let started = Instant::now();
+        // On the owner's clock: what the snapshot took decides when the next one is due.
+        let started = (self.clock)();
         let at = SnapshotOf {
             map: &self.map,
             cells: &cells,
@@ -742,7 +752,7 @@ impl Owner {
                 return Err(e);
             }
         }
-        let took = started.elapsed();
+        let took = (self.clock)().saturating_duration_since(started);
         tracing::debug!(scene = %self.name, seq = self.seq, entries = self.log_entries, bricks = cells.len(), ?took, "snapshot");
         self.log_entries = 0;
         self.log_ops = 0;

@@ -179,6 +179,16 @@ impl Owner {
         self.apply_turn(pos, turn);
     }
 
+    /// The log now starts at `first`: when this replica has not read up to just before it,
+    /// what it missed is only in the snapshot.
+    pub(super) fn behind(&mut self, first: u64) {
+        if self.broken || !self.log.shared() || first <= self.log.position() + 1 {
+            return;
+        }
+        tracing::info!(scene = %self.name, first, at = self.log.position(), "the log was trimmed past this replica; loading the newest snapshot");
+        self.reload();
+    }
+
     /// Applies one turn another owner appended. False (and the scene stops here) when it does
     /// not fit: a gap in the scene's sequence, or a record that does not decode or apply.
     fn apply_turn(&mut self, pos: u64, turn: Turn) -> bool {

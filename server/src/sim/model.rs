@@ -110,6 +110,7 @@ impl Model {
                 | Command::Apply { .. }
                 | Command::Lead { .. }
                 | Command::Follow { .. }
+                | Command::Behind { .. }
                 | Command::Fault { .. } => {}
                 Command::Undo {
                     session,

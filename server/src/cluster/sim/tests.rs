@@ -1,0 +1,193 @@
+//! The cluster simulation's test: thousands of seeds, from a random first seed each run.
+//!
+//! `BRICKCAST_CLUSTER_SIM_SEED=N` replays one seed (its trace on failure);
+//! `BRICKCAST_CLUSTER_SIM_SEEDS` sets how many seeds run (2,000 by default);
+//! `BRICKCAST_CLUSTER_SIM_FIRST` the first one (random by default, printed).
+
+use std::io::Write;
+use std::sync::Mutex;
+use std::time::Instant;
+
+use super::*;
+
+fn env_u64(name: &str) -> Option<u64> {
+    std::env::var(name).ok().and_then(|v| v.parse().ok())
+}
+
+/// Written past the test harness's capture, so that a passing run says which seeds it ran.
+fn say(what: &str) {
+    let _ = writeln!(std::io::stderr(), "{what}");
+}
+
+#[test]
+fn the_cluster_survives_random_faults() {
+    if let Some(seed) = env_u64("BRICKCAST_CLUSTER_SIM_SEED") {
+        match run_seed(seed) {
+            Ok(stats) => say(&format!("cluster simulation seed {seed}: {stats:?}")),
+            Err((e, trace)) => panic!("seed {seed} failed: {e}\nlast actions:\n{trace}"),
+        }
+        return;
+    }
+    let first = env_u64("BRICKCAST_CLUSTER_SIM_FIRST").unwrap_or_else(|| {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        (nanos % 1_000_000_000) * 1000
+    });
+    let seeds = env_u64("BRICKCAST_CLUSTER_SIM_SEEDS").unwrap_or(2_000);
+    say(&format!(
+        "cluster simulation: seeds {first}..{} (BRICKCAST_CLUSTER_SIM_FIRST={first} repeats this run)",
+        first + seeds
+    ));
+    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
+    let next = std::sync::atomic::AtomicU64::new(first);
+    let failed: Mutex<Option<(u64, String, String)>> = Mutex::new(None);
+    let total = Mutex::new((0u64, SimStats::default()));
+    let started = Instant::now();
+    std::thread::scope(|s| {
+        for _ in 0..threads {
+            s.spawn(|| {
+                loop {
+                    if failed.lock().unwrap().is_some() {
+                        return;
+                    }
+                    let seed = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    if seed >= first + seeds {
+                        return;
+                    }
+                    match run_seed(seed) {
+                        Ok(stats) => {
+                            let mut t = total.lock().unwrap();
+                            t.0 += 1;
+                            t.1.add(&stats);
+                        }
+                        Err((e, trace)) => {
+                            failed.lock().unwrap().get_or_insert((seed, e, trace));
+                        }
+                    }
+                }
+            });
+        }
+    });
+    let (ran, stats) = *total.lock().unwrap();
+    say(&format!(
+        "cluster simulation: {ran} seeds from {first} in {:.1} s on {threads} threads: {stats:?}",
+        started.elapsed().as_secs_f64()
+    ));
+    if let Some((seed, e, trace)) = failed.into_inner().unwrap() {
+        panic!(
+            "cluster simulation seed {seed} failed: {e}\nlast actions:\n{trace}\nreplay: BRICKCAST_CLUSTER_SIM_SEED={seed} cargo test -p brickcast-server cluster::sim"
+        );
+    }
+    assert!(ran > 0, "no seed ran");
+    assert!(
+        stats.lease_window_pauses > 0
+            && stats.kills > 0
+            && stats.stops > 0
+            && stats.name_takeovers > 0
+            && stats.outages > 0
+            && stats.network_faults > 0
+            && stats.acks > ran,
+        "the seeds must pause owners just under their lease, kill and stop nodes, take names, take NATS down, break the network and acknowledge edits: {stats:?}"
+    );
+    if seeds >= 200 {
+        assert!(
+            stats.garbage > 0 && stats.repairs > 0,
+            "some seeds must put garbage on the log, and repair it: {stats:?}"
+        );
+    }
+}
+
+/// A scene written before snapshot heads existed (base `<scene>`, deltas `<scene>+N`) loads
+/// as it was; its next snapshot starts a head, which a load then follows.
+#[test]
+fn a_scene_from_before_heads_loads_and_its_next_snapshot_starts_one() {
+    use crate::cluster::jet::{Jet, LogStream};
+    use crate::cluster::log::{encode_turn, load};
+    use crate::record::LogRecord;
+    use crate::scene::Turn;
+    use crate::scene::history::History;
+
+    let world = Arc::new(Mutex::new(jet::World::new(ChaCha8Rng::seed_from_u64(1))));
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_time()
+        .start_paused(true)
+        .build()
+        .unwrap();
+    let base = rt.block_on(async { tokio::time::Instant::now() });
+    let jet = jet::SimJet {
+        world,
+        process: 1,
+        clock: Arc::new(jet::ProcessClock { base, rate: 1.0 }),
+    };
+    let map = initial_scene();
+    rt.block_on(async {
+        // As an older brickcast left it: the base under the scene's own name, one turn after.
+        let old = snapshot::first(&map).encode(SCENE, None).unwrap();
+        jet.object_put(SCENE, &old.description, old.bytes.clone())
+            .await
+            .unwrap();
+        let stream = jet.stream(SCENE, true).await.unwrap();
+        let mut bytes = Vec::new();
+        LogRecord::Ops {
+            user: 3,
+            ops: vec![EditKey { user: 3, k: 0 }.op()],
+        }
+        .encode(&mut bytes)
+        .unwrap();
+        let turn = Turn {
+            node: "old".into(),
+            records: vec![(1, bytes)],
+            ..Default::default()
+        };
+        let payload = Bytes::from(encode_turn(&turn).unwrap());
+        stream.append(payload, "t1", 0).await.unwrap();
+
+        let loaded = load(&jet, SCENE).await.unwrap();
+        assert_eq!((loaded.loaded.seq, loaded.pos), (1, 1));
+        assert_eq!(snapshot::newest(&jet, SCENE).await, Some((0, 0, 0)));
+        let mut scene = loaded.loaded.map;
+        scene.set_sequence(1);
+        let history = History::new(Vec::new(), 0, 4, 1 << 20);
+        let next = snapshot::prepare(
+            None,
+            &scene,
+            &[],
+            1,
+            1,
+            &history,
+            &Default::default(),
+            Vec::new(),
+        )
+        .encode(SCENE, None)
+        .unwrap();
+        assert!(matches!(
+            snapshot::store(&jet, &next).await.unwrap(),
+            snapshot::Stored::Moved { before: None }
+        ));
+        assert_eq!(snapshot::newest(&jet, SCENE).await, Some((1, 1, 0)));
+        let again = load(&jet, SCENE).await.unwrap();
+        assert_eq!((again.loaded.seq, again.pos), (1, 1));
+        assert_eq!(again.loaded.map.content_hash(), scene.content_hash());
+        // A late snapshot (further back in the log) does not move the head, and leaves no
+        // object behind.
+        let late = snapshot::prepare(
+            None,
+            &map,
+            &[],
+            0,
+            0,
+            &history,
+            &Default::default(),
+            Vec::new(),
+        )
+        .encode(SCENE, None)
+        .unwrap();
+        assert!(matches!(
+            snapshot::store(&jet, &late).await.unwrap(),
+            snapshot::Stored::Stale { .. }
+        ));
+        assert_eq!(jet.object_get(&late.name).await.unwrap(), None);
+        assert_eq!(snapshot::newest(&jet, SCENE).await, Some((1, 1, 0)));
+    });
+}
