@@ -98,6 +98,34 @@ async fn clients_on_three_nodes_edit_one_scene_and_every_copy_agrees() {
                 && (l.contains(" a ") || l.contains(" b ") || l.contains(" c "))),
         "{text}"
     );
+    // ... and, asked with --json, where each node's copy stands: every node at the last
+    // sequence with the watchers' hash, one of them the owner.
+    let out = Command::new(env!("CARGO_BIN_EXE_brickcast-server"))
+        .args(["cluster", "status", "--json", "--nats", &nats.url()])
+        .output()
+        .unwrap();
+    let status: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let replicas: Vec<&serde_json::Value> = status["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| {
+            n["scenes"]
+                .as_array()
+                .and_then(|s| s.iter().find(|r| r["scene"] == "demo"))
+                .unwrap_or_else(|| panic!("node {} did not describe demo: {status}", n["name"]))
+        })
+        .collect();
+    assert_eq!(replicas.len(), 3, "{status}");
+    for r in &replicas {
+        assert_eq!(r["seq"], seq, "{status}");
+        assert_eq!(r["hash"], hashes[0], "{status}");
+    }
+    assert_eq!(
+        replicas.iter().filter(|r| r["leading"] == true).count(),
+        1,
+        "{status}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
