@@ -207,33 +207,28 @@ impl Served {
 
     /// Takes out of service the cluster scenes whose owner thread stopped by itself.
     fn take_stopped(&self) -> Vec<(String, Entry)> {
-        let mut open = self.write();
-        let names: Vec<String> = open
-            .iter()
-            .filter(|(_, e)| e.close.is_some() && e.handle.is_closed())
-            .map(|(n, _)| n.clone())
-            .collect();
-        names
-            .into_iter()
-            .filter_map(|n| open.remove(&n).map(|e| (n, e)))
-            .collect()
+        self.take_where(|e| e.handle.is_closed())
     }
 
     /// Takes out of service the scenes nobody used for `idle`.
     fn take_idle(&self, idle: Duration) -> Vec<(String, Entry)> {
+        self.take_where(|e| {
+            e.uses.count.load(Relaxed) == 0
+                && e.uses
+                    .idle_since
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .elapsed()
+                    >= idle
+        })
+    }
+
+    /// Takes out of service the scenes that may close (cluster scenes) and match `which`.
+    fn take_where(&self, which: impl Fn(&Entry) -> bool) -> Vec<(String, Entry)> {
         let mut open = self.write();
         let names: Vec<String> = open
             .iter()
-            .filter(|(_, e)| {
-                e.close.is_some()
-                    && e.uses.count.load(Relaxed) == 0
-                    && e.uses
-                        .idle_since
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .elapsed()
-                        >= idle
-            })
+            .filter(|(_, e)| e.close.is_some() && which(e))
             .map(|(n, _)| n.clone())
             .collect();
         names

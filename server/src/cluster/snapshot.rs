@@ -487,16 +487,27 @@ pub async fn head(jet: &impl Jet, scene: &str) -> Result<Option<(Head, u64)>, Po
     }
 }
 
-/// The scene as its newest snapshot holds it.
-pub async fn read(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
-    let unavailable = |e: PortError| LogError::Unavailable {
+/// How reading `scene`'s snapshot fails: NATS does not answer, or what it holds is corrupt.
+fn read_errors(
+    scene: &str,
+) -> (
+    impl Fn(PortError) -> LogError + Copy + '_,
+    impl Fn(String) -> StoreError + Copy + '_,
+) {
+    let unavailable = move |e: PortError| LogError::Unavailable {
         scene: scene.into(),
         detail: format!("reading its snapshot: {e}"),
     };
-    let corrupt = |detail: String| StoreError::Corrupt {
+    let corrupt = move |detail: String| StoreError::Corrupt {
         scene: scene.into(),
         detail,
     };
+    (unavailable, corrupt)
+}
+
+/// The scene as its newest snapshot holds it.
+pub async fn read(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
+    let (unavailable, corrupt) = read_errors(scene);
     let head = head(jet, scene).await.map_err(unavailable)?;
     let Some((head, _)) = head else {
         return read_legacy(jet, scene).await;
@@ -546,14 +557,7 @@ pub async fn read(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
 /// A scene written before heads existed: the base `<scene>`, then each delta `<scene>+N`
 /// that names that base and follows on.
 async fn read_legacy(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
-    let unavailable = |e: PortError| LogError::Unavailable {
-        scene: scene.into(),
-        detail: format!("reading its snapshot: {e}"),
-    };
-    let corrupt = |detail: String| StoreError::Corrupt {
-        scene: scene.into(),
-        detail,
-    };
+    let (unavailable, corrupt) = read_errors(scene);
     let Some(bytes) = jet.object_get(scene).await.map_err(unavailable)? else {
         return Err(StoreError::UnknownScene(scene.into()).into());
     };

@@ -29,6 +29,7 @@
 mod disk;
 mod model;
 mod ops;
+pub(crate) mod seeds;
 #[cfg(test)]
 mod tests;
 mod undo;
@@ -77,8 +78,8 @@ pub struct SimStats {
     pub undos_refused: u64,
 }
 
-impl SimStats {
-    pub fn add(&mut self, o: &SimStats) {
+impl crate::sim::seeds::Tally for SimStats {
+    fn add(&mut self, o: &SimStats) {
         self.turns += o.turns;
         self.batches_applied += o.batches_applied;
         self.batches_rejected += o.batches_rejected;

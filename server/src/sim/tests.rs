@@ -1,5 +1,6 @@
 //! The simulation's tests: the steps, store refusals, and thousands of random seeds.
 
+use super::seeds::{SeedRun, run_seeds};
 use super::*;
 
 fn env_u64(name: &str) -> Option<u64> {
@@ -184,61 +185,25 @@ fn simulated_crashes_lose_no_acknowledged_edit() {
     let first = env_u64("BRICKCAST_SIM_FIRST").unwrap_or(0);
     let budget = env_u64("BRICKCAST_SIM_SECONDS").map(Duration::from_secs);
     let seeds = env_u64("BRICKCAST_SIM_SEEDS").unwrap_or(2_000);
-    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
-    let next = std::sync::atomic::AtomicU64::new(first);
-    let failed: Mutex<Option<(u64, String, String)>> = Mutex::new(None);
-    let total = Mutex::new((0u64, SimStats::default()));
-    let started = Instant::now();
-    std::thread::scope(|s| {
-        for _ in 0..threads {
-            s.spawn(|| {
-                loop {
-                    if failed.lock().unwrap().is_some() {
-                        return;
-                    }
-                    let seed = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    let done = match budget {
-                        Some(b) => started.elapsed() >= b,
-                        None => seed >= first + seeds,
-                    };
-                    if done {
-                        return;
-                    }
-                    let outcome = std::panic::catch_unwind(|| run_seed(seed, ACTIONS));
-                    let result = match outcome {
-                        Ok(r) => r,
-                        Err(panic) => Err((
-                            format!(
-                                "panicked: {}",
-                                panic
-                                    .downcast_ref::<String>()
-                                    .map(String::as_str)
-                                    .or_else(|| panic.downcast_ref::<&str>().copied())
-                                    .unwrap_or("?")
-                            ),
-                            String::new(),
-                        )),
-                    };
-                    match result {
-                        Ok(stats) => {
-                            let mut t = total.lock().unwrap();
-                            t.0 += 1;
-                            t.1.add(&stats);
-                        }
-                        Err((e, trace)) => {
-                            failed.lock().unwrap().get_or_insert((seed, e, trace));
-                        }
-                    }
-                }
-            });
-        }
-    });
-    let (ran, stats) = *total.lock().unwrap();
+    let SeedRun {
+        ran,
+        stats,
+        threads,
+        elapsed,
+        failed,
+    } = run_seeds(
+        first,
+        |seed, elapsed| match budget {
+            Some(b) => elapsed >= b,
+            None => seed >= first + seeds,
+        },
+        |seed| run_seed(seed, ACTIONS),
+    );
     eprintln!(
         "simulation: {ran} seeds from {first} in {:.1} s on {threads} threads: {stats:?}",
-        started.elapsed().as_secs_f64()
+        elapsed.as_secs_f64()
     );
-    if let Some((seed, e, trace)) = failed.into_inner().unwrap() {
+    if let Some((seed, e, trace)) = failed {
         panic!(
             "simulation seed {seed} failed: {e}\nlast actions:\n  {trace}\nreplay: BRICKCAST_SIM_SEED={seed} cargo test -p brickcast-server sim::"
         );

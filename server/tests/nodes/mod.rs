@@ -46,6 +46,8 @@ pub struct Nats {
     pub jetstream: bool,
     /// A configuration file (`-c`), e.g. users and permissions.
     pub config: Option<PathBuf>,
+    /// Whether it came up once (restarts keep the port).
+    pub started: bool,
 }
 
 impl Nats {
@@ -56,6 +58,7 @@ impl Nats {
             dir: tempfile::tempdir().unwrap(),
             jetstream,
             config: None,
+            started: false,
         };
         nats.spawn();
         nats
@@ -72,6 +75,7 @@ impl Nats {
             dir,
             jetstream: true,
             config: Some(path),
+            started: false,
         };
         nats.spawn();
         nats
@@ -82,7 +86,30 @@ impl Nats {
         format!("nats://{user}:{password}@127.0.0.1:{}", self.port)
     }
 
+    /// Starts (or restarts) the server. A free port can be taken by another test between
+    /// `free_port` and the server's bind, so this checks that our own child answers with the
+    /// NATS greeting; on a first start it tries again on another port, on a restart (the nodes
+    /// know the URL) on the same one.
     pub fn spawn(&mut self) {
+        let first_start = !self.started;
+        for _ in 0..5 {
+            if self.try_spawn() {
+                self.started = true;
+                return;
+            }
+            self.kill();
+            if first_start {
+                self.port = free_port();
+            } else {
+                std::thread::sleep(Duration::from_millis(500));
+            }
+        }
+        panic!("nats-server did not come up on 127.0.0.1:{}", self.port);
+    }
+
+    /// One start; whether our child came up and greets on the port.
+    fn try_spawn(&mut self) -> bool {
+        use std::io::Read;
         let mut cmd = Command::new(nats_binary());
         if let Some(config) = &self.config {
             cmd.arg("-c").arg(config);
@@ -96,12 +123,21 @@ impl Nats {
             .stderr(Stdio::null())
             .spawn()
             .expect("nats-server starts");
-        self.child = Some(child);
+        let child = self.child.insert(child);
         let deadline = Instant::now() + Duration::from_secs(20);
-        while std::net::TcpStream::connect(("127.0.0.1", self.port)).is_err() {
-            assert!(Instant::now() < deadline, "nats-server did not come up");
+        while Instant::now() < deadline {
+            if !matches!(child.try_wait(), Ok(None)) {
+                return false;
+            }
+            if let Ok(mut s) = std::net::TcpStream::connect(("127.0.0.1", self.port)) {
+                let _ = s.set_read_timeout(Some(Duration::from_secs(2)));
+                let mut greeting = [0u8; 4];
+                let ours = s.read_exact(&mut greeting).is_ok() && &greeting == b"INFO";
+                return ours && matches!(child.try_wait(), Ok(None));
+            }
             std::thread::sleep(Duration::from_millis(50));
         }
+        false
     }
 
     pub fn url(&self) -> String {
@@ -152,11 +188,20 @@ impl Node {
     }
 
     /// Starts a node and waits until it answers HTTP.
+    /// A node whose port another test took between `free_port` and its bind starts again on
+    /// another port.
     pub async fn start_bare(nats: &str, name: &str, extra: &[&str]) -> Node {
-        let node = Node::spawn(nats, name, extra);
+        let mut node = Node::spawn(nats, name, extra);
+        let mut tries = 0;
         let deadline = Instant::now() + Duration::from_secs(60);
         loop {
-            if tokio::net::TcpStream::connect(node.addr).await.is_ok()
+            if node.exited() && node.log_text().contains("in use") && tries < 5 {
+                tries += 1;
+                node = Node::spawn(nats, name, extra);
+                continue;
+            }
+            if !node.exited()
+                && tokio::net::TcpStream::connect(node.addr).await.is_ok()
                 && http_get(node.addr, "/healthz").await.0 == 200
             {
                 return node;
@@ -201,6 +246,13 @@ impl Node {
 
     pub fn log_text(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Whether the process has exited.
+    pub fn exited(&mut self) -> bool {
+        self.child
+            .as_mut()
+            .is_none_or(|c| !matches!(c.try_wait(), Ok(None)))
     }
 
     /// Waits for the process to exit by itself; its status.

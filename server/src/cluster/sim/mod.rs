@@ -89,8 +89,8 @@ pub struct SimStats {
     pub gave_up: u64,
 }
 
-impl SimStats {
-    pub fn add(&mut self, o: &SimStats) {
+impl crate::sim::seeds::Tally for SimStats {
+    fn add(&mut self, o: &SimStats) {
         self.steps += o.steps;
         self.acks += o.acks;
         self.turns += o.turns;
@@ -396,38 +396,15 @@ impl Sim {
                 let Some(i) = self.pick_alive() else { return };
                 self.stats.kills += 1;
                 self.procs[i].kill();
-                let name = NAMES
-                    .iter()
-                    .find(|n| **n == self.procs[i].name)
-                    .copied()
-                    .expect("a name");
-                let what = format!("SIGKILL {}#{}", name, self.procs[i].id);
+                let what = format!("SIGKILL {}#{}", self.procs[i].name, self.procs[i].id);
                 self.note(what);
-                let at = self.now + Duration::from_millis(self.rng.random_range(500..6000));
-                self.restarts.push((at, name));
+                self.restart_later(i);
             }
             42..52 => {
                 let Some(i) = self.pick_alive() else { return };
                 self.stats.stops += 1;
-                let what = format!(
-                    "SIGTERM {}#{}{}",
-                    self.procs[i].name,
-                    self.procs[i].id,
-                    if self.procs[i].leading() {
-                        " (it owns the scene)"
-                    } else {
-                        ""
-                    }
-                );
-                self.note(what);
-                self.procs[i].terminate(self.now);
-                let name = NAMES
-                    .iter()
-                    .find(|n| **n == self.procs[i].name)
-                    .copied()
-                    .expect("a name");
-                let at = self.now + Duration::from_millis(self.rng.random_range(500..6000));
-                self.restarts.push((at, name));
+                self.sigterm(i);
+                self.restart_later(i);
             }
             52..60 => {
                 // Paused until its name expires, while a new process takes the name.
@@ -803,23 +780,36 @@ impl Sim {
         }
     }
 
+    /// SIGTERM to process `i`, noted in the trace.
+    fn sigterm(&mut self, i: usize) {
+        let p = &self.procs[i];
+        let owns = if p.leading() {
+            " (it owns the scene)"
+        } else {
+            ""
+        };
+        let what = format!("SIGTERM {}#{}{owns}", p.name, p.id);
+        self.note(what);
+        self.procs[i].terminate(self.now);
+    }
+
+    /// Starts a process of `i`'s name again 0.5–6 s from now.
+    fn restart_later(&mut self, i: usize) {
+        let name = NAMES
+            .iter()
+            .find(|n| **n == self.procs[i].name)
+            .copied()
+            .expect("a name");
+        let at = self.now + Duration::from_millis(self.rng.random_range(500..6000));
+        self.restarts.push((at, name));
+    }
+
     /// Stops every process as SIGTERM does, the scene's owner last.
     fn stop_all(&mut self) -> Result<(), Failure> {
         let mut order: Vec<usize> = self.alive();
         order.sort_by_key(|&i| self.procs[i].leading());
         for i in order {
-            let what = format!(
-                "SIGTERM {}#{}{}",
-                self.procs[i].name,
-                self.procs[i].id,
-                if self.procs[i].leading() {
-                    " (it owns the scene)"
-                } else {
-                    ""
-                }
-            );
-            self.note(what);
-            self.procs[i].terminate(self.now);
+            self.sigterm(i);
             let deadline = self.now + Duration::from_secs(40);
             while self.procs[i].alive() {
                 check!(

@@ -5,10 +5,9 @@
 //! `BRICKCAST_CLUSTER_SIM_FIRST` the first one (random by default, printed).
 
 use std::io::Write;
-use std::sync::Mutex;
-use std::time::Instant;
 
 use super::*;
+use crate::sim::seeds::{SeedRun, run_seeds};
 
 fn env_u64(name: &str) -> Option<u64> {
     std::env::var(name).ok().and_then(|v| v.parse().ok())
@@ -39,42 +38,18 @@ fn the_cluster_survives_random_faults() {
         "cluster simulation: seeds {first}..{} (BRICKCAST_CLUSTER_SIM_FIRST={first} repeats this run)",
         first + seeds
     ));
-    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
-    let next = std::sync::atomic::AtomicU64::new(first);
-    let failed: Mutex<Option<(u64, String, String)>> = Mutex::new(None);
-    let total = Mutex::new((0u64, SimStats::default()));
-    let started = Instant::now();
-    std::thread::scope(|s| {
-        for _ in 0..threads {
-            s.spawn(|| {
-                loop {
-                    if failed.lock().unwrap().is_some() {
-                        return;
-                    }
-                    let seed = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    if seed >= first + seeds {
-                        return;
-                    }
-                    match run_seed(seed) {
-                        Ok(stats) => {
-                            let mut t = total.lock().unwrap();
-                            t.0 += 1;
-                            t.1.add(&stats);
-                        }
-                        Err((e, trace)) => {
-                            failed.lock().unwrap().get_or_insert((seed, e, trace));
-                        }
-                    }
-                }
-            });
-        }
-    });
-    let (ran, stats) = *total.lock().unwrap();
+    let SeedRun {
+        ran,
+        stats,
+        threads,
+        elapsed,
+        failed,
+    } = run_seeds(first, |seed, _| seed >= first + seeds, run_seed);
     say(&format!(
         "cluster simulation: {ran} seeds from {first} in {:.1} s on {threads} threads: {stats:?}",
-        started.elapsed().as_secs_f64()
+        elapsed.as_secs_f64()
     ));
-    if let Some((seed, e, trace)) = failed.into_inner().unwrap() {
+    if let Some((seed, e, trace)) = failed {
         panic!(
             "cluster simulation seed {seed} failed: {e}\nlast actions:\n{trace}\nreplay: BRICKCAST_CLUSTER_SIM_SEED={seed} cargo test -p brickcast-server cluster::sim"
         );
@@ -149,18 +124,21 @@ fn a_scene_from_before_heads_loads_and_its_next_snapshot_starts_one() {
         let mut scene = loaded.loaded.map;
         scene.set_sequence(1);
         let history = History::new(Vec::new(), 0, 4, 1 << 20);
-        let next = snapshot::prepare(
-            None,
-            &scene,
-            &[],
-            1,
-            1,
-            &history,
-            &Default::default(),
-            Vec::new(),
-        )
-        .encode(SCENE, None)
-        .unwrap();
+        let snapshot_at = |map: &BrickMap, at: u64| {
+            snapshot::prepare(
+                None,
+                map,
+                &[],
+                at,
+                at,
+                &history,
+                &Default::default(),
+                Vec::new(),
+            )
+            .encode(SCENE, None)
+            .unwrap()
+        };
+        let next = snapshot_at(&scene, 1);
         assert!(matches!(
             snapshot::store(&jet, &next).await.unwrap(),
             snapshot::Stored::Moved { before: None }
@@ -171,18 +149,7 @@ fn a_scene_from_before_heads_loads_and_its_next_snapshot_starts_one() {
         assert_eq!(again.loaded.map.content_hash(), scene.content_hash());
         // A late snapshot (further back in the log) does not move the head, and leaves no
         // object behind.
-        let late = snapshot::prepare(
-            None,
-            &map,
-            &[],
-            0,
-            0,
-            &history,
-            &Default::default(),
-            Vec::new(),
-        )
-        .encode(SCENE, None)
-        .unwrap();
+        let late = snapshot_at(&map, 0);
         assert!(matches!(
             snapshot::store(&jet, &late).await.unwrap(),
             snapshot::Stored::Stale { .. }
