@@ -139,6 +139,11 @@ pub struct Metrics {
     pub edits_over_budget: AtomicU64,
     /// Sessions cut off because their client stopped reading.
     pub stalled_disconnects: AtomicU64,
+    /// Times a session stopped reading its client until its replies were written.
+    pub reads_paused: AtomicU64,
+    /// Scene thumbnails drawn (requests that found a fresh one, or waited for one being drawn,
+    /// do not count).
+    pub thumbnails_rendered: AtomicU64,
     /// Connections refused by the connection limits (total or per address).
     pub refused_connections: AtomicU64,
     /// Camera updates forwarded to scene owners (after the per-session throttle).
@@ -309,6 +314,18 @@ impl Metrics {
             "counter",
             "Sessions cut off because their client stopped reading.",
             get(&self.stalled_disconnects),
+        );
+        metric(
+            "reads_paused_total",
+            "counter",
+            "Times a session stopped reading a client that sent faster than it read its replies.",
+            get(&self.reads_paused),
+        );
+        metric(
+            "thumbnails_rendered_total",
+            "counter",
+            "Scene thumbnails drawn by scene owners.",
+            get(&self.thumbnails_rendered),
         );
         metric(
             "refused_connections_total",

@@ -23,7 +23,9 @@ use crate::bucket::Bucket;
 use crate::cluster::{Cluster, SceneLink};
 use crate::identity::{Identity, identify};
 use crate::metrics::{Metrics, ReadError, SessionPhase};
-use crate::scene::{Command, Outbox, OutboxReceiver, RequestItem, SceneHandle, SessionId};
+use crate::scene::{
+    Command, MAX_REPLY_BACKLOG, Outbox, OutboxReceiver, RequestItem, SceneHandle, SessionId,
+};
 
 /// How long a closing connection keeps reading so its peer can receive the close.
 const CLOSE_GRACE: Duration = Duration::from_secs(2);
@@ -258,8 +260,7 @@ impl Session<'_> {
 
     fn refuse(&self, reason: Refusal) {
         Metrics::add(&self.app.metrics.presence_refused, 1);
-        self.out
-            .send(&ServerMsg::Refused { reason }, &self.app.metrics);
+        self.out.refuse(reason);
     }
 }
 
@@ -314,6 +315,16 @@ async fn read_loop(
         out.close(code, text);
     };
     loop {
+        // A client that sends faster than it reads its replies is not read until the writer
+        // catches up (see `scene::outbox`): its requests wait in its own socket.
+        if out.reply_backlog() > MAX_REPLY_BACKLOG {
+            Metrics::add(&app.metrics.reads_paused, 1);
+            tokio::select! {
+                _ = out.replies_within(MAX_REPLY_BACKLOG / 2) => {}
+                _ = shutdown.changed() => return,
+            }
+            continue;
+        }
         let next = tokio::select! {
             next = stream.next() => next,
             _ = shutdown.changed() => return,

@@ -26,6 +26,7 @@ use bytes::Bytes;
 use tokio::sync::oneshot;
 
 use crate::App;
+use crate::metrics::Metrics;
 use crate::scene::Command;
 
 const JS: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/web/brickcast_web.js"));
@@ -63,9 +64,43 @@ pub fn unbuilt_reason() -> Option<&'static str> {
 }
 
 /// Cached thumbnails, by scene.
-#[derive(Default)]
 pub struct Thumbnails {
     cache: Mutex<HashMap<String, Thumbnail>>,
+    /// One render per scene at a time: a request for a stale picture takes its scene's turn
+    /// (scenes share [`FLIGHTS`] turns by the hash of their name, so names from the URL cannot
+    /// grow a table), and those waiting behind it take the picture it drew.
+    flights: [tokio::sync::Mutex<()>; FLIGHTS],
+}
+
+/// How many thumbnail renders may run at once, across scenes.
+const FLIGHTS: usize = 16;
+
+impl Default for Thumbnails {
+    fn default() -> Self {
+        Thumbnails {
+            cache: Mutex::default(),
+            flights: std::array::from_fn(|_| tokio::sync::Mutex::new(())),
+        }
+    }
+}
+
+impl Thumbnails {
+    /// The cached picture of `name`, unless it is stale: the scene has moved on from it (its
+    /// sequence `seq`, `None` when this node does not serve it) and it is older than
+    /// [`THUMBNAIL_EVERY`]. A scene this node does not serve keeps the picture it had: drawing
+    /// it again would open the scene for every visit to the scene list.
+    fn fresh(&self, name: &str, seq: Option<u64>) -> Option<Bytes> {
+        let cache = self.cache.lock().unwrap_or_else(|e| e.into_inner());
+        let t = cache.get(name)?;
+        (Some(t.seq) == seq || seq.is_none() || t.at.elapsed() < THUMBNAIL_EVERY)
+            .then(|| t.png.clone())
+    }
+
+    fn flight(&self, name: &str) -> &tokio::sync::Mutex<()> {
+        let mut h = DefaultHasher::new();
+        h.write(name.as_bytes());
+        &self.flights[h.finish() as usize % FLIGHTS]
+    }
 }
 
 struct Thumbnail {
@@ -255,19 +290,14 @@ async fn thumbnail(State(app): State<Arc<App>>, Path(name): Path<String>) -> Res
         )
             .into_response()
     };
-    {
-        let cache = app
-            .thumbnails
-            .cache
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
-        // A scene this node does not serve keeps the picture it had: drawing it again would
-        // open the scene for every visit to the scene list.
-        if let Some(t) = cache.get(&name)
-            && (Some(t.seq) == seq || seq.is_none() || t.at.elapsed() < THUMBNAIL_EVERY)
-        {
-            return png(t.png.clone());
-        }
+    if let Some(cached) = app.thumbnails.fresh(&name, seq) {
+        return png(cached);
+    }
+    // Whoever had the turn before us may have drawn it.
+    let _turn = app.thumbnails.flight(&name).lock().await;
+    let seq = app.scene(&name).map(|s| s.info.seq.load(Relaxed));
+    if let Some(cached) = app.thumbnails.fresh(&name, seq) {
+        return png(cached);
     }
     let (scene, _using) = match app.open_scene(&name).await {
         Ok(Some(found)) => found,
@@ -292,6 +322,7 @@ async fn thumbnail(State(app): State<Arc<App>>, Path(name): Path<String>) -> Res
     let Ok((seq, frame)) = rendered.await else {
         return (StatusCode::SERVICE_UNAVAILABLE, "the scene has stopped\n").into_response();
     };
+    Metrics::add(&app.metrics.thumbnails_rendered, 1);
     let encoded = tokio::task::spawn_blocking(move || encode_png(&frame)).await;
     let Ok(Ok(bytes)) = encoded else {
         return (

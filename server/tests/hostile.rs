@@ -537,3 +537,104 @@ async fn planted_spool_entries_are_refused() {
     server.shutdown().await.unwrap();
     assert!(started.elapsed() < Duration::from_secs(10));
 }
+
+/// Before: replies to a client that sends without reading were queued until 64 MiB (63 such
+/// connections grew the server to 3 GB and stalled everyone). Now the session stops reading
+/// such a client once a few KiB of its replies wait: its requests stay in its own socket, the
+/// server's queues stay small, other editors carry on, and the stall timeout cuts it off.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_sends_without_reading_is_not_read() {
+    let _serial = SERIAL.lock().await;
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |c| {
+        c.stall_timeout = Duration::from_secs(3);
+    })
+    .await;
+    let url = server.url("demo");
+    let mut editor = Client::connect(&url, None).await.unwrap();
+    editor.sync().await;
+    // Edits refused whole (too much work), each answered by an Ack listing 64 rejections,
+    // and refused presence (a cursor outside the scene), as fast as the socket takes them.
+    let sphere = EditOp::Sphere {
+        centre: [100.0, 30.0, 100.0],
+        radius: 64.0,
+        mode: BrushMode::Fill,
+        colour: colour(1),
+    };
+    let flood = tokio::spawn({
+        let url = url.clone();
+        async move {
+            let mut ws = hello(&url).await;
+            let mut sent = 0u64;
+            for client_seq in 0..200_000u64 {
+                let msg = if client_seq % 2 == 0 {
+                    ClientMsg::Edit {
+                        client_seq,
+                        ops: vec![sphere.clone(); 64],
+                    }
+                } else {
+                    ClientMsg::Presence {
+                        view: None,
+                        cursor: Some(brickcast_protocol::wire::Cursor {
+                            voxel: [u32::MAX; 3],
+                            radius: 1.0,
+                        }),
+                    }
+                };
+                let frame = Message::Binary(encode_client(&msg).unwrap().into());
+                // Once the server stops reading, the socket fills and the send waits.
+                match tokio::time::timeout(Duration::from_secs(1), ws.send(frame)).await {
+                    Ok(Ok(())) => sent += 1,
+                    _ => break,
+                }
+            }
+            (sent, ws)
+        }
+    });
+    let (sent, _ws) = flood.await.unwrap();
+    let queued = metric(server.addr, "brickcast_queued_bytes").await;
+    let paused = metric(server.addr, "brickcast_reads_paused_total").await;
+    eprintln!("the flooder sent {sent} messages before its socket filled; {queued} bytes queued");
+    assert!(
+        sent < 200_000,
+        "the server kept reading a client that never reads"
+    );
+    assert!(paused >= 1.0, "the session never paused its reads");
+    assert!(
+        queued < 1024.0 * 1024.0,
+        "{queued} bytes queued for the flooder"
+    );
+    // Another editor's edits go through meanwhile.
+    for i in 0..20 {
+        edit_latency(&mut editor, i).await;
+    }
+    // And the flooder, which takes nothing, is cut off by the stall timeout.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while metric(server.addr, "brickcast_stalled_disconnects_total").await < 1.0 {
+        assert!(Instant::now() < deadline, "the flooder was never cut off");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    server.shutdown().await.unwrap();
+}
+
+/// Before: every request for a thumbnail that was not cached drew one on the scene owner (200
+/// at once cost it 3.9 s). Now one draws it and the others take its picture.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_thumbnail_requests_draw_one_thumbnail() {
+    let _serial = SERIAL.lock().await;
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |_| {}).await;
+    let addr = server.addr;
+    let requests: Vec<_> = (0..200)
+        .map(|_| tokio::spawn(async move { http_get(addr, "/scenes/demo/thumb.png").await.0 }))
+        .collect();
+    for r in requests {
+        assert_eq!(r.await.unwrap(), 200);
+    }
+    assert_eq!(
+        metric(addr, "brickcast_thumbnails_rendered_total").await,
+        1.0,
+        "one render for 200 requests"
+    );
+    server.shutdown().await.unwrap();
+}

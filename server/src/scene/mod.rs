@@ -50,7 +50,7 @@ use crate::store::{Store, StoreLog};
 
 pub use answered::{Answered, AnsweredEntry, Lookup};
 pub use log::{LogError, SceneLog, SnapshotOf, Turn, TurnWrite};
-pub use outbox::{Outbox, OutboxReceiver};
+pub use outbox::{MAX_REPLY_BACKLOG, Outbox, OutboxReceiver};
 pub use owner::Owner;
 pub use request::{Outcome, Request, RequestItem};
 

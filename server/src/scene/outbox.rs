@@ -10,16 +10,25 @@
 //!
 //! Pongs are coalesced: while one is waiting to be written, a later Ping only updates the nonce
 //! it will carry, so a client that floods Pings and never reads costs one queued pong, not one
-//! per Ping.
+//! per Ping. `Refused` replies are coalesced the same way (the latest reason counts): they
+//! answer no numbered request.
+//!
+//! Replies that answer a numbered request (`Ack`, `Undone`) are never dropped or merged: a
+//! client keeps its own count of what is answered. Instead the queue keeps a **reply backlog**
+//! (the bytes of replies not yet written, plus a charge per coalesced pong or refusal), and the
+//! session stops reading its client while the backlog is over [`MAX_REPLY_BACKLOG`]: a client
+//! that sends without reading gets TCP's flow control, not memory, and costs no CPU while it
+//! waits (its writer cuts it off once it has taken nothing for the stall timeout). A client
+//! that reads never meets the bound: replies queue only while its socket is full.
 //!
 //! Every message goes in through [`Outbox::send`], which is where a message that cannot be
 //! encoded is noticed: it is logged, counted, and the session is closed with an `Internal`
 //! error, so the client learns that something is wrong instead of waiting for a reply forever.
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering::Relaxed};
+use std::sync::{Arc, Mutex};
 
-use brickcast_protocol::wire::{ErrorCode, ServerMsg, encode_server};
+use brickcast_protocol::wire::{ErrorCode, Refusal, ServerMsg, encode_server};
 use bytes::Bytes;
 use tokio::sync::{Notify, mpsc};
 
@@ -29,12 +38,24 @@ use crate::metrics::Metrics;
 /// channel's slot (measured: a queued 3-byte pong cost about 90 bytes of heap).
 pub const FRAME_OVERHEAD: usize = 96;
 
+/// Bytes of unwritten replies (and coalesced ones, at [`COALESCED_COST`] each) past which the
+/// session stops reading its client until the writer catches up: about 140 acks of a small
+/// batch, far more than a client that reads ever has waiting. 4,096 connections at the bound
+/// hold 64 MiB.
+pub const MAX_REPLY_BACKLOG: usize = 16 << 10;
+
+/// What a pong or refusal folded into one already waiting adds to the reply backlog, so that
+/// a flood of Pings or refused requests also pauses reading (it costs CPU, not memory).
+pub const COALESCED_COST: usize = 64;
+
 /// One item in a session's queue.
 pub enum Outgoing {
-    /// An encoded frame.
-    Frame(Bytes),
+    /// An encoded frame; `reply` when it answers the client (it counts in the reply backlog).
+    Frame { frame: Bytes, reply: bool },
     /// A pong carrying the latest nonce at the time it is written.
     Pong,
+    /// A `Refused` carrying the latest refusal at the time it is written.
+    Refused,
 }
 
 /// The owner's and the session's handle on one session's outgoing queue.
@@ -56,6 +77,16 @@ struct Shared {
     notify: Notify,
     pong_queued: AtomicBool,
     pong_nonce: AtomicU64,
+    refusal_queued: AtomicBool,
+    refusal: Mutex<Option<Refusal>>,
+    /// Bytes of replies queued (frames plus overhead; a waiting pong or refusal counts its
+    /// overhead).
+    replies: AtomicUsize,
+    /// Pongs and refusals folded into the one waiting since it was queued.
+    pongs_folded: AtomicUsize,
+    refusals_folded: AtomicUsize,
+    /// Woken when the writer takes a reply.
+    drained: Notify,
     /// The owner is streaming this session a sync: its camera decides what goes next.
     syncing: AtomicBool,
 }
@@ -93,19 +124,42 @@ impl OutboxReceiver {
     }
 
     fn take(&self, item: Outgoing) -> Bytes {
-        match item {
-            Outgoing::Frame(frame) => {
-                self.shared.sub(frame.len() + FRAME_OVERHEAD);
+        let shared = &self.shared;
+        let frame = match item {
+            Outgoing::Frame { frame, reply } => {
+                let cost = frame.len() + FRAME_OVERHEAD;
+                shared.sub(cost);
+                if !reply {
+                    return frame;
+                }
+                shared.replies.fetch_sub(cost, Relaxed);
                 frame
             }
             Outgoing::Pong => {
-                self.shared.sub(FRAME_OVERHEAD);
+                shared.sub(FRAME_OVERHEAD);
+                shared.replies.fetch_sub(FRAME_OVERHEAD, Relaxed);
                 // Cleared before reading the nonce: a Ping arriving now queues another pong.
-                self.shared.pong_queued.store(false, Relaxed);
-                let nonce = self.shared.pong_nonce.load(Relaxed);
+                shared.pong_queued.store(false, Relaxed);
+                shared.pongs_folded.store(0, Relaxed);
+                let nonce = shared.pong_nonce.load(Relaxed);
                 Bytes::from(encode_server(&ServerMsg::Pong { nonce }).unwrap_or_default())
             }
-        }
+            Outgoing::Refused => {
+                shared.sub(FRAME_OVERHEAD);
+                shared.replies.fetch_sub(FRAME_OVERHEAD, Relaxed);
+                let reason = {
+                    let mut latest = shared.refusal.lock().unwrap_or_else(|e| e.into_inner());
+                    // Cleared under the lock: a refusal arriving now queues another.
+                    shared.refusal_queued.store(false, Relaxed);
+                    shared.refusals_folded.store(0, Relaxed);
+                    latest.take()
+                };
+                let reason = reason.unwrap_or(Refusal::RateLimited);
+                Bytes::from(encode_server(&ServerMsg::Refused { reason }).unwrap_or_default())
+            }
+        };
+        shared.drained.notify_waiters();
+        frame
     }
 
     /// Ends the session from the writer's side (its peer stopped taking data): later pushes
@@ -137,6 +191,12 @@ impl Outbox {
             notify: Notify::new(),
             pong_queued: AtomicBool::new(false),
             pong_nonce: AtomicU64::new(0),
+            refusal_queued: AtomicBool::new(false),
+            refusal: Mutex::new(None),
+            replies: AtomicUsize::new(0),
+            pongs_folded: AtomicUsize::new(0),
+            refusals_folded: AtomicUsize::new(0),
+            drained: Notify::new(),
             syncing: AtomicBool::new(false),
         });
         (
@@ -148,25 +208,86 @@ impl Outbox {
         )
     }
 
-    /// Queues an encoded frame; false when the session is gone (then nothing is counted).
+    /// Queues an encoded frame (a delta or sync: not a reply); false when the session is gone
+    /// (then nothing is counted).
     pub fn push(&self, frame: Bytes) -> bool {
+        self.enqueue(frame, false)
+    }
+
+    fn enqueue(&self, frame: Bytes, reply: bool) -> bool {
         let cost = frame.len() + FRAME_OVERHEAD;
         self.shared.add(cost);
-        if self.tx.send(Outgoing::Frame(frame)).is_err() {
+        if reply {
+            self.shared.replies.fetch_add(cost, Relaxed);
+        }
+        if self.tx.send(Outgoing::Frame { frame, reply }).is_err() {
             self.shared.sub(cost);
+            if reply {
+                self.shared.replies.fetch_sub(cost, Relaxed);
+            }
             return false;
         }
         true
+    }
+
+    /// Queues a coalesced item (a pong or a refusal) unless one is already waiting: then the
+    /// waiting one carries the latest value and `folded` counts one more.
+    fn coalesce(&self, queued: &AtomicBool, folded: &AtomicUsize, item: Outgoing) {
+        if queued.swap(true, Relaxed) {
+            folded.fetch_add(1, Relaxed);
+            return;
+        }
+        self.shared.add(FRAME_OVERHEAD);
+        self.shared.replies.fetch_add(FRAME_OVERHEAD, Relaxed);
+        if self.tx.send(item).is_err() {
+            self.shared.sub(FRAME_OVERHEAD);
+            self.shared.replies.fetch_sub(FRAME_OVERHEAD, Relaxed);
+        }
     }
 
     /// Answers a Ping: queues a pong unless one is already waiting, which then carries this
     /// nonce instead.
     pub fn pong(&self, nonce: u64) {
         self.shared.pong_nonce.store(nonce, Relaxed);
-        if !self.shared.pong_queued.swap(true, Relaxed) {
-            self.shared.add(FRAME_OVERHEAD);
-            if self.tx.send(Outgoing::Pong).is_err() {
-                self.shared.sub(FRAME_OVERHEAD);
+        let shared = &self.shared;
+        self.coalesce(&shared.pong_queued, &shared.pongs_folded, Outgoing::Pong);
+    }
+
+    /// Tells the client a request was refused: queues a `Refused` unless one is already
+    /// waiting, which then carries this reason instead.
+    pub fn refuse(&self, reason: Refusal) {
+        let shared = &self.shared;
+        {
+            let mut latest = shared.refusal.lock().unwrap_or_else(|e| e.into_inner());
+            *latest = Some(reason);
+            // Under the lock, so the writer cannot take the slot between the two.
+            self.coalesce(
+                &shared.refusal_queued,
+                &shared.refusals_folded,
+                Outgoing::Refused,
+            );
+        }
+    }
+
+    /// The reply backlog: bytes of replies not yet written, plus [`COALESCED_COST`] for each
+    /// pong or refusal folded into a waiting one.
+    pub fn reply_backlog(&self) -> usize {
+        let s = &self.shared;
+        let folded = s.pongs_folded.load(Relaxed) + s.refusals_folded.load(Relaxed);
+        s.replies.load(Relaxed) + folded.saturating_mul(COALESCED_COST)
+    }
+
+    /// Resolves once the reply backlog is at most `bound`, or the session is closed.
+    pub async fn replies_within(&self, bound: usize) {
+        loop {
+            let drained = self.shared.drained.notified();
+            let closed = self.shared.notify.notified();
+            if self.reply_backlog() <= bound || self.is_closed() {
+                return;
+            }
+            tokio::select! {
+                _ = drained => {}
+                _ = closed => {}
             }
         }
     }
@@ -176,8 +297,16 @@ impl Outbox {
     /// and counted per message kind, and the session is closed with an `Internal` error.
     /// Returns whether the message was queued.
     pub fn send(&self, msg: &ServerMsg, metrics: &Metrics) -> bool {
+        let reply = matches!(
+            msg,
+            ServerMsg::Ack { .. }
+                | ServerMsg::Undone { .. }
+                | ServerMsg::Refused { .. }
+                | ServerMsg::Pong { .. }
+                | ServerMsg::Error { .. }
+        );
         match encode_server(msg) {
-            Ok(frame) => self.push(Bytes::from(frame)),
+            Ok(frame) => self.enqueue(Bytes::from(frame), reply),
             Err(e) => {
                 let kind = msg.kind();
                 tracing::error!(message = kind, error = %e, "cannot encode a reply; closing the session");
@@ -307,6 +436,63 @@ mod tests {
             ServerMsg::Pong { nonce: 10_001 }
         ));
         assert_eq!(total.load(Relaxed), 0);
+    }
+
+    #[tokio::test]
+    async fn refusals_coalesce_and_replies_make_the_backlog() {
+        let metrics = Metrics::default();
+        let (out, mut rx, total) = outbox();
+        for i in 0..10_000 {
+            out.refuse(if i % 2 == 0 {
+                Refusal::RateLimited
+            } else {
+                Refusal::NotAllowed
+            });
+        }
+        assert_eq!(out.queued(), FRAME_OVERHEAD, "one refusal waits");
+        assert_eq!(out.reply_backlog(), FRAME_OVERHEAD + 9_999 * COALESCED_COST);
+        // Deltas are not replies; acks are.
+        assert!(out.push(Bytes::from_static(b"delta")));
+        let ack = ServerMsg::Ack {
+            client_seq: 1,
+            seq: None,
+            applied: 0,
+            rejected: Vec::new(),
+        };
+        assert!(out.send(&ack, &metrics));
+        let ack_len = encode_server(&ack).unwrap().len();
+        assert_eq!(
+            out.reply_backlog(),
+            2 * FRAME_OVERHEAD + ack_len + 9_999 * COALESCED_COST
+        );
+        let waiter = tokio::spawn({
+            let out = out.clone();
+            async move { out.replies_within(0).await }
+        });
+        tokio::task::yield_now().await;
+        assert!(!waiter.is_finished());
+        let refused = decode_server(&rx.try_take().unwrap(), &Limits::hard_caps()).unwrap();
+        assert_eq!(
+            refused,
+            ServerMsg::Refused {
+                reason: Refusal::NotAllowed
+            },
+            "the latest reason"
+        );
+        assert_eq!(out.reply_backlog(), FRAME_OVERHEAD + ack_len);
+        assert_eq!(rx.try_take().unwrap().as_ref(), b"delta");
+        assert_eq!(
+            decode_server(&rx.try_take().unwrap(), &Limits::hard_caps()).unwrap(),
+            ack
+        );
+        tokio::time::timeout(std::time::Duration::from_secs(5), waiter)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!((out.reply_backlog(), total.load(Relaxed)), (0, 0));
+        // A refusal after the last was written queues again.
+        out.refuse(Refusal::RateLimited);
+        assert!(rx.try_take().is_some());
     }
 
     #[tokio::test]
