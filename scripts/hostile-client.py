@@ -9,6 +9,10 @@ handshake, the frames and the bincode of the few messages used are written by ha
     hostile-client.py ping|camera|huge HOST PORT SCENE SECONDS
         One connection that never reads and keeps sending Pings, Camera updates, or Edit
         messages of 4,096 spheres of radius 64.
+    hostile-client.py replies HOST PORT SCENE N SECONDS
+        N connections that never read and keep sending requests the server answers: refused
+        presence (a cursor outside the scene), Undo with nothing to undo, Edit messages refused
+        for their work (64 spheres of radius 64) and Pings, in turn.
 
 Holds the connections for SECONDS, then prints one JSON line: how many connected and how many
 were refused (idle viewers also: how many connections the server closed).
@@ -22,7 +26,7 @@ import struct
 import sys
 import time
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 3
 
 
 def varint(n):
@@ -38,8 +42,8 @@ def varint(n):
 
 def hello():
     name = b"stalled"
-    # ClientMsg::Hello { protocol, name, token: None, resume_from: None }, variant 0.
-    return varint(0) + varint(PROTOCOL_VERSION) + varint(len(name)) + name + b"\x00\x00"
+    # ClientMsg::Hello { protocol, name, token: None, resume_from: None, user: 0 }, variant 0.
+    return varint(0) + varint(PROTOCOL_VERSION) + varint(len(name)) + name + b"\x00\x00" + varint(0)
 
 
 def frame(payload):
@@ -55,8 +59,10 @@ def frame(payload):
     return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
 
 
-def connect(host, port, scene):
-    s = socket.create_connection((host, port))
+def connect(host, port, scene, source=None):
+    # `source`: another loopback address to come from (the server limits connections per
+    # address, and the well-behaved probe must not count against the attackers' allowance).
+    s = socket.create_connection((host, port), source_address=(source, 0) if source else None)
     # A small receive buffer: the server's data piles up on its side, as with a slow reader.
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     key = base64.b64encode(os.urandom(16)).decode()
@@ -99,6 +105,55 @@ def huge_edit(client_seq, n):
     return varint(1) + varint(client_seq) + varint(n) + sphere * n
 
 
+def refused_presence():
+    # ClientMsg::Presence { view: None, cursor: Some(Cursor { voxel: [u32; 3], radius }) },
+    # variant 7, with the cursor far outside any scene.
+    return varint(7) + b"\x00\x01" + varint(4_000_000_000) * 3 + f32s([1.0])
+
+
+def undo(client_seq):
+    # ClientMsg::Undo { client_seq }, variant 5.
+    return varint(5) + varint(client_seq)
+
+
+def replies(host, port, scene, n, seconds):
+    """N connections that never read, each sending requests the server must answer."""
+    conns, refused = [], 0
+    for _ in range(n):
+        try:
+            s = connect(host, port, scene, source="127.0.0.2")
+            s.setblocking(False)
+            conns.append([s, b""])
+        except (ConnectionError, OSError):
+            refused += 1
+    # One chunk of frames, built once and sent again and again (masking in Python is slow, and
+    # the attack is only as good as its sending rate).
+    kinds = [refused_presence(), None, None, ping(1)]
+    chunk = b"".join(
+        frame((kinds[k % 4] if k % 4 in (0, 3) else undo(k) if k % 4 == 1 else huge_edit(k, 64)))
+        for k in range(200)
+    )
+    sent, end = 0, time.time() + seconds
+    while time.time() < end and conns:
+        progressed = False
+        for c in list(conns):
+            if not c[1]:
+                c[1] = chunk
+                sent += 200
+            try:
+                m = c[0].send(c[1])
+                c[1] = c[1][m:]
+                progressed = progressed or m > 0
+            except BlockingIOError:
+                pass
+            except OSError:
+                conns.remove(c)
+        if not progressed:
+            time.sleep(0.002)
+    print(json.dumps({"attack": "replies", "connected": n - refused, "refused": refused,
+                      "messages_offered": sent, "open_at_end": len(conns)}))
+
+
 def attack(host, port, scene, kind, seconds):
     """One connection that keeps sending `kind` messages for `seconds` and never reads."""
     s = connect(host, port, scene)
@@ -126,6 +181,10 @@ def attack(host, port, scene, kind, seconds):
 
 
 def main():
+    if sys.argv[1] == "replies":
+        host, port, scene, n, seconds = sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5]), float(sys.argv[6])
+        replies(host, port, scene, n, seconds)
+        return
     if sys.argv[1] in ("ping", "camera", "huge"):
         kind, host, port, scene, seconds = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], float(sys.argv[5])
         attack(host, port, scene, kind, seconds)

@@ -191,6 +191,7 @@ fn refusal() -> impl Strategy<Value = Refusal> {
         Just(Refusal::NotFinite),
         any::<u32>().prop_map(|max| Refusal::BadName { max }),
         Just(Refusal::OutOfRange),
+        Just(Refusal::NameTaken),
     ]
 }
 

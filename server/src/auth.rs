@@ -6,7 +6,7 @@
 //! server). With one, a connection without a token is a viewer (hosting for remote viewers), and
 //! an unknown token is refused outright so that a typo is loud rather than silently read-only.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::Path;
 
 use anyhow::{Context, bail};
@@ -15,6 +15,9 @@ use brickcast_protocol::wire::Role;
 #[derive(Debug, Clone, Default)]
 pub struct Auth {
     tokens: Option<HashMap<String, Grant>>,
+    /// The names the file gives users, by [`crate::identity::name_key`]: nobody else may show
+    /// them, or a name that looks like them.
+    reserved: HashSet<String>,
 }
 
 /// What a token grants: a role, and the user it belongs to when the line names one.
@@ -40,7 +43,7 @@ impl Access {
 impl Auth {
     /// Everyone is an editor.
     pub fn open() -> Auth {
-        Auth { tokens: None }
+        Auth::default()
     }
 
     /// Whether every connection is let in as an editor (no `--auth` file).
@@ -87,9 +90,20 @@ impl Auth {
                 bail!("line {}: token listed twice", n + 1);
             }
         }
+        let reserved = tokens
+            .values()
+            .filter_map(|g| g.name.as_deref())
+            .map(crate::identity::name_key)
+            .collect();
         Ok(Auth {
             tokens: Some(tokens),
+            reserved,
         })
+    }
+
+    /// Whether `name` is (or looks like) a name the auth file gives a user.
+    pub fn reserves(&self, name: &str) -> bool {
+        !self.reserved.is_empty() && self.reserved.contains(&crate::identity::name_key(name))
     }
 
     pub fn check(&self, token: Option<&str>) -> Access {
@@ -123,6 +137,8 @@ mod tests {
         assert_eq!(auth.check(None), Access::role(Role::Viewer));
         assert_eq!(auth.check(Some("mallory")), Access::Refused);
         assert_eq!(Auth::open().check(None), Access::role(Role::Editor));
+        assert!(auth.reserves("Alice Liddell") && auth.reserves("AIice LiddeII"));
+        assert!(!auth.reserves("Alice") && !Auth::open().reserves("Alice Liddell"));
         assert!(Auth::parse("x admin").is_err());
         assert!(Auth::parse("x").is_err());
         assert!(Auth::parse("x editor\nx viewer").is_err());

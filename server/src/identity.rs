@@ -9,7 +9,7 @@
 //! can claim a token's user by choosing its id.
 
 use brickcast_protocol::Colour;
-use brickcast_protocol::wire::{MAX_DISPLAY_NAME_BYTES, UserId, check_display_name};
+use brickcast_protocol::wire::{UserId, clean_display_name};
 
 /// Who a connection is.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -108,20 +108,10 @@ pub fn colour_among(user: UserId, taken: &[Colour]) -> Colour {
         .unwrap_or(own)
 }
 
-/// A name fit to show: the client's if it is one, else its printable part, else `guest-N`.
+/// A name fit to show: the client's made fit (`clean_display_name`: no control or format
+/// characters, no stacked marks), else `guest-N`.
 fn display_name(asked: &str, session: u64) -> String {
-    if check_display_name(asked).is_ok() {
-        return asked.to_string();
-    }
-    let mut name: String = asked
-        .chars()
-        .filter(|c| !c.is_control())
-        .collect::<String>()
-        .trim()
-        .to_string();
-    while name.len() > MAX_DISPLAY_NAME_BYTES {
-        name.pop();
-    }
+    let name = clean_display_name(asked);
     if name.is_empty() {
         format!("guest-{session}")
     } else {
@@ -129,15 +119,35 @@ fn display_name(asked: &str, session: u64) -> String {
     }
 }
 
+/// What two names that look alike share: their UTS #39 skeleton, compared without case. The
+/// skeleton is case-sensitive (it maps capital `I` and `1` to `l`) and lowercasing makes an `i`
+/// of what was an `I`, so the key is the skeleton of the lowercased skeleton with `i` read as
+/// `l`: `Alice`, `AIice`, `ALICE`, `A1ice` and a Cyrillic `Аlice` meet, and `rn` meets `m`.
+/// It errs towards "alike" (`Allce` meets `Alice` too): a name is only refused for it.
+/// Two people whose names have one key cannot both be shown under them.
+pub fn name_key(name: &str) -> String {
+    let once: String = unicode_security::skeleton(name).collect();
+    unicode_security::skeleton(&once.to_lowercase())
+        .map(|c| if c == 'i' { 'l' } else { c })
+        .collect()
+}
+
+/// Whether `user` is pinned by a token's line (its id cannot be chosen by a client).
+pub fn is_pinned(user: UserId) -> bool {
+    user & PINNED != 0
+}
+
 /// Decides a connection's identity from its `Hello` (`asked_user`, `asked_name`) and, with
 /// `--auth`, the name its token's line gives (`token_name`). `open` is whether the server runs
-/// without `--auth`.
+/// without `--auth`; `reserved` whether a name is another's (the auth file's names and those
+/// that look like them): a client asking for one is shown as `guest-N`.
 pub fn identify(
     open: bool,
     token_name: Option<&str>,
     asked_user: UserId,
     asked_name: &str,
     session: u64,
+    reserved: impl Fn(&str) -> bool,
 ) -> Identity {
     let (user, name, stable) = match token_name {
         Some(name) => (hash_name(name) | PINNED, name.to_string(), true),
@@ -147,12 +157,16 @@ pub fn identify(
             } else {
                 asked_user & !PINNED
             };
+            let mut name = display_name(asked_name, session);
+            if reserved(&name) {
+                name = format!("guest-{session}");
+            }
             if asked == 0 {
                 // Any id unlikely to meet another: it lives as long as the connection.
                 let user = mix(session ^ 0x9e37_79b9_7f4a_7c15 ^ nanos()) & !PINNED;
-                (user.max(1), display_name(asked_name, session), false)
+                (user.max(1), name, false)
             } else {
-                (asked, display_name(asked_name, session), true)
+                (asked, name, true)
             }
         }
     };
@@ -175,21 +189,60 @@ fn nanos() -> u64 {
 mod tests {
     use super::*;
 
+    fn none(_: &str) -> bool {
+        false
+    }
+
+    #[test]
+    fn names_that_look_alike_share_a_key() {
+        let alice = name_key("Alice");
+        // Capital I for l, Cyrillic А, Greek ο, case, a digit one, fullwidth letters.
+        for alike in ["AIice", "\u{410}lice", "ALICE", "A1ice", "Ａｌｉｃｅ"] {
+            assert_eq!(name_key(alike), alice, "{alike:?}");
+        }
+        assert_eq!(name_key("Bοb"), name_key("Bob"));
+        assert_eq!(name_key("rnary"), name_key("mary"));
+        for other in ["Alicia", "Al ice", "Bob", "alice2"] {
+            assert_ne!(name_key(other), alice, "{other:?}");
+        }
+        // A client asking for a reserved name is shown as a guest.
+        let reserved = |n: &str| name_key(n) == alice;
+        assert_eq!(
+            identify(false, None, 5, "A\u{200B}lice", 7, reserved).name,
+            "guest-7"
+        );
+        assert_eq!(identify(false, None, 5, "Bob", 7, reserved).name, "Bob");
+        // The token's own user keeps it.
+        assert_eq!(
+            identify(false, Some("Alice"), 5, "x", 7, reserved).name,
+            "Alice"
+        );
+        assert!(is_pinned(
+            identify(false, Some("Alice"), 5, "x", 7, reserved).user
+        ));
+    }
+
     #[test]
     fn tokens_pin_ids_and_clients_cannot_claim_them() {
-        let alice = identify(false, Some("alice"), 5, "x", 1);
+        let alice = identify(false, Some("alice"), 5, "x", 1, none);
         assert_eq!(alice.name, "alice");
         assert!(alice.stable);
-        assert_eq!(alice, identify(false, Some("alice"), 77, "y", 2));
-        let claim = identify(false, None, alice.user, "mallory", 3);
+        assert_eq!(alice, identify(false, Some("alice"), 77, "y", 2, none));
+        let claim = identify(false, None, alice.user, "mallory", 3, none);
         assert_ne!(claim.user, alice.user);
         // Without --auth an id is taken as sent.
-        assert_eq!(identify(true, None, alice.user, "m", 3).user, alice.user);
-        let anon = identify(true, None, 0, "", 9);
+        assert_eq!(
+            identify(true, None, alice.user, "m", 3, none).user,
+            alice.user
+        );
+        let anon = identify(true, None, 0, "", 9, none);
         assert!(!anon.stable && anon.user != 0);
         assert_eq!(anon.name, "guest-9");
-        assert_eq!(identify(true, None, 4, " bad\u{7}name ", 9).name, "badname");
-        assert_eq!(identify(true, None, 4, "bob", 9).colour, colour_of(4));
+        assert_eq!(
+            identify(true, None, 4, " bad\u{7}name ", 9, none).name,
+            "badname"
+        );
+        assert_eq!(identify(true, None, 4, "bob", 9, none).colour, colour_of(4));
         // Someone present already shows user 4's colour: the next free one instead.
         let mine = colour_of(4);
         let other = colour_among(4, &[mine]);

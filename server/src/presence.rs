@@ -26,8 +26,10 @@ use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use brickcast_protocol::Colour;
 use brickcast_protocol::wire::{
-    Cursor, Peer, PeerId, PeerState, Refusal, ServerMsg, UserId, View, encode_server,
+    Cursor, MAX_DISPLAY_NAME_BYTES, Peer, PeerId, PeerState, Refusal, ServerMsg, UserId, View,
+    encode_server,
 };
 use bytes::Bytes;
 
@@ -115,20 +117,42 @@ impl Roster {
     }
 
     /// Two nodes can give one colour to two people who joined at the same moment (each picks
-    /// among the peers it knows of). Of a local user and a remote one that look alike, the
-    /// one with the larger user id picks again, on its own node: both nodes apply the same
-    /// rule, so exactly one of them changes. The change goes out like a rename, to this node's
-    /// clients and to the other nodes. Every window of the user gets the new colour.
+    /// among the peers it knows of). Of a local user and a remote one that look alike, the one
+    /// that [`yields`] picks again, on its own node: both nodes apply the same rule, so exactly
+    /// one of them changes. The change goes out like a rename, to this node's clients and to
+    /// the other nodes. Every window of the user gets the new colour.
     fn recolour_against(&mut self, remote: &Peer) {
-        let mut users: Vec<UserId> = self
+        let users: Vec<UserId> = self
             .members
             .values()
             .filter(|m| {
-                m.peer.user > remote.user
+                yields(&m.peer, remote)
                     && crate::identity::looks_alike(m.peer.colour, remote.colour)
             })
             .map(|m| m.peer.user)
             .collect();
+        self.recolour(users, None);
+    }
+
+    /// A user the auth file names keeps its own colour: local users a client chose the id of
+    /// (so that it lands on that colour, say) and who show it pick again.
+    fn give_way_to(&mut self, pinned: UserId) {
+        let own = crate::identity::colour_of(pinned);
+        let users: Vec<UserId> = self
+            .members
+            .values()
+            .filter(|m| {
+                !crate::identity::is_pinned(m.peer.user)
+                    && crate::identity::looks_alike(m.peer.colour, own)
+            })
+            .map(|m| m.peer.user)
+            .collect();
+        self.recolour(users, Some(own));
+    }
+
+    /// `users` pick their colour again among everyone else's (and `also`), every window of
+    /// each; the change goes out like a rename.
+    fn recolour(&mut self, mut users: Vec<UserId>, also: Option<Colour>) {
         users.sort_unstable();
         users.dedup();
         for user in users {
@@ -136,6 +160,7 @@ impl Roster {
                 .peers()
                 .filter(|p| p.user != user)
                 .map(|p| p.colour)
+                .chain(also)
                 .collect();
             let colour = crate::identity::colour_among(user, &taken);
             let changed: Vec<Peer> = self
@@ -151,6 +176,13 @@ impl Roster {
                 self.joined(peer, true);
             }
         }
+    }
+
+    /// Whether another user present (here or on another node) shows a name like `name`.
+    fn name_taken(&self, user: UserId, name: &str) -> bool {
+        let key = crate::identity::name_key(name);
+        self.peers()
+            .any(|p| p.user != user && crate::identity::name_key(&p.name) == key)
     }
 
     fn left(&mut self, id: PeerId, local: bool) {
@@ -174,6 +206,38 @@ impl Roster {
             .map(|m| &m.peer)
             .chain(self.remote.values().map(|r| &r.peer))
     }
+}
+
+/// Of two users who show one colour, whether `a` picks again rather than `b`: a user the
+/// auth file names keeps its colour before one whose id a client chose, and otherwise the
+/// larger id picks again. Every node decides the same.
+fn yields(a: &Peer, b: &Peer) -> bool {
+    use crate::identity::is_pinned;
+    match (is_pinned(a.user), is_pinned(b.user)) {
+        (false, true) => true,
+        (true, false) => false,
+        _ => a.user > b.user,
+    }
+}
+
+/// `name`, or (when another user present shows a name that looks like it) `name (2)`,
+/// `name (3)`, ..., whichever is free, cut to fit the name bound.
+fn free_name(roster: &Roster, user: UserId, name: &str) -> String {
+    if !roster.name_taken(user, name) {
+        return name.to_string();
+    }
+    for n in 2..1000 {
+        let suffix = format!(" ({n})");
+        let mut base = name.to_string();
+        while base.len() + suffix.len() > MAX_DISPLAY_NAME_BYTES {
+            base.pop();
+        }
+        let candidate = format!("{}{suffix}", base.trim_end());
+        if !roster.name_taken(user, &candidate) {
+            return candidate;
+        }
+    }
+    format!("guest-{user:x}")
 }
 
 /// One scene's presence: the roster and latest states, and what changed since the last tick.
@@ -203,15 +267,20 @@ impl Hub {
     /// Welcome. It is sent nothing until [`Hub::welcomed`].
     pub fn join(&self, mut peer: Peer, out: Outbox) -> (Peer, Vec<Peer>) {
         let mut roster = self.roster();
-        let others: Vec<Peer> = roster.peers().cloned().collect();
-        match others.iter().find(|p| p.user == peer.user) {
+        let here = roster.peers().find(|p| p.user == peer.user).cloned();
+        match here {
             // The same user in another window keeps the colour it shows there.
             Some(same) => peer.colour = same.colour,
             None => {
-                let taken: Vec<_> = others.iter().map(|p| p.colour).collect();
+                if crate::identity::is_pinned(peer.user) {
+                    roster.give_way_to(peer.user);
+                }
+                let taken: Vec<_> = roster.peers().map(|p| p.colour).collect();
                 peer.colour = crate::identity::colour_among(peer.user, &taken);
+                peer.name = free_name(&roster, peer.user, &peer.name);
             }
         }
+        let others: Vec<Peer> = roster.peers().cloned().collect();
         let id = peer.id;
         roster.joined(&peer, true);
         roster.members.insert(
@@ -253,15 +322,23 @@ impl Hub {
         roster.changed(state, true);
     }
 
-    /// The peer's new display name (checked by the session).
-    pub fn rename(&self, id: PeerId, name: String) {
+    /// The peer's new display name (checked by the session), unless another user present
+    /// shows one like it.
+    pub fn rename(&self, id: PeerId, name: String) -> Result<(), Refusal> {
         let mut roster = self.roster();
+        let Some(user) = roster.members.get(&id).map(|m| m.peer.user) else {
+            return Ok(());
+        };
+        if roster.name_taken(user, &name) {
+            return Err(Refusal::NameTaken);
+        }
         let Some(m) = roster.members.get_mut(&id) else {
-            return;
+            return Ok(());
         };
         m.peer.name = name;
         let peer = m.peer.clone();
         roster.joined(&peer, true);
+        Ok(())
     }
 
     /// The peer left.
@@ -559,6 +636,61 @@ mod tests {
         other.colour = mine[0].colour;
         assert!(hub.remote_join(other));
         assert!(hub.take_local().joined.is_empty());
+    }
+
+    #[test]
+    fn a_name_like_another_users_is_numbered_or_refused() {
+        let total = Arc::new(AtomicUsize::new(0));
+        let hub = Hub::new(20);
+        let (out, _rx) = Outbox::new(total.clone());
+        let mut alice = peer(1);
+        alice.name = "Alice".into();
+        assert_eq!(hub.join(alice, out.clone()).0.name, "Alice");
+        // Another user asking for a name that looks the same is shown with a number.
+        for (id, asked, shown) in [
+            (2, "AIice", "AIice (2)"),
+            (3, "\u{410}lice", "\u{410}lice (3)"),
+        ] {
+            let mut p = peer(id);
+            p.name = asked.into();
+            assert_eq!(hub.join(p, out.clone()).0.name, shown);
+        }
+        // The same user in a second window keeps the name.
+        let mut window = peer(4);
+        window.user = 1;
+        window.name = "Alice".into();
+        assert_eq!(hub.join(window, out.clone()).0.name, "Alice");
+        // A rename to a name like another user's is refused; one's own is fine.
+        assert_eq!(hub.rename(2, "ALICE".into()), Err(Refusal::NameTaken));
+        assert_eq!(hub.rename(4, "ALICE".into()), Ok(()));
+        assert_eq!(hub.rename(2, "Bob".into()), Ok(()));
+    }
+
+    #[test]
+    fn a_user_the_auth_file_names_keeps_its_colour() {
+        let total = Arc::new(AtomicUsize::new(0));
+        let hub = Hub::new(20);
+        let (out, _rx) = Outbox::new(total.clone());
+        let alice = crate::identity::identify(false, Some("Alice"), 0, "", 1, |_| false);
+        let own = crate::identity::colour_of(alice.user);
+        // A stranger chose an id that lands on Alice's colour, and came first.
+        let stranger_id = (1..10_000u64)
+            .find(|&u| crate::identity::colour_of(u) == own)
+            .unwrap();
+        let mut stranger = peer(2);
+        stranger.user = stranger_id;
+        assert_eq!(hub.join(stranger, out.clone()).0.colour, own);
+        let mut pinned = peer(3);
+        pinned.user = alice.user;
+        let (joined, roster) = hub.join(pinned, out);
+        assert_eq!(joined.colour, own, "Alice shows her own colour");
+        let squatter = roster.iter().find(|p| p.id == 2).unwrap();
+        assert!(!crate::identity::looks_alike(squatter.colour, own));
+        // Across nodes the same: a pinned user does not yield to a stranger with a smaller id.
+        let mut remote = peer(REMOTE_IDS + 1);
+        remote.user = 1;
+        remote.colour = own;
+        assert!(yields(&remote, &joined) && !yields(&joined, &remote));
     }
 
     #[test]

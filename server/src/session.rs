@@ -180,7 +180,14 @@ async fn handshake(
             ..
         }) => match app.auth.check(token.as_deref()) {
             Access::Granted(grant) => {
-                let who = identify(app.auth.is_open(), grant.name.as_deref(), user, &name, id);
+                let who = identify(
+                    app.auth.is_open(),
+                    grant.name.as_deref(),
+                    user,
+                    &name,
+                    id,
+                    |n| app.auth.reserves(n),
+                );
                 let role = grant.role;
                 tracing::info!(scene = %scene.name, client = %who.name, user = who.user, ?role, ?resume_from, "client joined");
                 Some((role, resume_from, who))
@@ -515,8 +522,10 @@ async fn read_loop(
                 } else if session.who.pinned {
                     // A name from the auth file is the user's name.
                     session.refuse(Refusal::NotAllowed);
-                } else {
-                    scene.presence.rename(id, name);
+                } else if app.auth.reserves(&name) {
+                    session.refuse(Refusal::NameTaken);
+                } else if let Err(reason) = scene.presence.rename(id, name) {
+                    session.refuse(reason);
                 }
             }
         }

@@ -433,3 +433,81 @@ async fn a_client_that_never_reads_does_not_queue_presence() {
     drop(silent);
     server.shutdown().await.unwrap();
 }
+
+/// Before: names kept format characters (`Al\u{200b}ice`), a stranger could show as a name the
+/// auth file gives someone ("Alice Liddell", or a look-alike), and could choose an id whose
+/// colour is hers so that she got another. Now names are cleaned, the auth file's names and
+/// their look-alikes are the named users' only, and a named user keeps her colour.
+#[tokio::test]
+async fn a_name_the_auth_file_gives_cannot_be_shown_by_anyone_else() {
+    use brickcast_server::identity::{colour_of, identify, looks_alike};
+    let data = tempfile::tempdir().unwrap();
+    let auth = data.path().join("auth");
+    std::fs::write(&auth, "ed editor Alice Liddell\nmal editor\n").unwrap();
+    let server = TestServer::start(data.path(), |c| {
+        c.auth = brickcast_server::auth::Auth::from_file(&auth).unwrap();
+    })
+    .await;
+    let url = server.url("demo");
+    // Mallory picks an id that lands on Alice's colour and a name like hers, and comes first.
+    let alice_user = identify(false, Some("Alice Liddell"), 0, "", 0, |_| false).user;
+    let hers = colour_of(alice_user);
+    let id = (1..100_000u64).find(|&u| colour_of(u) == hers).unwrap();
+    let mut mallory = Client::as_user(&url, Some("mal"), id, "AIice LiddeII")
+        .await
+        .unwrap();
+    let shown = mallory.roster.you.clone().unwrap();
+    assert!(shown.name.starts_with("guest-"), "{}", shown.name);
+    assert_eq!(shown.colour, hers, "the colour was free");
+    mallory.sync().await;
+    let mut alice = Client::as_user(&url, Some("ed"), 0, "x").await.unwrap();
+    let me = alice.roster.you.clone().unwrap();
+    assert_eq!((me.name.as_str(), me.colour), ("Alice Liddell", hers));
+    // Mallory now shows another colour, as Alice sees her.
+    assert!(
+        alice
+            .until(|a, _| a
+                .roster
+                .others
+                .get(&shown.id)
+                .is_some_and(|p| !looks_alike(p.peer.colour, hers)))
+            .await
+    );
+    // Renames to her name, a look-alike of it, or with invisible characters are refused.
+    for name in ["Alice Liddell", "ALICE LIDDELL", "\u{410}lice Liddell"] {
+        mallory.send(&ClientMsg::Rename { name: name.into() }).await;
+        assert!(
+            mallory
+                .until(|_, m| matches!(
+                    m,
+                    ServerMsg::Refused {
+                        reason: Refusal::NameTaken
+                    }
+                ))
+                .await,
+            "{name:?} was not refused"
+        );
+    }
+    mallory
+        .send(&ClientMsg::Rename {
+            name: "Mal\u{200B}lory".into(),
+        })
+        .await;
+    assert!(
+        mallory
+            .until(|_, m| matches!(
+                m,
+                ServerMsg::Refused {
+                    reason: Refusal::BadName { .. }
+                }
+            ))
+            .await
+    );
+    // A name sent in Hello with format characters is shown cleaned.
+    let bob = Client::as_user(&url, Some("mal"), 0, "B\u{202E}o\u{200B}b")
+        .await
+        .unwrap();
+    assert_eq!(bob.roster.you.as_ref().unwrap().name, "Bob");
+    assert!(alice.errors.is_empty() && mallory.errors.is_empty());
+    server.shutdown().await.unwrap();
+}

@@ -570,7 +570,7 @@ async fn a_client_that_sends_without_reading_is_not_read() {
                 let msg = if client_seq % 2 == 0 {
                     ClientMsg::Edit {
                         client_seq,
-                        ops: vec![sphere.clone(); 64],
+                        ops: vec![sphere; 64],
                     }
                 } else {
                     ClientMsg::Presence {

@@ -80,6 +80,10 @@ pub enum Refusal {
     BadName { max: u32 },
     #[error("the cursor is outside the scene or its radius is out of range")]
     OutOfRange,
+    /// The name is someone else's: it looks like (UTS #39 confusable with) the name of another
+    /// user present, or of a user the server's auth file names.
+    #[error("that name is taken: it looks like the name of someone else here")]
+    NameTaken,
 }
 
 impl View {
@@ -89,20 +93,4 @@ impl View {
         let len2: f32 = self.forward.iter().map(|v| v * v).sum();
         finite && len2.is_finite() && len2 > 1e-12
     }
-}
-
-/// Why a display name is refused: empty after trimming, too long, or holding control characters
-/// (names are drawn on other people's screens).
-pub fn check_display_name(name: &str) -> Result<(), Refusal> {
-    let trimmed = name.trim();
-    if trimmed.is_empty()
-        || name.len() > MAX_DISPLAY_NAME_BYTES
-        || trimmed.len() != name.len()
-        || name.chars().any(char::is_control)
-    {
-        return Err(Refusal::BadName {
-            max: MAX_DISPLAY_NAME_BYTES as u32,
-        });
-    }
-    Ok(())
 }

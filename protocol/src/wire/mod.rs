@@ -30,6 +30,7 @@ mod edit;
 mod error;
 mod limits;
 mod message;
+mod names;
 mod zstd_frame;
 
 pub use blob::{BlobDecoder, BlobEncoder, BrickBlob, BrickRef};
@@ -38,19 +39,20 @@ pub use codec::{
 };
 pub use collab::{
     Cursor, MAX_DISPLAY_NAME_BYTES, MAX_PEERS_PER_FRAME, Peer, PeerId, PeerState, Refusal, UserId,
-    View, check_display_name,
+    View,
 };
 pub use edit::{BrushMode, EditOp, RayAction, Rejection};
 pub use error::WireError;
 pub use limits::{Limits, MAX_PRESENCE_HZ};
 pub use message::{ClientMsg, ErrorCode, OpRejection, Role, ServerMsg};
+pub use names::{MAX_MARKS_PER_LETTER, check_display_name, clean_display_name};
 
 /// Version of this wire format. A `Hello` carrying another number is answered with
 /// [`ErrorCode::VersionMismatch`] rather than a decode failure, so that old clients learn why.
 ///
 /// 2 added identity (`Hello.user`, `Welcome.you`/`peers`), presence, undo/redo and the history
-/// and presence limits.
-pub const PROTOCOL_VERSION: u32 = 2;
+/// and presence limits. 3 added `Refusal::NameTaken`.
+pub const PROTOCOL_VERSION: u32 = 3;
 
 /// Largest frame either side will ever encode or decode, whatever a server announces. It is also
 /// bincode's decode limit, the ceiling on what a length prefix can make the decoder reserve.
