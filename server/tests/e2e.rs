@@ -276,7 +276,7 @@ async fn bad_frames_close_only_their_connection() {
             code: ErrorCode::VersionMismatch,
             message,
         } => assert!(
-            message.contains("protocol 2") && message.contains("client 1"),
+            message.contains("protocol 3") && message.contains("client 1"),
             "{message}"
         ),
         other => panic!("{other:?}"),
