@@ -623,29 +623,46 @@ async fn a_client_joining_during_heavy_editing_converges() {
     server.shutdown().await.unwrap();
 }
 
+/// A client that keeps writing but never reads is first no longer read (its replies stay
+/// under a small backlog, so it costs its own socket, not the server's memory), then cut off
+/// once its socket has taken nothing for the stall timeout.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_client_that_writes_but_never_reads_is_cut_off() {
+async fn a_client_that_writes_but_never_reads_is_paused_then_cut_off() {
     let dir = tempfile::tempdir().unwrap();
-    let server = TestServer::start(dir.path(), |c| c.owner.max_queue_bytes = 64 << 10).await;
+    let server = TestServer::start(dir.path(), |c| {
+        c.owner.max_queue_bytes = 64 << 10;
+        c.stall_timeout = Duration::from_secs(1);
+    })
+    .await;
     let url = server.url("demo");
     let mut flooder = Client::connect(&url, None).await.unwrap();
     // Every op is out of bounds, so each batch earns an ack listing 4,000 rejections; the
-    // client never reads them, and they pile up behind the kernel's socket buffers.
+    // client never reads them, and they pile up behind the kernel's socket buffers. Once the
+    // server stops reading, the client's own sends wait (and fail once it is cut off).
     let ops: Vec<EditOp> = (0..4000)
         .map(|_| EditOp::Clear {
             pos: [100_000, 100_000, 100_000],
         })
         .collect();
-    for _ in 0..200 {
-        flooder.send_edit(ops.clone()).await;
+    let sending = tokio::spawn(async move {
+        // Far more replies than loopback's socket buffers hold (about 16 KB each); sends
+        // after the cut-off fail at once.
+        for _ in 0..5000 {
+            flooder.send_edit(ops.clone()).await;
+        }
+        flooder
+    });
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while common::metric(server.addr, "brickcast_stalled_disconnects_total").await < 1.0 {
+        if std::time::Instant::now() > deadline {
+            let (_, m) = http_get(server.addr, "/metrics").await;
+            panic!("the flooder was never cut off: {m}");
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    let errors = flooder.until_closed().await;
-    assert!(
-        errors
-            .iter()
-            .any(|(code, text)| *code == ErrorCode::RateLimited && text.contains("does not read")),
-        "{errors:?}"
-    );
+    assert!(common::metric(server.addr, "brickcast_reads_paused_total").await >= 1.0);
+    let mut flooder = sending.await.unwrap();
+    flooder.until_closed().await;
     // Everyone else is unaffected.
     let mut other = Client::connect(&url, None).await.unwrap();
     other.sync().await;

@@ -7,7 +7,6 @@
 
 mod common;
 
-use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
 use brickcast_protocol::BrushMode;
@@ -15,18 +14,10 @@ use brickcast_protocol::wire::{
     ClientMsg, EditOp, ErrorCode, PROTOCOL_VERSION, Rejection, ServerMsg, decode_server,
     encode_client,
 };
-use common::{Client, TestServer, colour, http_get};
+use common::{Client, TestServer, colour, http_get, metric};
 use futures_util::{SinkExt, StreamExt};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::Message;
-
-/// A figure from the server's `/metrics`.
-async fn metric(addr: SocketAddr, name: &str) -> f64 {
-    let (_, text) = http_get(addr, "/metrics").await;
-    text.lines()
-        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
-        .unwrap_or_else(|| panic!("{name} is not in /metrics"))
-}
 
 /// The tests run one at a time: the servers are in this process, so its resident memory is
 /// what they are measured by.

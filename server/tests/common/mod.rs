@@ -63,6 +63,15 @@ impl TestServer {
 }
 
 /// A plain HTTP GET over a raw socket: status code and body.
+/// A figure from the server's `/metrics`.
+#[allow(dead_code)]
+pub async fn metric(addr: SocketAddr, name: &str) -> f64 {
+    let (_, text) = http_get(addr, "/metrics").await;
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
+        .unwrap_or_else(|| panic!("{name} is not in /metrics"))
+}
+
 pub async fn http_get(addr: SocketAddr, path: &str) -> (u16, String) {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let mut s = TcpStream::connect(addr).await.unwrap();
