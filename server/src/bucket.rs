@@ -21,12 +21,22 @@ impl Bucket {
         }
     }
 
-    /// Takes `n` units if the bucket holds them.
-    pub fn take(&mut self, n: f64) -> bool {
+    fn refill(&mut self) {
         let now = Instant::now();
         self.tokens =
             (self.tokens + now.duration_since(self.at).as_secs_f64() * self.rate).min(self.burst);
         self.at = now;
+    }
+
+    /// Whether the bucket holds `n` units now (nothing is taken).
+    pub fn holds(&mut self, n: f64) -> bool {
+        self.refill();
+        self.tokens >= n
+    }
+
+    /// Takes `n` units if the bucket holds them.
+    pub fn take(&mut self, n: f64) -> bool {
+        self.refill();
         if self.tokens >= n {
             self.tokens -= n;
             true

@@ -14,6 +14,7 @@ pub mod auth;
 mod bucket;
 pub mod cluster;
 pub mod conns;
+pub mod fair;
 pub mod http;
 pub mod identity;
 pub mod import;
@@ -160,6 +161,8 @@ pub struct App {
     connection_limits: ConnectionLimits,
     /// Scene thumbnails for the scene list (see `web`).
     pub thumbnails: web::Thumbnails,
+    /// Edit budgets shared by every connection of a user or of an address (see `fair`).
+    pub shares: fair::Shares,
 }
 
 /// Decrements the live-session count when a session ends, so shutdown can wait for sockets to
@@ -393,6 +396,7 @@ impl Server {
             connections: Arc::default(),
             connection_limits: config.connections,
             thumbnails: web::Thumbnails::default(),
+            shares: fair::Shares::default(),
         });
         Server {
             listener,
@@ -679,7 +683,7 @@ async fn websocket(
         .max_frame_size(max)
         .on_upgrade(move |socket| async move {
             let link = using.link.clone();
-            session::run(socket, scene, link, app).await;
+            session::run(socket, scene, link, app, peer.ip()).await;
             drop((admitted, using));
         })
 }

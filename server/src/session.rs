@@ -6,6 +6,7 @@
 //! byte-counted [`Outbox`]. A frame that cannot be decoded or is too large earns one `Error`
 //! frame and a close; the scene and the other sessions carry on.
 
+use std::net::IpAddr;
 use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
@@ -21,6 +22,7 @@ use crate::App;
 use crate::auth::Access;
 use crate::bucket::Bucket;
 use crate::cluster::{Cluster, SceneLink};
+use crate::fair;
 use crate::identity::{Identity, identify};
 use crate::metrics::{Metrics, ReadError, SessionPhase};
 use crate::scene::{
@@ -50,6 +52,7 @@ pub async fn run(
     scene: SceneHandle,
     link: Option<SceneLink<Cluster>>,
     app: Arc<App>,
+    from: IpAddr,
 ) {
     let id = app.next_session_id();
     app.metrics.connected_clients.fetch_add(1, Relaxed);
@@ -102,6 +105,7 @@ pub async fn run(
                     id,
                     role,
                     who: &who,
+                    from,
                 };
                 read_loop(&mut stream, session).await;
                 let _ = scene.send(Command::Leave { session: id }).await;
@@ -242,6 +246,8 @@ struct Session<'a> {
     id: SessionId,
     role: Role,
     who: &'a Identity,
+    /// The address the connection comes from: edit work is budgeted per address too.
+    from: IpAddr,
 }
 
 /// Undo and redo messages one session may send per second, with this much burst: a guard
@@ -290,11 +296,16 @@ async fn read_loop(
         f64::from(limits.max_edits_per_second),
         f64::from(limits.max_edits_per_second),
     );
-    // One second of burst, and always room for one message of the largest allowed size.
-    let mut work_rate = Bucket::new(
+    // One second of burst, and always room for one message of the largest allowed size; the
+    // same budget is shared by every connection of the user and of the address (`crate::fair`).
+    let (work_per_second, work_burst) = (
         budget.max_work_per_second as f64,
         budget.max_work_per_second.max(budget.max_work_per_edit) as f64,
     );
+    let mut work_rate = Bucket::new(work_per_second, work_burst);
+    let shared_work = |owner| app.shares.get(owner, work_per_second, work_burst);
+    let address_work = shared_work(fair::Owner::Address(session.from));
+    let user_work = shared_work(fair::Owner::User(session.who.user));
     let mut resumes = Bucket::new(1.0 / RESUME_INTERVAL.as_secs_f64(), 2.0);
     let mut undos = Bucket::new(UNDOS_PER_SECOND, UNDO_BURST);
     let hz = f64::from(limits.presence_hz);
@@ -400,7 +411,16 @@ async fn read_loop(
                 } else if work > budget.max_work_per_edit {
                     Metrics::add(&app.metrics.edits_over_budget, 1);
                     Some(Rejection::TooLarge)
-                } else if !ops_rate.take(ops.len() as f64) || !work_rate.take(work as f64) {
+                } else if !ops_rate.take(ops.len() as f64)
+                    || !fair::take_all(
+                        &mut [
+                            &mut work_rate,
+                            &mut *address_work.lock().unwrap_or_else(|e| e.into_inner()),
+                            &mut *user_work.lock().unwrap_or_else(|e| e.into_inner()),
+                        ],
+                        work as f64,
+                    )
+                {
                     Some(Rejection::RateLimited)
                 } else {
                     None
@@ -424,13 +444,22 @@ async fn read_loop(
                     );
                     continue;
                 }
+                // A heavy edit waits for its turn at the scene, its socket unread meanwhile.
+                let admitted = tokio::select! {
+                    admitted = scene.heavy.admit(work) => admitted,
+                    _ = shutdown.changed() => return,
+                    _ = out.closed() => return,
+                };
                 let sent = match &forwarder {
+                    // The turn is held while the forwarder takes it; the owner node's own
+                    // sessions take turns there (a cluster shares one gate per node).
                     Some(f) => f.send(client_seq, RequestItem::Edit(ops)).await,
                     None => scene
                         .send(Command::Edit {
                             session: id,
                             client_seq,
                             ops,
+                            admitted,
                         })
                         .await
                         .is_ok(),

@@ -629,3 +629,143 @@ async fn concurrent_thumbnail_requests_draw_one_thumbnail() {
     );
     server.shutdown().await.unwrap();
 }
+
+/// Four editors each sending heavy edits (3 spheres of radius 50) as fast as they can.
+const HEAVY_SENDERS: usize = 4;
+const HEAVY_EACH: usize = 6;
+
+fn heavy_edit(k: usize) -> Vec<EditOp> {
+    (0..3)
+        .map(|i| EditOp::Sphere {
+            centre: [(40 + 60 * i) as f32, 30.0, (40 + 30 * (k % 6)) as f32],
+            radius: 50.0,
+            mode: if k.is_multiple_of(2) {
+                BrushMode::Fill
+            } else {
+                BrushMode::Erase
+            },
+            colour: colour(k as u32),
+        })
+        .collect()
+}
+
+/// Before: heavy edits from several connections queued at the owner in arrival order, and a
+/// light edit waited behind all of them (8 connections at their budget: others' p50 5–7 s).
+/// Now heavy edits enter the owner's queue one budget at a time, and a light edit never waits
+/// behind more than the heavy edit being applied and the one admitted as it finished.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_light_edit_does_not_wait_behind_queued_heavy_edits() {
+    let _serial = SERIAL.lock().await;
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |c| {
+        c.demo_size = [256, 64, 256];
+        c.owner.budget.max_work_per_edit = 4 << 20;
+        c.owner.budget.max_work_per_second = 1 << 40;
+    })
+    .await;
+    let url = server.url("demo");
+    let mut editor = Client::connect(&url, None).await.unwrap();
+    editor.sync().await;
+    let mut heavy = Vec::new();
+    for _ in 0..HEAVY_SENDERS {
+        heavy.push(Client::connect(&url, None).await.unwrap());
+    }
+    let mut sent = Vec::new();
+    for k in 0..HEAVY_EACH {
+        for (h, c) in heavy.iter_mut().enumerate() {
+            sent.push((h, c.send_edit(heavy_edit(k * HEAVY_SENDERS + h)).await));
+        }
+    }
+    // Once the heavy edits are in and being applied, one light edit.
+    let seq_now = || async {
+        let (_, body) = http_get(server.addr, "/scenes").await;
+        let list: serde_json::Value = serde_json::from_str(&body).unwrap();
+        list[0]["seq"].as_u64().unwrap()
+    };
+    let start = seq_now().await;
+    while seq_now().await == start {
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let at_send = seq_now().await;
+    let light = match editor
+        .edit(vec![EditOp::Set {
+            pos: [1, 63, 1],
+            colour: colour(3),
+        }])
+        .await
+    {
+        ServerMsg::Ack { seq: Some(s), .. } => s,
+        other => panic!("{other:?}"),
+    };
+    // Which heavy edits were applied after it was sent and before it.
+    let mut before = 0;
+    for (h, c) in heavy.iter_mut().enumerate() {
+        let mut pending: std::collections::BTreeSet<u64> = sent
+            .iter()
+            .filter(|(i, _)| *i == h)
+            .map(|(_, s)| *s)
+            .collect();
+        while !pending.is_empty() {
+            match c.next().await {
+                Some(ServerMsg::Ack {
+                    client_seq, seq, ..
+                }) => {
+                    assert!(pending.remove(&client_seq));
+                    let seq = seq.expect("heavy edits apply");
+                    if seq > at_send && seq < light {
+                        before += 1;
+                    }
+                }
+                Some(_) => {}
+                None => panic!("a heavy sender was disconnected"),
+            }
+        }
+    }
+    eprintln!(
+        "{before} of {} heavy edits were applied between the light one's sending and its own",
+        sent.len()
+    );
+    assert!(
+        before <= 3,
+        "the light edit waited behind {before} heavy edits"
+    );
+    server.shutdown().await.unwrap();
+}
+
+/// Before: every connection had its own edit work budget, so eight connections from one
+/// address had eight. Now connections of one address (and of one user) share one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connections_from_one_address_share_one_work_budget() {
+    let _serial = SERIAL.lock().await;
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |c| {
+        c.demo_size = [256, 64, 256];
+        c.owner.budget.max_work_per_edit = 4 << 20;
+        // Nearly no refill: the burst (one full message) is all there is.
+        c.owner.budget.max_work_per_second = 1;
+    })
+    .await;
+    let url = server.url("demo");
+    let mut first = Client::connect(&url, None).await.unwrap();
+    let mut second = Client::connect(&url, None).await.unwrap();
+    let full = |k| {
+        vec![EditOp::Box {
+            min: [0, 0, 0],
+            max: [255, 63, 255],
+            mode: BrushMode::Paint,
+            colour: colour(k),
+        }]
+    };
+    assert!(matches!(
+        first.edit(full(1)).await,
+        ServerMsg::Ack { seq: Some(_), .. }
+    ));
+    match second.edit(full(2)).await {
+        ServerMsg::Ack { rejected, .. } => assert!(
+            rejected.iter().any(|r| r.reason == Rejection::RateLimited),
+            "the second connection of the address had a budget of its own"
+        ),
+        other => panic!("{other:?}"),
+    }
+    server.shutdown().await.unwrap();
+}

@@ -88,6 +88,8 @@ pub enum Command {
         session: SessionId,
         client_seq: u64,
         ops: Vec<EditOp>,
+        /// A heavy edit's turn at the scene (`crate::fair`), given back once it is applied.
+        admitted: Option<crate::fair::Admitted>,
     },
     Camera {
         session: SessionId,
@@ -284,6 +286,8 @@ pub struct SceneHandle {
     pub info: Arc<SceneInfo>,
     /// Who is here and what they look at (lives beside the owner, see `crate::presence`).
     pub presence: Arc<crate::presence::Hub>,
+    /// Heavy edits enter the owner's queue one budget at a time (see `crate::fair`).
+    pub heavy: crate::fair::HeavyGate,
     tx: mpsc::Sender<Command>,
 }
 
@@ -403,6 +407,7 @@ pub fn open(
     let limits = config.limits.clone();
     let budget = config.budget.clone();
     let max_queue_bytes = config.max_queue_bytes;
+    let heavy = crate::fair::HeavyGate::new(budget.max_work_per_edit);
     let owner = Owner::with_log(name.clone(), loaded, log, metrics, config, clock)?;
     let handle = SceneHandle {
         name,
@@ -412,6 +417,7 @@ pub fn open(
         budget,
         max_queue_bytes,
         info: owner.info(),
+        heavy,
         tx,
     };
     Ok((owner, handle, rx))

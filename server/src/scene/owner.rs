@@ -307,6 +307,7 @@ impl Owner {
                     session,
                     client_seq,
                     ops,
+                    admitted,
                 } => {
                     let editor = self
                         .subs
@@ -315,6 +316,8 @@ impl Owner {
                         .map(|s| s.user);
                     let to = AckTo::Session(session);
                     acks.push(self.apply_batch(to, client_seq, ops, editor, &mut log));
+                    // Applied: the next heavy edit may queue.
+                    drop(admitted);
                 }
                 Command::Undo {
                     session,

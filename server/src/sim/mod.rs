@@ -299,6 +299,7 @@ impl Sim {
             session,
             client_seq,
             ops,
+            admitted: None,
         });
     }
 

@@ -125,6 +125,7 @@ impl Model {
                     session,
                     client_seq,
                     ops,
+                    ..
                 } => {
                     let editor = self.subscribed.get(session) == Some(&Role::Editor);
                     let mut applied = 0;
