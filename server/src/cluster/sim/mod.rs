@@ -57,6 +57,9 @@ const LIVENESS: Duration = Duration::from_secs(30);
 const CONVERGENCE: Duration = Duration::from_secs(15);
 /// Two processes of one name may both run this long (the old one must notice and stop).
 const ONE_NAME: Duration = Duration::from_secs(4);
+/// A step whose world time moved on by more than this while one process blocked the
+/// simulation's thread froze the others meanwhile (see [`Sim::step`]).
+const STEP_JUMP: Duration = Duration::from_millis(100);
 /// Actions kept for the report of a failing seed.
 const TRACE_LEN: usize = 120;
 
@@ -553,6 +556,14 @@ impl Sim {
         }
         // Time in the world may have moved on while a process blocked.
         let world_now = self.world.lock().unwrap_or_else(|e| e.into_inner()).now;
+        if world_now > self.now + STEP_JUMP {
+            // One process blocked this thread (a boot waiting for NATS, an open) while the
+            // world's time went on: the others were frozen meanwhile, as if paused, and had no
+            // chance to notice anything. Two of one name are timed from here.
+            for since in self.doubled.values_mut() {
+                *since = world_now;
+            }
+        }
         self.now = self.now.max(world_now);
         self.check_replicas()?;
         self.check_names()?;
