@@ -13,6 +13,12 @@ handshake, the frames and the bincode of the few messages used are written by ha
         N connections that never read and keep sending requests the server answers: refused
         presence (a cursor outside the scene), Undo with nothing to undo, Edit messages refused
         for their work (64 spheres of radius 64) and Pings, in turn.
+    hostile-client.py brushes HOST PORT SCENE N SECONDS
+        N connections, each at its own edit budget with allowed-size brushes (15 spheres of
+        radius 64 per message, two messages a second), reading their replies.
+    hostile-client.py ids HOST PORT SCENE N SECONDS RADIUS
+        N connections one after another over SECONDS, each with a user id of its own, each
+        painting one sphere of RADIUS: N users' undo history in one scene.
 
 Holds the connections for SECONDS, then prints one JSON line: how many connected and how many
 were refused (idle viewers also: how many connections the server closed).
@@ -40,10 +46,10 @@ def varint(n):
     return bytes([253]) + n.to_bytes(8, "little")
 
 
-def hello():
+def hello(user=0):
     name = b"stalled"
-    # ClientMsg::Hello { protocol, name, token: None, resume_from: None, user: 0 }, variant 0.
-    return varint(0) + varint(PROTOCOL_VERSION) + varint(len(name)) + name + b"\x00\x00" + varint(0)
+    # ClientMsg::Hello { protocol, name, token: None, resume_from: None, user }, variant 0.
+    return varint(0) + varint(PROTOCOL_VERSION) + varint(len(name)) + name + b"\x00\x00" + varint(user)
 
 
 def frame(payload):
@@ -59,7 +65,7 @@ def frame(payload):
     return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
 
 
-def connect(host, port, scene, source=None):
+def connect(host, port, scene, source=None, user=0):
     # `source`: another loopback address to come from (the server limits connections per
     # address, and the well-behaved probe must not count against the attackers' allowance).
     s = socket.create_connection((host, port), source_address=(source, 0) if source else None)
@@ -80,7 +86,7 @@ def connect(host, port, scene, source=None):
         reply += chunk
     if not reply.startswith(b"HTTP/1.1 101"):
         raise ConnectionError(reply.split(b"\r\n")[0].decode())
-    s.sendall(frame(hello()))
+    s.sendall(frame(hello(user)))
     return s
 
 
@@ -103,6 +109,91 @@ def huge_edit(client_seq, n):
     # centre [f32; 3], radius f32, mode BrushMode::Fill (0), colour u16.
     sphere = varint(3) + f32s([256.0, 128.0, 256.0]) + f32s([64.0]) + varint(0) + varint(0x07E0)
     return varint(1) + varint(client_seq) + varint(n) + sphere * n
+
+
+def sphere_edit(client_seq, centre, radius, colour):
+    # ClientMsg::Edit with one EditOp::Sphere (Fill).
+    sphere = varint(3) + f32s(centre) + f32s([radius]) + varint(0) + varint(colour)
+    return varint(1) + varint(client_seq) + varint(1) + sphere
+
+
+def ids(host, port, scene, n, seconds, radius):
+    """N connections one after another over SECONDS, each with a user id of its own (as any
+    client may choose without --auth), each painting one sphere of RADIUS somewhere in the
+    scene's first 512 voxels: every one leaves an undo step in the scene's history."""
+    import random
+    rng = random.Random(28)
+    done, refused = 0, 0
+    start = time.time()
+    for i in range(n):
+        try:
+            s = connect(host, port, scene, source="127.0.0.2", user=0x10000 + i)
+            centre = [rng.uniform(radius, 512 - radius), rng.uniform(radius, 64.0), rng.uniform(radius, 512 - radius)]
+            s.sendall(frame(sphere_edit(1, centre, float(radius), rng.randrange(1, 1 << 16))))
+            # Read until the server has said something about the edit (its ack, in among the
+            # sync), then leave.
+            s.settimeout(10)
+            got = b""
+            while len(got) < 1 << 16:
+                chunk = s.recv(1 << 16)
+                if not chunk:
+                    break
+                got += chunk
+            s.close()
+            done += 1
+        except (ConnectionError, OSError):
+            refused += 1
+        behind = start + seconds * (i + 1) / n - time.time()
+        if behind > 0:
+            time.sleep(behind)
+    print(json.dumps({"attack": "ids", "connections": done, "refused": refused}))
+
+
+def brushes(host, port, scene, n, seconds):
+    """N connections, each at its own edit budget: a message of 15 spheres of radius 64
+    (31.5 M voxels of work, just under --max-work-per-edit) every half second (63 M/s, just
+    under --max-work-per-second), reading and discarding every reply."""
+    import random
+    rng = random.Random(8)
+    conns = []
+    for _ in range(n):
+        try:
+            s = connect(host, port, scene, source="127.0.0.2")
+            s.setblocking(False)
+            conns.append(s)
+        except (ConnectionError, OSError):
+            pass
+    sel = selectors.DefaultSelector()
+    for s in conns:
+        sel.register(s, selectors.EVENT_READ)
+    sent, seq, end = 0, 0, time.time() + seconds
+    next_at = time.time()
+    while time.time() < end:
+        if time.time() >= next_at:
+            next_at += 0.5
+            for s in conns:
+                seq += 1
+                ops = b"".join(
+                    varint(3) + f32s([rng.uniform(64, 448), rng.uniform(0, 64), rng.uniform(64, 448)])
+                    + f32s([64.0]) + varint(rng.randrange(2)) + varint(rng.randrange(1, 1 << 16))
+                    for _ in range(15)
+                )
+                try:
+                    s.setblocking(True)
+                    s.sendall(frame(varint(1) + varint(seq) + varint(15) + ops))
+                    s.setblocking(False)
+                    sent += 1
+                except OSError:
+                    pass
+        for key, _ in sel.select(timeout=max(0.0, min(0.05, next_at - time.time()))):
+            try:
+                if not key.fileobj.recv(1 << 20):
+                    sel.unregister(key.fileobj)
+            except BlockingIOError:
+                pass
+            except OSError:
+                sel.unregister(key.fileobj)
+    print(json.dumps({"attack": "brushes", "connections": len(conns), "messages_sent": sent}))
 
 
 def refused_presence():
@@ -184,6 +275,14 @@ def main():
     if sys.argv[1] == "replies":
         host, port, scene, n, seconds = sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5]), float(sys.argv[6])
         replies(host, port, scene, n, seconds)
+        return
+    if sys.argv[1] == "brushes":
+        host, port, scene, n, seconds = sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5]), float(sys.argv[6])
+        brushes(host, port, scene, n, seconds)
+        return
+    if sys.argv[1] == "ids":
+        host, port, scene, n, seconds, radius = sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5]), float(sys.argv[6]), float(sys.argv[7])
+        ids(host, port, scene, n, seconds, radius)
         return
     if sys.argv[1] in ("ping", "camera", "huge"):
         kind, host, port, scene, seconds = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], float(sys.argv[5])

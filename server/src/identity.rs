@@ -23,7 +23,8 @@ pub struct Identity {
     pub pinned: bool,
 }
 
-const PINNED: u64 = 1 << 63;
+/// The bit set in the ids of users an auth file names (and cleared in ids clients choose).
+pub const PINNED: u64 = 1 << 63;
 
 /// Colours far apart from each other, one per user by id; no greens, which the terrain of
 /// most scenes is.

@@ -295,6 +295,10 @@ struct ServeArgs {
     /// Edit work per second one connection may ask for, in voxels visited.
     #[arg(long, default_value_t = 1 << 26)]
     max_work_per_second: u64,
+    /// Bytes of undo history a scene keeps over all its users; beyond it the oldest steps of
+    /// the users idle longest go first (guests before users the auth file names).
+    #[arg(long, default_value_t = 256 << 20)]
+    max_history_bytes: u64,
     /// Bytes queued to all clients together before slow clients stop getting deltas (they
     /// resync once they catch up) and syncs pause.
     #[arg(long, default_value_t = 1 << 30)]
@@ -344,6 +348,7 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
         config.owner.budget.max_work_per_edit = args.max_work_per_edit;
         config.owner.budget.max_work_per_second = args.max_work_per_second;
         config.owner.max_queued_total = args.max_queued_bytes;
+        config.owner.max_history_bytes = args.max_history_bytes;
         config.connections.max_total = args.max_connections;
         config.connections.max_per_ip = args.max_connections_per_ip;
         config.stall_timeout = Duration::from_secs_f64(args.stall_timeout);

@@ -253,6 +253,62 @@ async fn the_history_bound_drops_the_oldest_step_and_viewers_cannot_undo() {
     server.shutdown().await.unwrap();
 }
 
+/// User ids come from clients (without `--auth`), so made-up ids must not grow a scene's
+/// history past its cap: the longest idle users' steps go first, the newest stay undoable, and
+/// the trimmed history is what a restart finds.
+#[tokio::test]
+async fn made_up_ids_cannot_grow_a_scenes_history_past_its_cap() {
+    const CAP: u64 = 48 << 10;
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |c| c.owner.max_history_bytes = CAP).await;
+    let url = server.url("demo");
+    let sphere = |i: u32| EditOp::Sphere {
+        centre: [
+            8.0 + (i % 12) as f32 * 10.0,
+            40.0,
+            8.0 + (i / 12) as f32 * 10.0,
+        ],
+        radius: 6.0,
+        mode: BrushMode::Fill,
+        colour: colour(i),
+    };
+    let mut alice = Client::as_user(&url, None, ALICE, "alice").await.unwrap();
+    let ack = alice.edit(vec![sphere(0)]).await;
+    assert!(matches!(ack, ServerMsg::Ack { applied: 1, .. }), "{ack:?}");
+    for i in 1..=60u32 {
+        let mut c = Client::as_user(&url, None, 1000 + u64::from(i), "made up")
+            .await
+            .unwrap();
+        c.edit(vec![sphere(i)]).await;
+        c.close().await;
+    }
+    let bytes = common::metric(server.addr, "brickcast_scene_history_bytes{scene=\"demo\"}").await;
+    let users = common::metric(server.addr, "brickcast_scene_history_users{scene=\"demo\"}").await;
+    assert!(bytes as u64 <= CAP, "{bytes} bytes of history");
+    assert!((2.0..61.0).contains(&users), "{users} users with history");
+    // Alice was idle longest: her step went. The newest user's step stays.
+    assert_eq!(
+        outcome(&alice.undo(false).await).3,
+        Some(Refusal::NothingToUndo)
+    );
+    alice.close().await;
+    let mut last = Client::as_user(&url, None, 1060, "made up").await.unwrap();
+    assert_eq!(outcome(&last.undo(false).await).3, None);
+    last.close().await;
+    server.shutdown().await.unwrap();
+
+    let server = TestServer::start(data.path(), |c| c.owner.max_history_bytes = CAP).await;
+    let mut c = Client::connect(&server.url("demo"), None).await.unwrap();
+    c.sync().await;
+    let after = common::metric(server.addr, "brickcast_scene_history_bytes{scene=\"demo\"}").await;
+    // (The undo above pushed its record on the redo stack, so a few bytes more than before.)
+    assert!(
+        after as u64 <= CAP && after > 0.0,
+        "{after} bytes of history after a restart, {bytes} before the last undo"
+    );
+    server.shutdown().await.unwrap();
+}
+
 #[tokio::test]
 async fn presence_shows_who_is_here_where_they_look_and_who_left() {
     let data = tempfile::tempdir().unwrap();

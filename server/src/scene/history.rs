@@ -15,7 +15,13 @@
 //! record the same way, and goes back on the undo stack. A new edit clears the redo stack.
 //!
 //! **Bounds.** Per user at most `Limits::max_undo_steps` steps and `Limits::max_undo_bytes`
-//! bytes of stored (compressed) steps, undo and redo together; the oldest go first. In memory
+//! bytes of stored (compressed) steps, undo and redo together; the oldest go first. Per scene at
+//! most `OwnerConfig::max_history_bytes` (`serve --max-history-bytes`), since user ids come from
+//! clients: a thousand made-up ids must not fill the disk. Over it, steps go from the users least
+//! entitled to keep them first: users whose id a client chose (guests) before users an auth
+//! file names, and among those the one idle longest (whose newest step is oldest), its oldest
+//! step first. The step just pushed always stays. The bound holds from the next step on: a
+//! store written with a larger bound is trimmed as new steps arrive. In memory
 //! the owner keeps only each user's list of step ids and sizes: step bodies live in the store
 //! (and, until the turn commits, in [`HistoryWrites`]), read back when undone.
 
@@ -300,6 +306,17 @@ impl Stacks {
     fn steps(&self) -> usize {
         self.undo.len() + self.redo.len()
     }
+
+    /// The id of the user's newest step (ids grow with every push: its last activity).
+    fn newest(&self) -> u64 {
+        let undo = self.undo.back().map_or(0, |s| s.id);
+        let redo = self.redo.last().map_or(0, |s| s.id);
+        undo.max(redo)
+    }
+
+    fn holds(&self, id: u64) -> bool {
+        self.undo.iter().chain(&self.redo).any(|s| s.id == id)
+    }
 }
 
 /// What a turn changed in the history, written in the turn's commit (a redb transaction, or
@@ -335,6 +352,8 @@ pub struct History {
     next_id: u64,
     max_steps: usize,
     max_bytes: u64,
+    /// Bytes of stored steps over every user (see the module doc).
+    max_scene_bytes: u64,
     pending: HistoryWrites,
 }
 
@@ -349,8 +368,15 @@ impl History {
             next_id: last_id + 1,
             max_steps: max_steps.max(1) as usize,
             max_bytes,
+            max_scene_bytes: u64::MAX,
             pending: HistoryWrites::default(),
         }
+    }
+
+    /// Bounds the bytes of stored steps over every user (see the module doc).
+    pub fn with_scene_cap(mut self, max_scene_bytes: u64) -> Self {
+        self.max_scene_bytes = max_scene_bytes;
+        self
     }
 
     /// A user's stacks (for tests and metrics).
@@ -479,6 +505,41 @@ impl History {
             self.pending.removed.insert(dropped.id, user);
             self.pending.steps.remove(&dropped.id);
         }
+        while self.bytes > self.max_scene_bytes {
+            let Some(victim) = self.least_entitled(id) else {
+                break;
+            };
+            let Some(stacks) = self.users.get_mut(&victim) else {
+                break;
+            };
+            // Its oldest step that is not the one just pushed.
+            // (The one just pushed is the oldest of its stack only when it is alone there.)
+            let dropped = if stacks.undo.front().is_some_and(|s| s.id != id) {
+                stacks.undo.pop_front()
+            } else if stacks.redo.first().is_some_and(|s| s.id != id) {
+                Some(stacks.redo.remove(0))
+            } else {
+                None
+            };
+            let Some(dropped) = dropped else { break };
+            if stacks.steps() == 0 {
+                self.users.remove(&victim);
+            }
+            self.bytes -= dropped.bytes;
+            self.pending.removed.insert(dropped.id, victim);
+            self.pending.steps.remove(&dropped.id);
+        }
+    }
+
+    /// The user whose steps go first when the scene is over its cap: guests before users an
+    /// auth file names, then the one idle longest. `keep` (the step just pushed) is not
+    /// counted as a step that may go.
+    fn least_entitled(&self, keep: u64) -> Option<UserId> {
+        self.users
+            .iter()
+            .filter(|(_, s)| s.steps() > usize::from(s.holds(keep)))
+            .min_by_key(|(user, s)| (crate::identity::is_pinned(**user), s.newest(), **user))
+            .map(|(user, _)| *user)
     }
 
     /// Applies a turn's changes committed by another node (the scene's owner in a cluster):
@@ -668,6 +729,66 @@ mod tests {
                 .unwrap()
                 .is_none()
         );
+    }
+
+    /// A scene's history stays under its cap however many ids clients make up: guests' steps
+    /// go before those of a user the auth file names, the longest idle first, and a replica
+    /// applying the committed writes ends where the owner does.
+    #[test]
+    fn the_scene_cap_trims_idle_guests_first() {
+        let mut map = BrickMap::new([32, 32, 32]).unwrap();
+        let step = edit(&mut map, |m| {
+            for x in 0..8 {
+                m.set([x, 1, 1], red());
+            }
+        });
+        let size = step.encode().len() as u64;
+        let cap = 10 * size;
+        let mut owner = History::new(Vec::new(), 0, 256, u64::MAX).with_scene_cap(cap);
+        let mut replica = History::new(Vec::new(), 0, 256, u64::MAX);
+        let pinned: UserId = crate::identity::PINNED | 5;
+        for _ in 0..3 {
+            owner.record_edit(pinned, &step);
+        }
+        for guest in 1..=100 {
+            owner.record_edit(guest, &step);
+            assert!(
+                owner.total_bytes() <= cap,
+                "{} > {cap}",
+                owner.total_bytes()
+            );
+            if guest % 7 == 0 {
+                replica.apply_committed(&owner.take_writes());
+            }
+        }
+        // Guest 1 comes back: its new step stays, and the idlest guest's goes.
+        owner.record_edit(1, &step);
+        replica.apply_committed(&owner.take_writes());
+        assert!(owner.total_bytes() <= cap);
+        assert_eq!(owner.stacks(pinned).map(|s| s.undo.len()), Some(3));
+        let guests: Vec<UserId> = (1..=100).filter(|g| owner.stacks(*g).is_some()).collect();
+        assert_eq!(guests, [1, 95, 96, 97, 98, 99, 100]);
+        assert_eq!(owner.rows(), replica.rows());
+        assert_eq!(owner.total_bytes(), replica.total_bytes());
+        // With no guest left to trim, the named user's own oldest steps go, never the newest.
+        let mut alone = History::new(Vec::new(), 0, 256, u64::MAX).with_scene_cap(2 * size);
+        for _ in 0..5 {
+            alone.record_edit(pinned, &step);
+        }
+        let ids: Vec<u64> = alone
+            .stacks(pinned)
+            .unwrap()
+            .undo
+            .iter()
+            .map(|s| s.id)
+            .collect();
+        assert_eq!(ids, [4, 5]);
+        // A single step larger than the cap is kept: it is the one just pushed.
+        let mut tiny = History::new(Vec::new(), 0, 256, u64::MAX).with_scene_cap(1);
+        tiny.record_edit(3, &step);
+        tiny.record_edit(4, &step);
+        assert!(tiny.stacks(3).is_none());
+        assert_eq!(tiny.stacks(4).map(|s| s.undo.len()), Some(1));
     }
 
     /// A replica that applies the owner's committed writes, turn by turn, holds the same

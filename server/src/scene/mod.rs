@@ -258,6 +258,9 @@ pub struct OwnerConfig {
     /// ...or once the last snapshot is this old and the log has entries, so an idle server's
     /// log is short too (`serve --snapshot-every`).
     pub snapshot_every: Duration,
+    /// Bytes of stored undo history over every user of the scene (`serve --max-history-bytes`;
+    /// the oldest steps of idle guests go first, see `history`).
+    pub max_history_bytes: u64,
 }
 
 impl Default for OwnerConfig {
@@ -270,6 +273,7 @@ impl Default for OwnerConfig {
             max_syncs_per_turn: 8,
             snapshot_replay_budget: 4_000_000,
             snapshot_every: Duration::from_secs(60),
+            max_history_bytes: 256 << 20,
         }
     }
 }

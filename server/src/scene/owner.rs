@@ -187,7 +187,8 @@ impl Owner {
             last_step_id,
             config.limits.max_undo_steps,
             config.limits.max_undo_bytes,
-        );
+        )
+        .with_scene_cap(config.max_history_bytes);
         map.set_sequence(seq);
         map.record_touched(true);
         let now = clock();

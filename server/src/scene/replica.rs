@@ -366,7 +366,8 @@ impl Owner {
             last_step_id,
             self.config.limits.max_undo_steps,
             self.config.limits.max_undo_bytes,
-        );
+        )
+        .with_scene_cap(self.config.max_history_bytes);
         self.answered = super::answered::Answered::from_entries(answered);
         self.unsnapshotted = CellSet::from_cells(&replay_touched);
         for sub in self.subs.values_mut() {
