@@ -16,6 +16,10 @@ handshake, the frames and the bincode of the few messages used are written by ha
     hostile-client.py brushes HOST PORT SCENE N SECONDS
         N connections, each at its own edit budget with allowed-size brushes (15 spheres of
         radius 64 per message, two messages a second), reading their replies.
+    hostile-client.py boxes HOST PORT SCENE N SECONDS
+        N users (ids of their own), each filling two 256³ boxes in one message (33.5 M voxels,
+        the most one edit may ask for), then undoing and redoing that step in turn, one request
+        a second each, reading and discarding every reply.
     hostile-client.py ids HOST PORT SCENE N SECONDS RADIUS
         N connections one after another over SECONDS, each with a user id of its own, each
         painting one sphere of RADIUS: N users' undo history in one scene.
@@ -32,7 +36,8 @@ import struct
 import sys
 import time
 
-PROTOCOL_VERSION = 3
+# The protocol spoken; PROTOCOL=N in the environment for an older server.
+PROTOCOL_VERSION = int(os.environ.get("PROTOCOL", "3"))
 
 
 def varint(n):
@@ -196,6 +201,62 @@ def brushes(host, port, scene, n, seconds):
     print(json.dumps({"attack": "brushes", "connections": len(conns), "messages_sent": sent}))
 
 
+def box_edit(client_seq, boxes, colour):
+    # ClientMsg::Edit with EditOp::Box (variant 4) ops: min, max ([u32; 3] each), mode Fill (0),
+    # colour u16.
+    ops = b"".join(
+        varint(4) + b"".join(varint(v) for v in lo) + b"".join(varint(v) for v in hi)
+        + varint(0) + varint(colour)
+        for lo, hi in boxes
+    )
+    return varint(1) + varint(client_seq) + varint(len(boxes)) + ops
+
+
+def redo(client_seq):
+    # ClientMsg::Redo { client_seq }, variant 6.
+    return varint(6) + varint(client_seq)
+
+
+def boxes(host, port, scene, n, seconds):
+    """N users, each with a step of two 256³ boxes, undoing and redoing it once a second."""
+    two = [([0, 0, 0], [255, 255, 255]), ([256, 0, 256], [511, 255, 511])]
+    conns = []
+    for i in range(n):
+        try:
+            s = connect(host, port, scene, source="127.0.0.2", user=0x20000 + i)
+            s.sendall(frame(box_edit(1, two, 0x1000 + 0x0101 * i)))
+            s.setblocking(False)
+            conns.append(s)
+        except (ConnectionError, OSError):
+            pass
+    sel = selectors.DefaultSelector()
+    for s in conns:
+        sel.register(s, selectors.EVENT_READ)
+    sent, seq, end = 0, 1, time.time() + seconds
+    next_at = time.time() + 1.0
+    while time.time() < end:
+        if time.time() >= next_at:
+            next_at += 1.0
+            seq += 1
+            for s in conns:
+                try:
+                    s.setblocking(True)
+                    s.sendall(frame(undo(seq) if seq % 2 == 0 else redo(seq)))
+                    s.setblocking(False)
+                    sent += 1
+                except OSError:
+                    pass
+        for key, _ in sel.select(timeout=max(0.0, min(0.05, next_at - time.time()))):
+            try:
+                if not key.fileobj.recv(1 << 20):
+                    sel.unregister(key.fileobj)
+            except BlockingIOError:
+                pass
+            except OSError:
+                sel.unregister(key.fileobj)
+    print(json.dumps({"attack": "boxes", "connections": len(conns), "undos_and_redos_sent": sent}))
+
+
 def refused_presence():
     # ClientMsg::Presence { view: None, cursor: Some(Cursor { voxel: [u32; 3], radius }) },
     # variant 7, with the cursor far outside any scene.
@@ -279,6 +340,10 @@ def main():
     if sys.argv[1] == "brushes":
         host, port, scene, n, seconds = sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5]), float(sys.argv[6])
         brushes(host, port, scene, n, seconds)
+        return
+    if sys.argv[1] == "boxes":
+        host, port, scene, n, seconds = sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5]), float(sys.argv[6])
+        boxes(host, port, scene, n, seconds)
         return
     if sys.argv[1] == "ids":
         host, port, scene, n, seconds, radius = sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5]), float(sys.argv[6]), float(sys.argv[7])

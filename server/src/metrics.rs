@@ -166,6 +166,8 @@ pub struct Metrics {
     pub history_refused: AtomicU64,
     pub undo_voxels_restored: AtomicU64,
     pub undo_voxels_kept: AtomicU64,
+    /// Undos and redos of large steps planned across turns (`scene/undo_job.rs`).
+    pub undos_sliced: AtomicU64,
     pub commits: AtomicU64,
     pub snapshots: AtomicU64,
     /// Cluster: edits and undos this node's sessions forwarded to scene owners and got an
@@ -421,6 +423,11 @@ impl Metrics {
                 "undo_voxels_kept_total",
                 "Voxels undo and redo left alone because someone changed them since.",
                 &self.undo_voxels_kept,
+            ),
+            (
+                "undos_sliced_total",
+                "Undos and redos of large steps planned across turns and applied in one.",
+                &self.undos_sliced,
             ),
         ] {
             metric(name, "counter", help, get(value));

@@ -2,7 +2,8 @@
 //! own rather than the wire's `Vec<EditOp>`, so that the log can hold more than edit ops (an
 //! undo writes whole bricks) and the wire can change without rewriting stores.
 //!
-//! Format: `[0, VERSION]` then the bincode of [`LogRecord`]. Stores written by brickcast 0.1
+//! Format: `[0, VERSION]` then the bincode of [`LogRecord`]. Version 3 added
+//! [`LogRecord::Revert`]; version 2 records (no such variant) read as before. Stores written by brickcast 0.1
 //! hold a bare bincode `Vec<EditOp>`; those are read as [`LogRecord::Ops`] with no user. They
 //! never start with a 0 byte followed by more bytes (a 0 length prefix is an empty list, and
 //! only batches that applied something were logged), so the two cannot be confused.
@@ -11,10 +12,12 @@ use brickcast_protocol::BrickMap;
 use brickcast_protocol::wire::{EditOp, Limits, UserId};
 use serde::{Deserialize, Serialize};
 
-use crate::scene::history::{Image, write_bricks};
+use crate::scene::history::{Image, Step, apply_after, write_bricks};
 
 /// The version of [`LogRecord`] written now.
-const VERSION: u8 = 2;
+const VERSION: u8 = 3;
+/// The oldest version read (an older `[0, v]` prefix is not a record of this format).
+const FIRST_VERSION: u8 = 2;
 
 /// What one logged sequence did.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -27,6 +30,17 @@ pub enum LogRecord {
         user: UserId,
         redo: bool,
         bricks: Vec<(u32, Option<Image>)>,
+    },
+    /// An undo or redo as the step it recorded (the stored form the opposite stack holds,
+    /// `scene::step`): replayed by setting every voxel it changed to its after-value. A
+    /// box's undo is a few hundred KB here where its bricks were tens of MB. Written since
+    /// version 3.
+    Revert {
+        user: UserId,
+        redo: bool,
+        /// Bricks the step changed (replay cost accounting without decoding it).
+        bricks: u32,
+        step: Vec<u8>,
     },
 }
 
@@ -42,7 +56,7 @@ impl LogRecord {
     pub fn decode(bytes: &[u8]) -> Result<LogRecord, String> {
         let config = bincode::config::standard();
         match bytes {
-            [0, VERSION, body @ ..] => {
+            [0, version, body @ ..] if (FIRST_VERSION..=VERSION).contains(version) => {
                 let (record, read): (LogRecord, usize) =
                     bincode::serde::decode_from_slice(body, config).map_err(|e| e.to_string())?;
                 if read != body.len() {
@@ -81,6 +95,7 @@ impl LogRecord {
                     .map_err(|e| e.to_string())
             }),
             LogRecord::Restore { bricks, .. } => write_bricks(map, bricks),
+            LogRecord::Revert { step, .. } => apply_after(map, &Step::decode(step)?),
         }
     }
 
@@ -89,6 +104,7 @@ impl LogRecord {
         match self {
             LogRecord::Ops { ops, .. } => ops.len(),
             LogRecord::Restore { bricks, .. } => bricks.len(),
+            LogRecord::Revert { bricks, .. } => *bricks as usize,
         }
     }
 }
@@ -115,19 +131,34 @@ mod tests {
                 redo: true,
                 bricks: vec![(4, None)],
             },
+            LogRecord::Revert {
+                user: 9,
+                redo: false,
+                bricks: 0,
+                step: Step::default().encode(),
+            },
         ] {
             record.encode(&mut buf).unwrap();
             assert_eq!(LogRecord::decode(&buf).unwrap(), record);
         }
+        // Version 2 wrote the same bincode for the variants it had.
+        let restore = LogRecord::Restore {
+            user: 3,
+            redo: false,
+            bricks: vec![(1, None)],
+        };
+        restore.encode(&mut buf).unwrap();
+        buf[1] = 2;
+        assert_eq!(LogRecord::decode(&buf).unwrap(), restore);
         let old = bincode::serde::encode_to_vec(&ops, bincode::config::standard()).unwrap();
         assert_eq!(
             LogRecord::decode(&old).unwrap(),
             LogRecord::Ops { user: 0, ops }
         );
         assert!(
-            LogRecord::decode(&[0, 3, 1])
+            LogRecord::decode(&[0, 4, 1])
                 .unwrap_err()
-                .contains("version 3")
+                .contains("version 4")
         );
         assert!(LogRecord::decode(&[0, VERSION, 7, 7, 7]).is_err());
         assert!(LogRecord::decode(&[]).is_err());

@@ -36,7 +36,9 @@ mod outbox;
 mod owner;
 mod replica;
 pub mod request;
+pub mod step;
 mod sync;
+mod undo_job;
 
 use std::sync::Arc;
 use std::sync::atomic::AtomicU64;
@@ -261,6 +263,9 @@ pub struct OwnerConfig {
     /// Bytes of stored undo history over every user of the scene (`serve --max-history-bytes`;
     /// the oldest steps of idle guests go first, see `history`).
     pub max_history_bytes: u64,
+    /// An undo or redo of a step of at least this many bricks is planned a frame per turn
+    /// and applied in one (`undo_job.rs`), so others' edits go on meanwhile.
+    pub undo_slice_bricks: u32,
 }
 
 impl Default for OwnerConfig {
@@ -274,6 +279,8 @@ impl Default for OwnerConfig {
             snapshot_replay_budget: 4_000_000,
             snapshot_every: Duration::from_secs(60),
             max_history_bytes: 256 << 20,
+            // 1 M voxels compared: as heavy as a heavy edit (`fair::HEAVY_WORK`).
+            undo_slice_bricks: 2048,
         }
     }
 }
@@ -444,7 +451,7 @@ fn run(
             Duration::from_secs(1)
         };
         let mut clock = PhaseClock::start();
-        let first = if owner.has_ready_work() {
+        let first = if owner.has_ready_work() || owner.has_undo_job() {
             rx.try_recv().ok()
         } else {
             match runtime.block_on(async { tokio::time::timeout(wait, rx.recv()).await }) {

@@ -30,6 +30,7 @@ use super::cells::CellSet;
 use super::history::{Direction, History, Step, plan_revert, write_bricks};
 use super::log::{LogError, SceneLog, SnapshotOf, TurnWrite};
 use super::request::Outcome;
+use super::undo_job::{UndoJob, UndoJobs};
 use super::{Clock, Command, Described, OwnerConfig, SceneInfo, SessionId, Subscriber};
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
 use crate::record::LogRecord;
@@ -101,6 +102,10 @@ pub struct Owner {
     /// The log cannot be followed (cluster): the owner stops after this turn, and the scene
     /// is served again only from a fresh load.
     pub(super) broken: bool,
+    /// Large undos and redos being planned across turns, first one first (`undo_job.rs`).
+    pub(super) undo_jobs: UndoJobs,
+    /// Commands that waited behind a finished undo job: the next turn applies them first.
+    pub(super) released: Vec<Command>,
 }
 
 /// A reply (`Ack` or `Undone`) waiting for the commit of what it reports.
@@ -219,6 +224,8 @@ impl Owner {
             answered: Answered::from_entries(answered),
             requests: Vec::new(),
             broken: false,
+            undo_jobs: UndoJobs::new(),
+            released: Vec::new(),
         };
         owner.publish_info();
         Ok(owner)
@@ -279,6 +286,14 @@ impl Owner {
         commands: Vec<Command>,
         clock: &mut PhaseClock,
     ) -> Result<bool, LogError> {
+        let commands = if self.released.is_empty() {
+            commands
+        } else {
+            // Commands that waited behind an undo arrived before these.
+            let mut all = std::mem::take(&mut self.released);
+            all.extend(commands);
+            all
+        };
         let stop = self.turn(commands, clock)? || self.broken;
         self.pump_syncs();
         clock.mark(&self.metrics, OwnerPhase::Sync);
@@ -310,6 +325,17 @@ impl Owner {
                     ops,
                     admitted,
                 } => {
+                    let user = self.subs.get(&session).map(|s| s.user);
+                    if let Some(job) = user.and_then(|u| self.undo_job_of(u)) {
+                        // After the user's undo that is still being planned.
+                        job.waiting.push(Command::Edit {
+                            session,
+                            client_seq,
+                            ops,
+                            admitted,
+                        });
+                        continue;
+                    }
                     let editor = self
                         .subs
                         .get(&session)
@@ -327,8 +353,16 @@ impl Owner {
                 } => {
                     if let Some(sub) = self.subs.get(&session) {
                         let (user, editor) = (sub.user, sub.role == Role::Editor);
+                        if let Some(job) = self.undo_job_of(user) {
+                            job.waiting.push(Command::Undo {
+                                session,
+                                client_seq,
+                                redo,
+                            });
+                            continue;
+                        }
                         let to = AckTo::Session(session);
-                        acks.push(self.undo(to, user, editor, client_seq, redo, &mut log));
+                        acks.extend(self.undo(to, user, editor, client_seq, redo, &mut log));
                     }
                 }
                 Command::Request { request, reply } => {
@@ -419,6 +453,12 @@ impl Owner {
             }
         }
         self.publish(&mut log, &mut acks, clock)?;
+        if !self.undo_jobs.is_empty() {
+            // A frame of the first large undo, or its last turn (published on its own).
+            let released = self.advance_undo(&mut log, &mut acks, self.stopping);
+            self.released.extend(released);
+            self.publish(&mut log, &mut acks, clock)?;
+        }
         for (session, eye) in cameras {
             self.camera(session, eye);
         }
@@ -562,17 +602,19 @@ impl Owner {
         client_seq: u64,
         redo: bool,
         log: &mut Log,
-    ) -> PendingAck {
-        let reply = |seq, restored, kept, refused| PendingAck {
-            to,
-            msg: ServerMsg::Undone {
-                client_seq,
-                redo,
-                seq,
-                restored,
-                kept,
-                refused,
-            },
+    ) -> Option<PendingAck> {
+        let reply = |seq, restored, kept, refused| {
+            Some(PendingAck {
+                to,
+                msg: ServerMsg::Undone {
+                    client_seq,
+                    redo,
+                    seq,
+                    restored,
+                    kept,
+                    refused,
+                },
+            })
         };
         let (direction, nothing) = if redo {
             (Direction::Redo, Refusal::NothingToRedo)
@@ -605,6 +647,12 @@ impl Owner {
             return reply(None, 0, 0, Some(Refusal::RateLimited));
         }
         *tokens -= cost.min(burst);
+        if self.sliced(to, top.bricks) {
+            // Planned across turns, answered when applied.
+            self.undo_jobs
+                .push_back(UndoJob::new(to, user, client_seq, redo));
+            return None;
+        }
         let store = &self.log;
         let popped = self.history.pop(user, direction, |id| {
             store.history_step(id).map_err(|e| e.to_string())
@@ -623,6 +671,7 @@ impl Owner {
             }
         };
         let revert = plan_revert(&self.map, &step);
+        let record = self.history.push_record(user, direction, &revert.record);
         let mut seq = None;
         if !revert.writes.is_empty() {
             let next = self.seq + 1;
@@ -635,15 +684,15 @@ impl Owner {
             self.log_ops += revert.writes.len() as u64;
             log.push((
                 next,
-                LogRecord::Restore {
+                LogRecord::Revert {
                     user,
                     redo,
-                    bricks: revert.writes,
+                    bricks: revert.record.bricks.len().min(u32::MAX as usize) as u32,
+                    step: record,
                 },
             ));
             seq = Some(next);
         }
-        self.history.push_record(user, direction, &revert.record);
         let counter = if redo {
             &self.metrics.redos
         } else {
@@ -660,6 +709,7 @@ impl Owner {
     /// delta: clients learn every sequence an ack can name, and resume from it.
     fn broadcast_delta(&mut self, clock: &mut PhaseClock) {
         let touched = self.map.take_touched();
+        self.note_touched(&touched);
         let from = self.broadcast_seq;
         let to = self.seq;
         if touched.is_empty() && to == from {
@@ -800,6 +850,12 @@ impl Owner {
     pub fn stop(&mut self, rest: Vec<Command>) -> Result<(), LogError> {
         self.stopping = true;
         self.turn(rest, &mut PhaseClock::start())?;
+        // Undos still being planned are finished (a stopping turn plans them whole), and
+        // what waited behind them applied.
+        while !self.released.is_empty() || !self.undo_jobs.is_empty() {
+            let waited = std::mem::take(&mut self.released);
+            self.turn(waited, &mut PhaseClock::start())?;
+        }
         if self.log_entries > 0 && !self.broken {
             self.maybe_snapshot(true)?;
         }

@@ -148,8 +148,9 @@ impl Owner {
                     acks.push(ack);
                 }
                 RequestItem::Undo { redo } => {
-                    let ack = self.undo(to, user, editor, client_seq, redo, log);
-                    acks.push(ack);
+                    // A request's undo is never planned across turns (`undo_job.rs`): its
+                    // answer is logged with this turn.
+                    acks.extend(self.undo(to, user, editor, client_seq, redo, log));
                 }
                 RequestItem::Forget => {
                     self.history.forget(user);

@@ -174,6 +174,9 @@ impl Sim {
             max_syncs_per_turn: rng.random_range(1..4),
             snapshot_replay_budget: [300, 20_000, 4_000_000][rng.random_range(0..3)],
             snapshot_every: Duration::from_secs(60),
+            // The model applies an undo in the turn it arrives; an undo planned across turns
+            // has a test of its own (`scene::undo_job`), against the undo of one turn.
+            undo_slice_bricks: u32::MAX,
             ..OwnerConfig::default()
         };
         let now = Arc::new(Mutex::new(Instant::now()));

@@ -125,7 +125,7 @@ fn voxel_step(map: &BrickMap, step: &Step) -> VoxelStep {
     let mut out = Vec::new();
     for change in &step.bricks {
         let c = map.cell_coords(change.cell);
-        for v in &change.voxels {
+        for v in change.voxels() {
             let l = bit_voxel(u32::from(v.bit));
             out.push((
                 [0, 1, 2].map(|i| c[i] * BRICK_EDGE + l[i]),
