@@ -154,38 +154,23 @@ def ids(host, port, scene, n, seconds, radius):
     print(json.dumps({"attack": "ids", "connections": done, "refused": refused}))
 
 
-def brushes(host, port, scene, n, seconds):
-    """N connections, each at its own edit budget: a message of 15 spheres of radius 64
-    (31.5 M voxels of work, just under --max-work-per-edit) every half second (63 M/s, just
-    under --max-work-per-second), reading and discarding every reply."""
-    import random
-    rng = random.Random(8)
-    conns = []
-    for _ in range(n):
-        try:
-            s = connect(host, port, scene, source="127.0.0.2")
-            s.setblocking(False)
-            conns.append(s)
-        except (ConnectionError, OSError):
-            pass
+def paced(conns, seconds, interval, first_at, message):
+    """Every INTERVAL s from FIRST_AT, sends each connection message(seq) (seq counts rounds
+    times connections), reading and discarding every reply meanwhile. Returns messages sent."""
     sel = selectors.DefaultSelector()
     for s in conns:
+        s.setblocking(False)
         sel.register(s, selectors.EVENT_READ)
     sent, seq, end = 0, 0, time.time() + seconds
-    next_at = time.time()
+    next_at = first_at
     while time.time() < end:
         if time.time() >= next_at:
-            next_at += 0.5
+            next_at += interval
             for s in conns:
                 seq += 1
-                ops = b"".join(
-                    varint(3) + f32s([rng.uniform(64, 448), rng.uniform(0, 64), rng.uniform(64, 448)])
-                    + f32s([64.0]) + varint(rng.randrange(2)) + varint(rng.randrange(1, 1 << 16))
-                    for _ in range(15)
-                )
                 try:
                     s.setblocking(True)
-                    s.sendall(frame(varint(1) + varint(seq) + varint(15) + ops))
+                    s.sendall(frame(message(seq)))
                     s.setblocking(False)
                     sent += 1
                 except OSError:
@@ -198,6 +183,31 @@ def brushes(host, port, scene, n, seconds):
                 pass
             except OSError:
                 sel.unregister(key.fileobj)
+    return sent
+
+
+def brushes(host, port, scene, n, seconds):
+    """N connections, each at its own edit budget: a message of 15 spheres of radius 64
+    (31.5 M voxels of work, just under --max-work-per-edit) every half second (63 M/s, just
+    under --max-work-per-second), reading and discarding every reply."""
+    import random
+    rng = random.Random(8)
+    conns = []
+    for _ in range(n):
+        try:
+            conns.append(connect(host, port, scene, source="127.0.0.2"))
+        except (ConnectionError, OSError):
+            pass
+
+    def message(seq):
+        ops = b"".join(
+            varint(3) + f32s([rng.uniform(64, 448), rng.uniform(0, 64), rng.uniform(64, 448)])
+            + f32s([64.0]) + varint(rng.randrange(2)) + varint(rng.randrange(1, 1 << 16))
+            for _ in range(15)
+        )
+        return varint(1) + varint(seq) + varint(15) + ops
+
+    sent = paced(conns, seconds, 0.5, time.time(), message)
     print(json.dumps({"attack": "brushes", "connections": len(conns), "messages_sent": sent}))
 
 
@@ -225,35 +235,13 @@ def boxes(host, port, scene, n, seconds):
         try:
             s = connect(host, port, scene, source="127.0.0.2", user=0x20000 + i)
             s.sendall(frame(box_edit(1, two, 0x1000 + 0x0101 * i)))
-            s.setblocking(False)
             conns.append(s)
         except (ConnectionError, OSError):
             pass
-    sel = selectors.DefaultSelector()
-    for s in conns:
-        sel.register(s, selectors.EVENT_READ)
-    sent, seq, end = 0, 1, time.time() + seconds
-    next_at = time.time() + 1.0
-    while time.time() < end:
-        if time.time() >= next_at:
-            next_at += 1.0
-            seq += 1
-            for s in conns:
-                try:
-                    s.setblocking(True)
-                    s.sendall(frame(undo(seq) if seq % 2 == 0 else redo(seq)))
-                    s.setblocking(False)
-                    sent += 1
-                except OSError:
-                    pass
-        for key, _ in sel.select(timeout=max(0.0, min(0.05, next_at - time.time()))):
-            try:
-                if not key.fileobj.recv(1 << 20):
-                    sel.unregister(key.fileobj)
-            except BlockingIOError:
-                pass
-            except OSError:
-                sel.unregister(key.fileobj)
+    # Each connection's requests alternate undo, redo (client_seq from 2: the edit was 1).
+    rounds = max(1, len(conns))
+    sent = paced(conns, seconds, 1.0, time.time() + 1.0,
+                 lambda seq: undo(seq + 1) if ((seq - 1) // rounds) % 2 == 0 else redo(seq + 1))
     print(json.dumps({"attack": "boxes", "connections": len(conns), "undos_and_redos_sent": sent}))
 
 

@@ -87,6 +87,17 @@ impl UndoJob {
         }
     }
 
+    /// The answer when there is no step to undo (any more).
+    fn nothing(&self, metrics: &Metrics) -> PendingAck {
+        Metrics::add(&metrics.history_refused, 1);
+        let nothing = if self.redo {
+            Refusal::NothingToRedo
+        } else {
+            Refusal::NothingToUndo
+        };
+        self.reply(None, 0, 0, Some(nothing))
+    }
+
     fn reply(
         &self,
         seq: Option<u64>,
@@ -185,13 +196,7 @@ impl Owner {
                         tracing::error!(scene = %self.name, user = job.user, error = %e, "an undo step could not be read; it is dropped");
                         let job = self.undo_jobs.pop_front().expect("a job is first");
                         self.history.take_top(job.user, job.direction());
-                        Metrics::add(&self.metrics.history_refused, 1);
-                        let nothing = if job.redo {
-                            Refusal::NothingToRedo
-                        } else {
-                            Refusal::NothingToUndo
-                        };
-                        acks.push(job.reply(None, 0, 0, Some(nothing)));
+                        acks.push(job.nothing(&self.metrics));
                         released.extend(job.waiting);
                         if !all {
                             return released;
@@ -244,13 +249,7 @@ impl Owner {
             tracing::error!(scene = %self.name, user = job.user, error = %e, "an undo step could not be read; it is dropped");
             self.history.take_top(job.user, job.direction());
         }
-        Metrics::add(&self.metrics.history_refused, 1);
-        let nothing = if job.redo {
-            Refusal::NothingToRedo
-        } else {
-            Refusal::NothingToUndo
-        };
-        acks.push(job.reply(None, 0, 0, Some(nothing)));
+        acks.push(job.nothing(&self.metrics));
         false
     }
 
@@ -267,13 +266,7 @@ impl Owner {
         // The step must still be the user's top: its user may have left (a guest's history is
         // forgotten) or the scene's cap dropped it meanwhile.
         if self.history.peek(job.user, direction).map(|s| s.id) != Some(id) {
-            Metrics::add(&self.metrics.history_refused, 1);
-            let nothing = if job.redo {
-                Refusal::NothingToRedo
-            } else {
-                Refusal::NothingToUndo
-            };
-            acks.push(job.reply(None, 0, 0, Some(nothing)));
+            acks.push(job.nothing(&self.metrics));
             return job.waiting;
         }
         for &frame in &job.dirty {
@@ -452,7 +445,7 @@ mod tests {
             colour: red,
         };
         owner
-            .step(vec![edit(1, 1, vec![fill.clone()])], &mut clock)
+            .step(vec![edit(1, 1, vec![fill])], &mut clock)
             .unwrap();
         reference.begin_journal();
         apply_op(&mut reference, &fill, &Limits::default()).unwrap();
@@ -477,10 +470,7 @@ mod tests {
         };
         owner
             .step(
-                vec![
-                    edit(2, 1, vec![paint.clone()]),
-                    edit(1, 3, vec![mine.clone()]),
-                ],
+                vec![edit(2, 1, vec![paint]), edit(1, 3, vec![mine])],
                 &mut clock,
             )
             .unwrap();
