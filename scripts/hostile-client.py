@@ -3,9 +3,9 @@
 clients' latency, how long until it cuts them off). Plain sockets, no dependencies: the websocket
 handshake, the frames and the bincode of the few messages used are written by hand.
 
-    hostile-client.py crowd HOST PORT SCENE N SECONDS [--read]
+    hostile-client.py crowd HOST PORT SCENE N SECONDS [--read] [--sources K]
         N connections that say Hello and then never read (stalled readers), or with --read read
-        and discard everything (idle viewers).
+        and discard everything (idle viewers); with --sources K, from K loopback addresses.
     hostile-client.py ping|camera|huge HOST PORT SCENE SECONDS
         One connection that never reads and keeps sending Pings, Camera updates, or Edit
         messages of 4,096 spheres of radius 64.
@@ -348,10 +348,13 @@ def main():
 def crowd():
     host, port, scene, n, seconds = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), float(sys.argv[5])
     read = "--read" in sys.argv[6:]
+    # --sources K: the connections come from 127.0.0.2 ... 127.0.0.(K+1) in turn, K addresses
+    # under the per-address limit each.
+    k = int(sys.argv[sys.argv.index("--sources") + 1]) if "--sources" in sys.argv else 0
     sockets, refused = [], 0
-    for _ in range(n):
+    for i in range(n):
         try:
-            sockets.append(connect(host, port, scene))
+            sockets.append(connect(host, port, scene, source=f"127.0.0.{2 + i % k}" if k else None))
         except (ConnectionError, OSError):
             refused += 1
     if read:

@@ -14,6 +14,11 @@ use serde::{Deserialize, Serialize};
 
 use crate::scene::history::{Image, Step, apply_after, write_bricks};
 
+/// Replay cost of one brick of a `Revert`, in single-voxel ops (the snapshot budget's unit):
+/// read, merged and written a mask word at a time, a brick costs about as much as a dozen
+/// single-voxel ops.
+pub const REVERT_BRICK_OPS: u64 = 16;
+
 /// The version of [`LogRecord`] written now.
 const VERSION: u8 = 3;
 /// The oldest version read (an older `[0, v]` prefix is not a record of this format).
@@ -99,12 +104,12 @@ impl LogRecord {
         }
     }
 
-    /// Ops in the record (for replay cost accounting).
+    /// Ops in the record, or what replaying it costs in ops (for replay cost accounting).
     pub fn op_count(&self) -> usize {
         match self {
             LogRecord::Ops { ops, .. } => ops.len(),
             LogRecord::Restore { bricks, .. } => bricks.len(),
-            LogRecord::Revert { bricks, .. } => *bricks as usize,
+            LogRecord::Revert { bricks, .. } => (u64::from(*bricks) * REVERT_BRICK_OPS) as usize,
         }
     }
 }

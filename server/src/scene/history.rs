@@ -33,6 +33,7 @@ use serde::{Deserialize, Serialize};
 
 pub use super::step::{
     BrickChange, Image, Revert, Step, VoxelChange, apply_after, plan_revert, write_bricks,
+    write_planned,
 };
 
 /// A stored step, as a user's stacks name it.
@@ -451,9 +452,18 @@ mod tests {
         Step::from_journal(map)
     }
 
+    /// Undoes `step` as the owner does, and checks that replaying the undo's record (as
+    /// recovery does from the log) on the map as it was gives the same map.
     fn undo(map: &mut BrickMap, step: &Step) -> Revert {
+        let mut replayed = map.clone();
         let revert = plan_revert(map, step);
         write_bricks(map, &revert.writes).unwrap();
+        apply_after(
+            &mut replayed,
+            &Step::decode(&revert.record.encode()).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(replayed.content_hash(), map.content_hash());
         revert
     }
 

@@ -27,13 +27,13 @@ use bytes::Bytes;
 
 use super::answered::Answered;
 use super::cells::CellSet;
-use super::history::{Direction, History, Step, plan_revert, write_bricks};
+use super::history::{Direction, History, Image, Step, plan_revert, write_planned};
 use super::log::{LogError, SceneLog, SnapshotOf, TurnWrite};
 use super::request::Outcome;
 use super::undo_job::{UndoJob, UndoJobs};
 use super::{Clock, Command, Described, OwnerConfig, SceneInfo, SessionId, Subscriber};
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
-use crate::record::LogRecord;
+use crate::record::{LogRecord, REVERT_BRICK_OPS};
 use crate::store::{Loaded, Store, StoreLog};
 
 /// Voxels visited per single-voxel op of replay time (~10 ns per brushed voxel against ~300 ns
@@ -130,6 +130,19 @@ pub(super) struct Remote {
     pub(super) number: u64,
     pub(super) reply: Option<tokio::sync::oneshot::Sender<Outcome>>,
     pub(super) replies: Vec<Vec<u8>>,
+}
+
+/// An undo or redo planned against the map and recorded, ready to apply.
+pub(super) struct Reverted {
+    pub(super) user: u64,
+    pub(super) redo: bool,
+    /// Cells whose brick changes, with the brick they get.
+    pub(super) writes: Vec<(u32, Option<Image>)>,
+    /// The stored form of the undo's record, and its bricks.
+    pub(super) record: Vec<u8>,
+    pub(super) bricks: usize,
+    pub(super) restored: u64,
+    pub(super) kept: u64,
 }
 
 /// What this turn logs, in order.
@@ -672,36 +685,56 @@ impl Owner {
         };
         let revert = plan_revert(&self.map, &step);
         let record = self.history.push_record(user, direction, &revert.record);
+        let (restored, kept) = (revert.restored, revert.kept);
+        let seq = self.apply_revert(
+            Reverted {
+                user,
+                redo,
+                bricks: revert.record.bricks.len(),
+                writes: revert.writes,
+                record,
+                restored,
+                kept,
+            },
+            log,
+        );
+        reply(seq, restored, kept, None)
+    }
+
+    /// Applies a planned and recorded undo (or redo): writes its bricks, logs it as its record
+    /// (when it changed anything: it then takes the next sequence) and counts it. Returns its
+    /// sequence.
+    pub(super) fn apply_revert(&mut self, r: Reverted, log: &mut Log) -> Option<u64> {
         let mut seq = None;
-        if !revert.writes.is_empty() {
+        if !r.writes.is_empty() {
             let next = self.seq + 1;
             self.map.set_sequence(next);
-            if let Err(e) = write_bricks(&mut self.map, &revert.writes) {
+            if let Err(e) = write_planned(&mut self.map, r.writes) {
                 // Planned from this map's own bricks: cannot happen.
                 tracing::error!(scene = %self.name, error = %e, "an undo wrote a brick the map refused");
             }
             self.seq = next;
-            self.log_ops += revert.writes.len() as u64;
+            self.log_ops += r.bricks as u64 * REVERT_BRICK_OPS;
             log.push((
                 next,
                 LogRecord::Revert {
-                    user,
-                    redo,
-                    bricks: revert.record.bricks.len().min(u32::MAX as usize) as u32,
-                    step: record,
+                    user: r.user,
+                    redo: r.redo,
+                    bricks: r.bricks.min(u32::MAX as usize) as u32,
+                    step: r.record,
                 },
             ));
             seq = Some(next);
         }
-        let counter = if redo {
+        let counter = if r.redo {
             &self.metrics.redos
         } else {
             &self.metrics.undos
         };
         Metrics::add(counter, 1);
-        Metrics::add(&self.metrics.undo_voxels_restored, revert.restored);
-        Metrics::add(&self.metrics.undo_voxels_kept, revert.kept);
-        reply(seq, revert.restored, revert.kept, None)
+        Metrics::add(&self.metrics.undo_voxels_restored, r.restored);
+        Metrics::add(&self.metrics.undo_voxels_kept, r.kept);
+        seq
     }
 
     /// Sends everything touched this turn to every subscriber that keeps up. A turn that

@@ -236,34 +236,70 @@ impl Step {
 /// The stored form of a step of `bricks` (format 3).
 pub fn encode_frames(
     bricks: &[BrickChange],
-    mut compressor: Option<&mut zstd::bulk::Compressor<'static>>,
+    compressor: Option<&mut zstd::bulk::Compressor<'static>>,
 ) -> Vec<u8> {
-    let frames = bricks.chunks(FRAME_BRICKS);
-    let mut out = Vec::with_capacity(5 + 12 * frames.len());
-    out.push(STEP_FRAMES);
-    out.extend_from_slice(&(frames.len() as u32).to_le_bytes());
-    let mut raw = Vec::new();
-    for frame in frames {
-        raw.clear();
-        for change in frame {
-            encode_brick(change, &mut raw);
-        }
-        let packed = if raw.len() > COMPRESS_ABOVE {
-            match compressor.as_deref_mut() {
-                Some(c) => c.compress(&raw).ok(),
-                None => zstd::bulk::compress(&raw, 1).ok(),
+    let mut frames = EncodedFrames::default();
+    frames.push(bricks, compressor);
+    frames.finish()
+}
+
+/// Frames of a step encoded a few at a time (a sliced undo encodes its record as it plans
+/// it), then put together.
+#[derive(Clone, Debug, Default)]
+pub struct EncodedFrames {
+    count: u32,
+    bytes: Vec<u8>,
+}
+
+impl EncodedFrames {
+    /// Encodes `bricks` as the next frames.
+    pub fn push(
+        &mut self,
+        bricks: &[BrickChange],
+        mut compressor: Option<&mut zstd::bulk::Compressor<'static>>,
+    ) {
+        let mut raw = Vec::new();
+        for frame in bricks.chunks(FRAME_BRICKS) {
+            raw.clear();
+            for change in frame {
+                encode_brick(change, &mut raw);
             }
-        } else {
-            None
-        };
-        let stored = packed.as_deref().filter(|p| p.len() < raw.len());
-        let body = stored.unwrap_or(&raw);
-        out.extend_from_slice(&(frame.len() as u32).to_le_bytes());
-        out.extend_from_slice(&(raw.len() as u32).to_le_bytes());
-        out.extend_from_slice(&(body.len() as u32).to_le_bytes());
-        out.extend_from_slice(body);
+            let packed = if raw.len() > COMPRESS_ABOVE {
+                match compressor.as_deref_mut() {
+                    Some(c) => c.compress(&raw).ok(),
+                    None => zstd::bulk::compress(&raw, 1).ok(),
+                }
+            } else {
+                None
+            };
+            let stored = packed.as_deref().filter(|p| p.len() < raw.len());
+            let body = stored.unwrap_or(&raw);
+            self.bytes.reserve(12 + body.len());
+            self.bytes
+                .extend_from_slice(&(frame.len() as u32).to_le_bytes());
+            self.bytes
+                .extend_from_slice(&(raw.len() as u32).to_le_bytes());
+            self.bytes
+                .extend_from_slice(&(body.len() as u32).to_le_bytes());
+            self.bytes.extend_from_slice(body);
+            self.count += 1;
+        }
     }
-    out
+
+    /// Appends frames encoded elsewhere, after these.
+    pub fn append(&mut self, other: &EncodedFrames) {
+        self.count += other.count;
+        self.bytes.extend_from_slice(&other.bytes);
+    }
+
+    /// The stored step (format 3).
+    pub fn finish(self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(5 + self.bytes.len());
+        out.push(STEP_FRAMES);
+        out.extend_from_slice(&self.count.to_le_bytes());
+        out.extend_from_slice(&self.bytes);
+        out
+    }
 }
 
 /// A stored step read a frame at a time (format 3; older formats come as one frame).
@@ -375,6 +411,7 @@ fn encode_brick(change: &BrickChange, out: &mut Vec<u8>) {
         out.extend_from_slice(&change.before_solid[w].to_le_bytes());
         out.extend_from_slice(&change.after_solid[w].to_le_bytes());
     }
+    out.reserve(2 * (change.before.len() + change.after.len()));
     for c in change.before.iter().chain(&change.after) {
         out.extend_from_slice(&c.0.to_le_bytes());
     }
@@ -547,33 +584,54 @@ pub fn plan_revert_into(map: &BrickMap, bricks: &[BrickChange], revert: &mut Rev
     }
 }
 
-/// Writes whole bricks (a planned revert, or a logged one being replayed).
+/// Writes whole bricks (a logged revert of an older store being replayed).
 pub fn write_bricks(map: &mut BrickMap, writes: &[(u32, Option<Image>)]) -> Result<(), String> {
-    let cells = map.cell_dims();
-    let count = u64::from(cells[0]) * u64::from(cells[1]) * u64::from(cells[2]);
     for (cell, image) in writes {
-        if u64::from(*cell) >= count {
-            return Err(format!("cell {cell} is outside the scene"));
-        }
-        let coords = map.cell_coords(*cell);
-        match image {
-            Some(image) => map
-                .put_brick(&BrickData {
-                    cell: coords,
-                    mask: image.mask,
-                    colours: image.colours.clone(),
-                })
-                .map_err(|e| e.to_string())?,
-            None => {
-                map.remove_brick(coords);
-            }
-        }
+        write_brick(
+            map,
+            *cell,
+            image.as_ref().map(|i| (i.mask, i.colours.clone())),
+        )?;
     }
     Ok(())
 }
 
+/// Writes a planned revert's bricks, giving them up (no copy of their colours).
+pub fn write_planned(map: &mut BrickMap, writes: Vec<(u32, Option<Image>)>) -> Result<(), String> {
+    for (cell, image) in writes {
+        write_brick(map, cell, image.map(|i| (i.mask, i.colours)))?;
+    }
+    Ok(())
+}
+
+fn write_brick(
+    map: &mut BrickMap,
+    cell: u32,
+    brick: Option<(Mask, Vec<Colour>)>,
+) -> Result<(), String> {
+    let cells = map.cell_dims();
+    if u64::from(cell) >= u64::from(cells[0]) * u64::from(cells[1]) * u64::from(cells[2]) {
+        return Err(format!("cell {cell} is outside the scene"));
+    }
+    let coords = map.cell_coords(cell);
+    match brick {
+        Some((mask, colours)) => map
+            .put_brick(&BrickData {
+                cell: coords,
+                mask,
+                colours,
+            })
+            .map_err(|e| e.to_string()),
+        None => {
+            map.remove_brick(coords);
+            Ok(())
+        }
+    }
+}
+
 /// Sets every voxel a step changed to its after-value: replays a logged undo or redo, whose
-/// record says exactly what it changed (a log record of it is its encoded record).
+/// record says exactly what it changed (a log record of it is its encoded record). Works a
+/// mask word at a time: recovery replays every brick of a large undo this way.
 pub fn apply_after(map: &mut BrickMap, step: &Step) -> Result<(), String> {
     let cells = map.cell_dims();
     let count = u64::from(cells[0]) * u64::from(cells[1]) * u64::from(cells[2]);
@@ -582,21 +640,45 @@ pub fn apply_after(map: &mut BrickMap, step: &Step) -> Result<(), String> {
             return Err(format!("cell {} is outside the scene", change.cell));
         }
         let coords = map.cell_coords(change.cell);
-        let mut voxels = brick_voxels(map.brick(coords).as_ref());
-        for v in change.voxels() {
-            voxels[usize::from(v.bit) % 512] = v.after;
-        }
-        match Image::from_voxels(&voxels) {
-            Some(image) => map
-                .put_brick(&BrickData {
-                    cell: coords,
-                    mask: image.mask,
-                    colours: image.colours,
-                })
-                .map_err(|e| e.to_string())?,
-            None => {
-                map.remove_brick(coords);
+        let (old_mask, old) = match map.brick(coords) {
+            Some(b) => (b.mask, b.colours),
+            None => (EMPTY_MASK, Vec::new()),
+        };
+        let mut mask = EMPTY_MASK;
+        let mut colours = Vec::with_capacity(old.len() + change.after.len());
+        let (mut oi, mut ai) = (0, 0);
+        for w in 0..8 {
+            let (was, changed, after) = (old_mask[w], change.changed[w], change.after_solid[w]);
+            mask[w] = (was & !changed) | after;
+            let mut bits = was | after;
+            while bits != 0 {
+                let t = bits.trailing_zeros();
+                bits &= bits - 1;
+                let colour = if was >> t & 1 == 1 {
+                    oi += 1;
+                    old.get(oi - 1).copied()
+                } else {
+                    None
+                };
+                if changed >> t & 1 == 1 {
+                    if after >> t & 1 == 1 {
+                        ai += 1;
+                        colours.extend(change.after.get(ai - 1).copied());
+                    }
+                } else {
+                    colours.extend(colour);
+                }
             }
+        }
+        if mask == EMPTY_MASK {
+            map.remove_brick(coords);
+        } else {
+            map.put_brick(&BrickData {
+                cell: coords,
+                mask,
+                colours,
+            })
+            .map_err(|e| e.to_string())?;
         }
     }
     Ok(())

@@ -23,16 +23,19 @@ use std::collections::{HashSet, VecDeque};
 use brickcast_protocol::wire::{Refusal, ServerMsg};
 
 use super::Command;
-use super::history::{BrickChange, Direction, Revert, write_bricks};
-use super::owner::{AckTo, Log, Owner, PendingAck};
-use super::step::{Frames, encode_frames, plan_revert_into};
+use brickcast_protocol::BrickMap;
+
+use super::history::{BrickChange, Direction, History, Revert};
+use super::owner::{AckTo, Log, Owner, PendingAck, Reverted};
+use super::step::{EncodedFrames, Frames, plan_revert_into};
 use crate::metrics::Metrics;
-use crate::record::LogRecord;
 
 /// One frame of the step, planned against the map as it was in some turn.
 struct Planned {
     step: Vec<BrickChange>,
     revert: Revert,
+    /// The revert's record, encoded (frames of the stored step the opposite stack gets).
+    frames: EncodedFrames,
 }
 
 /// An undo or redo waiting for (or in) its planning.
@@ -178,14 +181,12 @@ impl Owner {
                 let bytes = &job.started.as_ref().expect("started").1;
                 match next_frame(bytes, frames) {
                     Ok(Some(step)) => {
-                        let mut revert = Revert::new();
-                        plan_revert_into(&self.map, &step, &mut revert);
                         let index = job.planned.len();
                         for change in &step {
                             job.cells.insert(change.cell);
                             job.frame_of.insert(change.cell, index);
                         }
-                        job.planned.push(Planned { step, revert });
+                        job.planned.push(plan(&self.map, step, &mut self.history));
                         if !all {
                             return released;
                         }
@@ -271,57 +272,54 @@ impl Owner {
         }
         for &frame in &job.dirty {
             let planned = &mut job.planned[frame];
-            planned.revert = Revert::new();
-            plan_revert_into(&self.map, &planned.step, &mut planned.revert);
+            *planned = plan(
+                &self.map,
+                std::mem::take(&mut planned.step),
+                &mut self.history,
+            );
         }
         self.history.take_top(job.user, direction);
         let (mut restored, mut kept, mut bricks) = (0, 0, 0usize);
         let mut writes = Vec::new();
-        let mut record = Vec::new();
+        let mut frames = EncodedFrames::default();
         for planned in job.planned.drain(..) {
             restored += planned.revert.restored;
             kept += planned.revert.kept;
             bricks += planned.revert.record.bricks.len();
             writes.extend(planned.revert.writes);
-            record.extend(planned.revert.record.bricks);
+            frames.append(&planned.frames);
         }
-        let bytes = encode_frames(&record, self.history.compressor());
-        let stored = self
-            .history
-            .push_stored(job.user, direction, bytes.clone(), bricks);
-        debug_assert_eq!(stored, bytes.len() as u64);
-        let mut seq = None;
-        if !writes.is_empty() {
-            let next = self.seq + 1;
-            self.map.set_sequence(next);
-            if let Err(e) = write_bricks(&mut self.map, &writes) {
-                // Planned from this map's own bricks: cannot happen.
-                tracing::error!(scene = %self.name, error = %e, "an undo wrote a brick the map refused");
-            }
-            self.seq = next;
-            self.log_ops += writes.len() as u64;
-            log.push((
-                next,
-                LogRecord::Revert {
-                    user: job.user,
-                    redo: job.redo,
-                    bricks: bricks.min(u32::MAX as usize) as u32,
-                    step: bytes,
-                },
-            ));
-            seq = Some(next);
-        }
-        let counter = if job.redo {
-            &self.metrics.redos
-        } else {
-            &self.metrics.undos
-        };
-        Metrics::add(counter, 1);
+        let record = frames.finish();
+        self.history
+            .push_stored(job.user, direction, record.clone(), bricks);
+        let seq = self.apply_revert(
+            Reverted {
+                user: job.user,
+                redo: job.redo,
+                writes,
+                record,
+                bricks,
+                restored,
+                kept,
+            },
+            log,
+        );
         Metrics::add(&self.metrics.undos_sliced, 1);
-        Metrics::add(&self.metrics.undo_voxels_restored, restored);
-        Metrics::add(&self.metrics.undo_voxels_kept, kept);
         acks.push(job.reply(seq, restored, kept, None));
         std::mem::take(&mut job.waiting)
+    }
+}
+
+/// Plans undoing one frame of a step against the map as it is, and encodes its record.
+fn plan(map: &BrickMap, step: Vec<BrickChange>, history: &mut History) -> Planned {
+    let mut revert = Revert::new();
+    plan_revert_into(map, &step, &mut revert);
+    let mut frames = EncodedFrames::default();
+    frames.push(&revert.record.bricks, history.compressor());
+    Planned {
+        step,
+        revert,
+        frames,
     }
 }
 
@@ -350,7 +348,7 @@ mod tests {
 
     use super::*;
     use crate::metrics::PhaseClock;
-    use crate::scene::history::{Step, plan_revert};
+    use crate::scene::history::{Step, plan_revert, write_bricks};
     use crate::scene::{Joiner, Outbox, OutboxReceiver, OwnerConfig};
     use crate::store::Store;
 
