@@ -18,7 +18,7 @@
 //! Jobs are for the scene's own sessions over an unshared log; in a cluster an undo arrives as
 //! a forwarded request whose answer is logged with its turn, and is applied in that turn.
 
-use std::collections::{HashSet, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 
 use brickcast_protocol::wire::{Refusal, ServerMsg};
 
@@ -49,11 +49,10 @@ pub(super) struct UndoJob {
     /// Bytes of the stored step read so far (`Frames` is re-made each turn from here).
     frames_read: Option<FramesAt>,
     planned: Vec<Planned>,
-    /// Cells planned so far, and those of them someone changed since.
-    cells: HashSet<u32>,
+    /// Which frame planned each cell planned so far.
+    frame_of: HashMap<u32, usize>,
+    /// Frames with a cell someone changed after it was planned.
     dirty: HashSet<usize>,
-    /// Which frame holds each planned cell.
-    frame_of: std::collections::HashMap<u32, usize>,
     /// The user's commands that arrived after this one, in order.
     pub(super) waiting: Vec<Command>,
 }
@@ -75,9 +74,8 @@ impl UndoJob {
             started: None,
             frames_read: None,
             planned: Vec::new(),
-            cells: HashSet::new(),
+            frame_of: HashMap::new(),
             dirty: HashSet::new(),
-            frame_of: std::collections::HashMap::new(),
             waiting: Vec::new(),
         }
     }
@@ -144,9 +142,7 @@ impl Owner {
     pub(super) fn note_touched(&mut self, touched: &[u32]) {
         if let Some(job) = self.undo_jobs.front_mut() {
             for cell in touched {
-                if job.cells.contains(cell)
-                    && let Some(&frame) = job.frame_of.get(cell)
-                {
+                if let Some(&frame) = job.frame_of.get(cell) {
                     job.dirty.insert(frame);
                 }
             }
@@ -183,7 +179,6 @@ impl Owner {
                     Ok(Some(step)) => {
                         let index = job.planned.len();
                         for change in &step {
-                            job.cells.insert(change.cell);
                             job.frame_of.insert(change.cell, index);
                         }
                         job.planned.push(plan(&self.map, step, &mut self.history));
