@@ -27,10 +27,30 @@ impl Default for ConnectionLimits {
     }
 }
 
+/// A crowd of at least this many connections that shrinks to half of its peak hands the
+/// memory it used back to the system (see [`Connections`]).
+const CROWD: usize = 64;
+
 /// The open connections, counted per address.
+///
+/// Also the moment to give memory back: glibc's allocator keeps what a thousand connections
+/// freed (their buffers, the start of their syncs) for reuse, so the server's resident memory
+/// stayed at its peak after a crowd left (BENCHMARKS.md, "Fair share"). When the connections
+/// fall to half of their peak (of at least [`CROWD`]), the freed pages are returned
+/// (`malloc_trim`, on a blocking thread).
 #[derive(Default)]
 pub struct Connections {
-    open: Mutex<(usize, HashMap<IpAddr, usize>)>,
+    open: Mutex<Open>,
+    /// Times memory was given back.
+    trims: std::sync::atomic::AtomicU64,
+}
+
+#[derive(Default)]
+struct Open {
+    total: usize,
+    per_ip: HashMap<IpAddr, usize>,
+    /// The most open at once since memory was last given back.
+    peak: usize,
 }
 
 /// Why a connection was refused.
@@ -56,16 +76,16 @@ impl Connections {
         limits: &ConnectionLimits,
     ) -> Result<Admitted, Refusal> {
         let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
-        let (total, per_ip) = &mut *open;
-        if *total >= limits.max_total {
+        if open.total >= limits.max_total {
             return Err(Refusal::Total(limits.max_total));
         }
-        let from_ip = per_ip.entry(ip).or_insert(0);
+        let from_ip = open.per_ip.entry(ip).or_insert(0);
         if *from_ip >= limits.max_per_ip {
             return Err(Refusal::PerIp(ip, limits.max_per_ip));
         }
         *from_ip += 1;
-        *total += 1;
+        open.total += 1;
+        open.peak = open.peak.max(open.total);
         Ok(Admitted {
             conns: self.clone(),
             ip,
@@ -74,19 +94,39 @@ impl Connections {
 
     /// Connections open now.
     pub fn open(&self) -> usize {
-        self.open.lock().unwrap_or_else(|e| e.into_inner()).0
+        self.open.lock().unwrap_or_else(|e| e.into_inner()).total
+    }
+
+    /// Times memory was given back after a crowd left.
+    pub fn trims(&self) -> u64 {
+        self.trims.load(std::sync::atomic::Ordering::Relaxed)
     }
 }
 
 impl Drop for Admitted {
     fn drop(&mut self) {
-        let mut open = self.conns.open.lock().unwrap_or_else(|e| e.into_inner());
-        let (total, per_ip) = &mut *open;
-        *total -= 1;
-        if let Some(n) = per_ip.get_mut(&self.ip) {
-            *n -= 1;
-            if *n == 0 {
-                per_ip.remove(&self.ip);
+        let trim = {
+            let mut open = self.conns.open.lock().unwrap_or_else(|e| e.into_inner());
+            open.total -= 1;
+            if let Some(n) = open.per_ip.get_mut(&self.ip) {
+                *n -= 1;
+                if *n == 0 {
+                    open.per_ip.remove(&self.ip);
+                }
+            }
+            let trim = open.peak >= CROWD && open.total <= open.peak / 2;
+            if trim {
+                open.peak = open.total;
+            }
+            trim
+        };
+        if trim {
+            self.conns
+                .trims
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            // Off the async threads: trimming a large heap takes milliseconds.
+            if let Ok(runtime) = tokio::runtime::Handle::try_current() {
+                runtime.spawn_blocking(crate::served::give_back_memory);
             }
         }
     }
@@ -114,5 +154,22 @@ mod tests {
         assert_eq!(conns.open(), 2);
         let _b2 = conns.admit(b, &limits).unwrap();
         assert_eq!(conns.open(), 3);
+        assert_eq!(conns.trims(), 0, "three connections are no crowd");
+    }
+
+    #[test]
+    fn memory_is_given_back_once_a_crowd_has_halved() {
+        let conns = Arc::new(Connections::default());
+        let limits = ConnectionLimits::default();
+        let ip: IpAddr = "10.0.0.3".parse().unwrap();
+        let mut crowd: Vec<Admitted> = (0..CROWD)
+            .map(|_| conns.admit(ip, &limits).unwrap())
+            .collect();
+        crowd.truncate(CROWD / 2 + 1);
+        assert_eq!(conns.trims(), 0);
+        crowd.pop();
+        assert_eq!(conns.trims(), 1, "half of the peak left");
+        crowd.clear();
+        assert_eq!(conns.trims(), 1, "32 is no crowd");
     }
 }

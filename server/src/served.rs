@@ -419,10 +419,10 @@ pub(crate) enum Closing {
     Shutdown,
 }
 
-/// Returns the freed memory of closed scenes to the system. glibc's allocator keeps freed
-/// pages for reuse, so without this a node's resident memory would not go down when a scene
-/// closes (measured: BENCHMARKS.md, "Several nodes").
-fn give_back_memory() {
+/// Returns freed memory (of closed scenes, of a crowd that left: `conns.rs`) to the system.
+/// glibc's allocator keeps freed pages for reuse, so without this a node's resident memory
+/// would not go down when a scene closes (measured: BENCHMARKS.md, "Several nodes").
+pub(crate) fn give_back_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: malloc_trim only releases free heap pages; it touches no live allocation.
     unsafe {
