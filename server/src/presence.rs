@@ -21,7 +21,7 @@
 //! anyone else. What changes among the local peers is also kept for the relay
 //! ([`Hub::take_local`]), which publishes it to the other nodes.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -106,6 +106,10 @@ struct Roster {
     pending: Changes,
     /// Since the relay last took them: the same, local peers only. Kept only in a cluster.
     local: Option<Changes>,
+    /// Who shows a name of each look-alike key (`identity::name_key`), and in how many
+    /// windows: whether a name is taken is one lookup, not a key of every name present (a
+    /// crowd of a thousand same-named clients made each join cost a million skeletons).
+    keys: HashMap<String, HashMap<UserId, usize>>,
 }
 
 impl Roster {
@@ -180,9 +184,35 @@ impl Roster {
 
     /// Whether another user present (here or on another node) shows a name like `name`.
     fn name_taken(&self, user: UserId, name: &str) -> bool {
+        self.keys
+            .get(&crate::identity::name_key(name))
+            .is_some_and(|users| users.keys().any(|u| *u != user))
+    }
+
+    /// `user` shows `name` in one more window.
+    fn index(&mut self, name: &str, user: UserId) {
+        let users = self
+            .keys
+            .entry(crate::identity::name_key(name))
+            .or_default();
+        *users.entry(user).or_insert(0) += 1;
+    }
+
+    /// `user` shows `name` in one window fewer.
+    fn unindex(&mut self, name: &str, user: UserId) {
         let key = crate::identity::name_key(name);
-        self.peers()
-            .any(|p| p.user != user && crate::identity::name_key(&p.name) == key)
+        let Some(users) = self.keys.get_mut(&key) else {
+            return;
+        };
+        if let Some(n) = users.get_mut(&user) {
+            *n -= 1;
+            if *n == 0 {
+                users.remove(&user);
+            }
+        }
+        if users.is_empty() {
+            self.keys.remove(&key);
+        }
     }
 
     fn left(&mut self, id: PeerId, local: bool) {
@@ -283,6 +313,7 @@ impl Hub {
         let others: Vec<Peer> = roster.peers().cloned().collect();
         let id = peer.id;
         roster.joined(&peer, true);
+        roster.index(&peer.name, peer.user);
         roster.members.insert(
             id,
             Member {
@@ -335,8 +366,10 @@ impl Hub {
         let Some(m) = roster.members.get_mut(&id) else {
             return Ok(());
         };
-        m.peer.name = name;
+        let old = std::mem::replace(&mut m.peer.name, name);
         let peer = m.peer.clone();
+        roster.unindex(&old, user);
+        roster.index(&peer.name, user);
         roster.joined(&peer, true);
         Ok(())
     }
@@ -344,7 +377,8 @@ impl Hub {
     /// The peer left.
     pub fn leave(&self, id: PeerId) {
         let mut roster = self.roster();
-        if roster.members.remove(&id).is_some() {
+        if let Some(m) = roster.members.remove(&id) {
+            roster.unindex(&m.peer.name, m.peer.user);
             roster.left(id, true);
         }
     }
@@ -393,9 +427,14 @@ impl Hub {
         let full = roster.remote.len() >= MAX_REMOTE;
         match roster.remote.get_mut(&id) {
             Some(r) if r.peer == peer => return true,
-            Some(r) => r.peer = peer.clone(),
+            Some(r) => {
+                let old = std::mem::replace(&mut r.peer, peer.clone());
+                roster.unindex(&old.name, old.user);
+                roster.index(&peer.name, peer.user);
+            }
             None if full => return false,
             None => {
+                roster.index(&peer.name, peer.user);
                 let state = PeerState {
                     id,
                     view: None,
@@ -431,7 +470,8 @@ impl Hub {
     /// A remote peer left (or its node went silent).
     pub fn remote_leave(&self, id: PeerId) {
         let mut roster = self.roster();
-        if roster.remote.remove(&id).is_some() {
+        if let Some(r) = roster.remote.remove(&id) {
+            roster.unindex(&r.peer.name, r.peer.user);
             roster.left(id, false);
         }
     }
@@ -664,6 +704,32 @@ mod tests {
         assert_eq!(hub.rename(2, "ALICE".into()), Err(Refusal::NameTaken));
         assert_eq!(hub.rename(4, "ALICE".into()), Ok(()));
         assert_eq!(hub.rename(2, "Bob".into()), Ok(()));
+        // Alice's name is hers while one of her windows shows it, and free once none does.
+        assert_eq!(hub.rename(3, "Alice".into()), Err(Refusal::NameTaken));
+        hub.leave(1);
+        assert_eq!(
+            hub.rename(3, "Alice".into()),
+            Err(Refusal::NameTaken),
+            "window 4 is ALICE"
+        );
+        hub.leave(4);
+        assert_eq!(hub.rename(3, "Alice".into()), Ok(()));
+        // "AIice (2)" went with its rename to Bob: the next look-alike takes that number again.
+        let mut next = peer(5);
+        next.name = "alice".into();
+        assert_eq!(hub.join(next, out.clone()).0.name, "alice (2)");
+        // A name another node's user shows is taken too, until that user leaves or renames.
+        let mut far = peer(REMOTE_IDS + 1);
+        far.user = 77;
+        far.name = "Carol".into();
+        assert!(hub.remote_join(far.clone()));
+        assert_eq!(hub.rename(2, "CAROL".into()), Err(Refusal::NameTaken));
+        far.name = "Dave".into();
+        assert!(hub.remote_join(far));
+        assert_eq!(hub.rename(2, "CAROL".into()), Ok(()));
+        assert_eq!(hub.rename(5, "dave".into()), Err(Refusal::NameTaken));
+        hub.remote_leave(REMOTE_IDS + 1);
+        assert_eq!(hub.rename(5, "dave".into()), Ok(()));
     }
 
     #[test]
