@@ -191,7 +191,11 @@ impl Owner {
                     Err(e) => {
                         tracing::error!(scene = %self.name, user = job.user, error = %e, "an undo step could not be read; it is dropped");
                         let job = self.undo_jobs.pop_front().expect("a job is first");
-                        self.history.take_top(job.user, job.direction());
+                        // Dropped from its stack, if it is still on top of it.
+                        let id = job.started.as_ref().map(|(id, _)| *id);
+                        if self.history.peek(job.user, job.direction()).map(|s| s.id) == id {
+                            self.history.take_top(job.user, job.direction());
+                        }
                         acks.push(job.nothing(&self.metrics));
                         released.extend(job.waiting);
                         if !all {
