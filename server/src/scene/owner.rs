@@ -132,6 +132,61 @@ pub(super) struct Remote {
     pub(super) replies: Vec<Vec<u8>>,
 }
 
+/// Who asked for an undo (or redo), and how to answer them.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct UndoAsk {
+    pub(super) to: AckTo,
+    pub(super) client_seq: u64,
+    pub(super) redo: bool,
+}
+
+impl UndoAsk {
+    /// The stack the step comes from.
+    pub(super) fn direction(&self) -> Direction {
+        if self.redo {
+            Direction::Redo
+        } else {
+            Direction::Undo
+        }
+    }
+
+    pub(super) fn reply(
+        &self,
+        seq: Option<u64>,
+        restored: u64,
+        kept: u64,
+        refused: Option<Refusal>,
+    ) -> PendingAck {
+        PendingAck {
+            to: self.to,
+            msg: ServerMsg::Undone {
+                client_seq: self.client_seq,
+                redo: self.redo,
+                seq,
+                restored,
+                kept,
+                refused,
+            },
+        }
+    }
+
+    /// Refused for `reason` (counted).
+    pub(super) fn refuse(&self, metrics: &Metrics, reason: Refusal) -> PendingAck {
+        Metrics::add(&metrics.history_refused, 1);
+        self.reply(None, 0, 0, Some(reason))
+    }
+
+    /// Refused: there is no step to undo (any more).
+    pub(super) fn nothing(&self, metrics: &Metrics) -> PendingAck {
+        let nothing = if self.redo {
+            Refusal::NothingToRedo
+        } else {
+            Refusal::NothingToUndo
+        };
+        self.refuse(metrics, nothing)
+    }
+}
+
 /// An undo or redo planned against the map and recorded, ready to apply.
 pub(super) struct Reverted {
     pub(super) user: u64,
@@ -605,8 +660,9 @@ impl Owner {
     }
 
     /// Undoes (or redoes) the session's user's latest step: see `history.rs` for the rule. The
-    /// bricks it writes take the next sequence number and are logged as a `Restore` record;
-    /// the history change commits with them. `editor`: whether the user may edit.
+    /// bricks it writes take the next sequence number and are logged as a `Revert` record;
+    /// the history change commits with them. `editor`: whether the user may edit. `None`: the
+    /// undo is planned across turns (`undo_job.rs`) and answered when it is applied.
     pub(super) fn undo(
         &mut self,
         to: AckTo,
@@ -616,33 +672,19 @@ impl Owner {
         redo: bool,
         log: &mut Log,
     ) -> Option<PendingAck> {
-        let reply = |seq, restored, kept, refused| {
-            Some(PendingAck {
-                to,
-                msg: ServerMsg::Undone {
-                    client_seq,
-                    redo,
-                    seq,
-                    restored,
-                    kept,
-                    refused,
-                },
-            })
+        let ask = UndoAsk {
+            to,
+            client_seq,
+            redo,
         };
-        let (direction, nothing) = if redo {
-            (Direction::Redo, Refusal::NothingToRedo)
-        } else {
-            (Direction::Undo, Refusal::NothingToUndo)
-        };
+        let direction = ask.direction();
         if !editor {
-            Metrics::add(&self.metrics.history_refused, 1);
-            return reply(None, 0, 0, Some(Refusal::NotAllowed));
+            return Some(ask.refuse(&self.metrics, Refusal::NotAllowed));
         }
         // Charged by the bricks the step changed (each compared voxel by voxel), against the
         // same per-second work budget as edits, refilled on the owner's clock.
         let Some(top) = self.history.peek(user, direction) else {
-            Metrics::add(&self.metrics.history_refused, 1);
-            return reply(None, 0, 0, Some(nothing));
+            return Some(ask.nothing(&self.metrics));
         };
         let cost = f64::from(top.bricks) * 512.0;
         let budget = &self.config.budget;
@@ -656,14 +698,12 @@ impl Owner {
         *at = now;
         // A step bigger than the whole burst still goes when the bucket is full.
         if *tokens < cost.min(burst) {
-            Metrics::add(&self.metrics.history_refused, 1);
-            return reply(None, 0, 0, Some(Refusal::RateLimited));
+            return Some(ask.refuse(&self.metrics, Refusal::RateLimited));
         }
         *tokens -= cost.min(burst);
         if self.sliced(to, top.bricks) {
             // Planned across turns, answered when applied.
-            self.undo_jobs
-                .push_back(UndoJob::new(to, user, client_seq, redo));
+            self.undo_jobs.push_back(UndoJob::new(ask, user));
             return None;
         }
         let store = &self.log;
@@ -672,15 +712,11 @@ impl Owner {
         });
         let step = match popped {
             Ok(Some(step)) => step,
-            Ok(None) => {
-                Metrics::add(&self.metrics.history_refused, 1);
-                return reply(None, 0, 0, Some(nothing));
-            }
+            Ok(None) => return Some(ask.nothing(&self.metrics)),
             Err(e) => {
                 // The step is gone from the stack either way; say so rather than stop the scene.
                 tracing::error!(scene = %self.name, user, error = %e, "an undo step could not be read; it is dropped");
-                Metrics::add(&self.metrics.history_refused, 1);
-                return reply(None, 0, 0, Some(nothing));
+                return Some(ask.nothing(&self.metrics));
             }
         };
         let revert = plan_revert(&self.map, &step);
@@ -698,7 +734,7 @@ impl Owner {
             },
             log,
         );
-        reply(seq, restored, kept, None)
+        Some(ask.reply(seq, restored, kept, None))
     }
 
     /// Applies a planned and recorded undo (or redo): writes its bricks, logs it as its record

@@ -20,13 +20,11 @@
 
 use std::collections::{HashMap, HashSet, VecDeque};
 
-use brickcast_protocol::wire::{Refusal, ServerMsg};
-
-use super::Command;
 use brickcast_protocol::BrickMap;
 
-use super::history::{BrickChange, Direction, History, Revert};
-use super::owner::{AckTo, Log, Owner, PendingAck, Reverted};
+use super::Command;
+use super::history::{BrickChange, History, Revert};
+use super::owner::{AckTo, Log, Owner, PendingAck, Reverted, UndoAsk};
 use super::step::{EncodedFrames, Frames, plan_revert_into};
 use crate::metrics::Metrics;
 
@@ -40,14 +38,10 @@ struct Planned {
 
 /// An undo or redo waiting for (or in) its planning.
 pub(super) struct UndoJob {
-    to: AckTo,
+    ask: UndoAsk,
     user: u64,
-    client_seq: u64,
-    redo: bool,
-    /// The step's id and stored bytes, once the job started.
-    started: Option<(u64, Vec<u8>)>,
-    /// Bytes of the stored step read so far (`Frames` is re-made each turn from here).
-    frames_read: Option<FramesAt>,
+    /// The step being planned, once the job started.
+    started: Option<Started>,
     planned: Vec<Planned>,
     /// Which frame planned each cell planned so far.
     frame_of: HashMap<u32, usize>,
@@ -57,65 +51,26 @@ pub(super) struct UndoJob {
     pub(super) waiting: Vec<Command>,
 }
 
-/// Where the next frame starts in the stored step.
-struct FramesAt {
+/// The step a job plans: its id, its stored bytes, and where its next frame starts (`Frames`
+/// is made again each turn from there).
+struct Started {
+    id: u64,
+    bytes: Vec<u8>,
     offset: usize,
     left: u32,
-    done: bool,
+    read: bool,
 }
 
 impl UndoJob {
-    pub(super) fn new(to: AckTo, user: u64, client_seq: u64, redo: bool) -> UndoJob {
+    pub(super) fn new(ask: UndoAsk, user: u64) -> UndoJob {
         UndoJob {
-            to,
+            ask,
             user,
-            client_seq,
-            redo,
             started: None,
-            frames_read: None,
             planned: Vec::new(),
             frame_of: HashMap::new(),
             dirty: HashSet::new(),
             waiting: Vec::new(),
-        }
-    }
-
-    fn direction(&self) -> Direction {
-        if self.redo {
-            Direction::Redo
-        } else {
-            Direction::Undo
-        }
-    }
-
-    /// The answer when there is no step to undo (any more).
-    fn nothing(&self, metrics: &Metrics) -> PendingAck {
-        Metrics::add(&metrics.history_refused, 1);
-        let nothing = if self.redo {
-            Refusal::NothingToRedo
-        } else {
-            Refusal::NothingToUndo
-        };
-        self.reply(None, 0, 0, Some(nothing))
-    }
-
-    fn reply(
-        &self,
-        seq: Option<u64>,
-        restored: u64,
-        kept: u64,
-        refused: Option<Refusal>,
-    ) -> PendingAck {
-        PendingAck {
-            to: self.to,
-            msg: ServerMsg::Undone {
-                client_seq: self.client_seq,
-                redo: self.redo,
-                seq,
-                restored,
-                kept,
-                refused,
-            },
         }
     }
 }
@@ -169,13 +124,9 @@ impl Owner {
                 continue;
             }
             let job = self.undo_jobs.front_mut().expect("a job is first");
-            let frames = job
-                .frames_read
-                .as_mut()
-                .expect("a started job reads frames");
-            if !frames.done {
-                let bytes = &job.started.as_ref().expect("started").1;
-                match next_frame(bytes, frames) {
+            let started = job.started.as_mut().expect("a job was started");
+            if !started.read {
+                match next_frame(started) {
                     Ok(Some(step)) => {
                         let index = job.planned.len();
                         for change in &step {
@@ -187,16 +138,17 @@ impl Owner {
                         }
                         continue;
                     }
-                    Ok(None) => frames.done = true,
+                    Ok(None) => started.read = true,
                     Err(e) => {
                         tracing::error!(scene = %self.name, user = job.user, error = %e, "an undo step could not be read; it is dropped");
                         let job = self.undo_jobs.pop_front().expect("a job is first");
                         // Dropped from its stack, if it is still on top of it.
-                        let id = job.started.as_ref().map(|(id, _)| *id);
-                        if self.history.peek(job.user, job.direction()).map(|s| s.id) == id {
-                            self.history.take_top(job.user, job.direction());
+                        let id = job.started.as_ref().map(|s| s.id);
+                        let direction = job.ask.direction();
+                        if self.history.peek(job.user, direction).map(|s| s.id) == id {
+                            self.history.take_top(job.user, direction);
                         }
-                        acks.push(job.nothing(&self.metrics));
+                        acks.push(job.ask.nothing(&self.metrics));
                         released.extend(job.waiting);
                         if !all {
                             return released;
@@ -216,7 +168,7 @@ impl Owner {
     /// Starts the first job: reads its step. False when there is none to undo any more.
     fn start_job(&mut self, acks: &mut Vec<PendingAck>) -> bool {
         let job = self.undo_jobs.front().expect("a job is first");
-        let (user, direction) = (job.user, job.direction());
+        let (user, direction) = (job.user, job.ask.direction());
         let Some(top) = self.history.peek(user, direction) else {
             return self.refuse_first(acks, None);
         };
@@ -233,12 +185,13 @@ impl Owner {
             Err(e) => return self.refuse_first(acks, Some(e)),
         };
         let job = self.undo_jobs.front_mut().expect("a job is first");
-        job.frames_read = Some(FramesAt {
+        job.started = Some(Started {
+            id: top.id,
+            bytes,
             offset: 0,
             left: 0,
-            done: false,
+            read: false,
         });
-        job.started = Some((top.id, bytes));
         true
     }
 
@@ -247,9 +200,9 @@ impl Owner {
         let job = self.undo_jobs.front_mut().expect("a job is first");
         if let Some(e) = error {
             tracing::error!(scene = %self.name, user = job.user, error = %e, "an undo step could not be read; it is dropped");
-            self.history.take_top(job.user, job.direction());
+            self.history.take_top(job.user, job.ask.direction());
         }
-        acks.push(job.nothing(&self.metrics));
+        acks.push(job.ask.nothing(&self.metrics));
         false
     }
 
@@ -261,12 +214,12 @@ impl Owner {
         log: &mut Log,
         acks: &mut Vec<PendingAck>,
     ) -> Vec<Command> {
-        let (id, _) = job.started.take().expect("a finished job started");
-        let direction = job.direction();
+        let id = job.started.take().expect("a finished job started").id;
+        let direction = job.ask.direction();
         // The step must still be the user's top: its user may have left (a guest's history is
         // forgotten) or the scene's cap dropped it meanwhile.
         if self.history.peek(job.user, direction).map(|s| s.id) != Some(id) {
-            acks.push(job.nothing(&self.metrics));
+            acks.push(job.ask.nothing(&self.metrics));
             return job.waiting;
         }
         for &frame in &job.dirty {
@@ -294,7 +247,7 @@ impl Owner {
         let seq = self.apply_revert(
             Reverted {
                 user: job.user,
-                redo: job.redo,
+                redo: job.ask.redo,
                 writes,
                 record,
                 bricks,
@@ -304,7 +257,7 @@ impl Owner {
             log,
         );
         Metrics::add(&self.metrics.undos_sliced, 1);
-        acks.push(job.reply(seq, restored, kept, None));
+        acks.push(job.ask.reply(seq, restored, kept, None));
         std::mem::take(&mut job.waiting)
     }
 }
@@ -322,11 +275,11 @@ fn plan(map: &BrickMap, step: Vec<BrickChange>, history: &mut History) -> Planne
     }
 }
 
-/// The next frame of a stored step, continuing where `at` stopped.
-fn next_frame(bytes: &[u8], at: &mut FramesAt) -> Result<Option<Vec<BrickChange>>, String> {
-    let mut frames = Frames::resume(bytes, at.offset, at.left)?;
+/// The next frame of a started job's step.
+fn next_frame(started: &mut Started) -> Result<Option<Vec<BrickChange>>, String> {
+    let mut frames = Frames::resume(&started.bytes, started.offset, started.left)?;
     let frame = frames.next_frame()?;
-    (at.offset, at.left) = frames.position(bytes);
+    (started.offset, started.left) = frames.position(&started.bytes);
     Ok(frame)
 }
 
@@ -341,7 +294,7 @@ mod tests {
     use std::time::Instant;
 
     use brickcast_protocol::apply::apply_op;
-    use brickcast_protocol::wire::{BrushMode, EditOp, Limits, Role, decode_server};
+    use brickcast_protocol::wire::{BrushMode, EditOp, Limits, Role, ServerMsg, decode_server};
     use brickcast_protocol::{BrickMap, Colour};
     use tokio::sync::oneshot;
 
