@@ -5,8 +5,9 @@
 //! resolved here with the CPU tracer against the map being edited (paper 3.3), never against a
 //! client's possibly stale copy.
 
+use crate::brick::{BRICK_EDGE, EMPTY_MASK, Mask, mask_set, voxel_bit};
 use crate::colour::Colour;
-use crate::map::{BrickMap, BrushMode};
+use crate::map::{BrickMap, BrushMode, VoxelBox, box_brushes, sphere_bounds, sphere_brushes};
 use crate::trace::{Ray, trace};
 use crate::wire::{EditOp, Limits, RayAction, Rejection};
 
@@ -128,6 +129,61 @@ pub fn apply_resolved(map: &mut BrickMap, op: Resolved) -> u64 {
             mode,
             colour,
         } => map.fill_box(min, max, mode, colour),
+    }
+}
+
+impl Resolved {
+    /// The voxels the op may change (not clipped to a scene); `None` when it changes none.
+    pub fn bounds(&self) -> Option<VoxelBox> {
+        match *self {
+            Resolved::Set { pos, .. } | Resolved::Clear { pos } | Resolved::Paint { pos, .. } => {
+                Some(VoxelBox { lo: pos, hi: pos })
+            }
+            Resolved::Sphere { centre, radius, .. } => sphere_bounds(centre, radius),
+            Resolved::Box { min, max, .. } => (0..3)
+                .all(|i| min[i] <= max[i])
+                .then_some(VoxelBox { lo: min, hi: max }),
+        }
+    }
+
+    /// Calls `each(cell, brush, mode, colour)` for every brick the op covers inside `within`
+    /// (the scene, or a brick-aligned part of it): what [`apply_resolved`] does, brick by
+    /// brick, without changing anything. A plan made from these with
+    /// [`crate::map::brush_brick`] ends where applying the op would.
+    pub fn brushes(
+        &self,
+        within: VoxelBox,
+        mut each: impl FnMut([u32; 3], &Mask, BrushMode, Colour),
+    ) {
+        let mut voxel = |pos: [u32; 3], mode: BrushMode, colour: Colour| {
+            if (0..3).any(|i| pos[i] < within.lo[i] || pos[i] > within.hi[i]) {
+                return;
+            }
+            let mut brush = EMPTY_MASK;
+            mask_set(&mut brush, voxel_bit(pos[0], pos[1], pos[2]), true);
+            each(pos.map(|p| p / BRICK_EDGE), &brush, mode, colour);
+        };
+        match *self {
+            Resolved::Set { pos, colour } => voxel(pos, BrushMode::Fill, colour),
+            Resolved::Clear { pos } => voxel(pos, BrushMode::Erase, Colour::BLACK),
+            Resolved::Paint { pos, colour } => voxel(pos, BrushMode::Paint, colour),
+            Resolved::Sphere {
+                centre,
+                radius,
+                mode,
+                colour,
+            } => sphere_brushes(centre, radius, within, |cell, brush| {
+                each(cell, brush, mode, colour)
+            }),
+            Resolved::Box {
+                min,
+                max,
+                mode,
+                colour,
+            } => box_brushes(min, max, within, |cell, brush| {
+                each(cell, brush, mode, colour)
+            }),
+        }
     }
 }
 
@@ -255,5 +311,124 @@ mod tests {
         };
         assert_eq!(apply_op(&mut map, &huge, &limits), Err(Rejection::TooLarge));
         assert_eq!(map.content_hash(), before);
+    }
+
+    /// Planning an op brick by brick, over brick-aligned parts of the scene (what the server
+    /// does for a heavy edit), ends exactly where applying it to the map does.
+    #[test]
+    fn brushes_brick_by_brick_end_where_applying_does() {
+        use std::collections::HashMap;
+
+        use crate::brick::BrickData;
+        use crate::map::brush_brick;
+
+        let mut map = BrickMap::new([64, 40, 48]).unwrap();
+        map.fill_box([0, 0, 0], [63, 9, 47], BrushMode::Fill, Colour::WHITE);
+        map.sphere(
+            [20.5, 10.0, 20.0],
+            9.0,
+            BrushMode::Fill,
+            Colour::from_rgb8(0, 90, 0),
+        );
+        let red = Colour::from_rgb8(255, 0, 0);
+        let ops = [
+            EditOp::Set {
+                pos: [3, 30, 4],
+                colour: red,
+            },
+            EditOp::Set {
+                pos: [0, 0, 0],
+                colour: red,
+            },
+            EditOp::Clear { pos: [1, 1, 1] },
+            EditOp::Paint {
+                pos: [2, 2, 2],
+                colour: Colour::BLACK,
+            },
+            EditOp::Sphere {
+                centre: [30.2, 8.0, 17.9],
+                radius: 13.5,
+                mode: BrushMode::Fill,
+                colour: red,
+            },
+            EditOp::Sphere {
+                centre: [60.0, 5.0, 44.0],
+                radius: 10.0,
+                mode: BrushMode::Erase,
+                colour: red,
+            },
+            EditOp::Sphere {
+                centre: [20.0, 12.0, 20.0],
+                radius: 7.0,
+                mode: BrushMode::Paint,
+                colour: Colour::BLACK,
+            },
+            EditOp::Box {
+                min: [5, 3, 9],
+                max: [41, 22, 30],
+                mode: BrushMode::Fill,
+                colour: Colour::from_rgb8(0, 0, 255),
+            },
+            EditOp::Box {
+                min: [10, 0, 0],
+                max: [63, 6, 13],
+                mode: BrushMode::Erase,
+                colour: red,
+            },
+            EditOp::Box {
+                min: [0, 5, 40],
+                max: [63, 39, 47],
+                mode: BrushMode::Paint,
+                colour: red,
+            },
+        ];
+        let limits = Limits::default();
+        for op in ops {
+            let resolved = resolve(&map, &op, &limits).unwrap();
+            let mut bricks: HashMap<[u32; 3], (crate::brick::Mask, Vec<Colour>)> = HashMap::new();
+            let mut scratch = [Colour::BLACK; 512];
+            for z in (0..48).step_by(16) {
+                for y in (0..40).step_by(16) {
+                    for x in (0..64).step_by(16) {
+                        let part = VoxelBox {
+                            lo: [x, y, z],
+                            hi: [x + 15, y + 15, z + 15],
+                        };
+                        let within = part.clip(&map.whole()).unwrap();
+                        resolved.brushes(within, |cell, brush, mode, colour| {
+                            let brick =
+                                bricks.entry(cell).or_insert_with(|| match map.brick(cell) {
+                                    Some(b) => (b.mask, b.colours),
+                                    None => (EMPTY_MASK, Vec::new()),
+                                });
+                            let (mask, n, _) = brush_brick(
+                                (&brick.0, &brick.1),
+                                brush,
+                                mode,
+                                colour,
+                                &mut scratch,
+                            );
+                            *brick = (mask, scratch[..n].to_vec());
+                        });
+                    }
+                }
+            }
+            let mut planned = map.clone();
+            for (cell, (mask, colours)) in bricks {
+                if colours.is_empty() {
+                    planned.remove_brick(cell);
+                } else {
+                    planned
+                        .put_brick(&BrickData {
+                            cell,
+                            mask,
+                            colours,
+                        })
+                        .unwrap();
+                }
+            }
+            apply_resolved(&mut map, resolved);
+            assert_eq!(planned.content_hash(), map.content_hash(), "{op:?}");
+        }
     }
 }

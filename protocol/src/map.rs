@@ -604,45 +604,12 @@ impl BrickMap {
         mode: BrushMode,
         colour: Colour,
     ) -> u64 {
-        if !radius.is_finite() || radius <= 0.0 || centre.iter().any(|c| !c.is_finite()) {
-            return 0;
-        }
-        let lo = centre.map(|c| (c - radius - 0.5).floor().max(0.0));
-        let hi = std::array::from_fn::<f32, 3, _>(|i| {
-            (centre[i] + radius - 0.5)
-                .ceil()
-                .min(self.size[i] as f32 - 1.0)
+        let mut changed = 0;
+        let within = self.whole();
+        sphere_brushes(centre, radius, within, |cell, brush| {
+            changed += self.apply_brush(cell, brush, mode, colour);
         });
-        if (0..3).any(|i| lo[i] > hi[i]) {
-            return 0;
-        }
-        let lo = lo.map(|v| v as u32);
-        let hi = hi.map(|v| v as u32);
-        let r2 = radius * radius;
-        self.for_bricks_in(lo, hi, mode, colour, |base, mask| {
-            for z in 0..8u32 {
-                let dz = (base[2] + z) as f32 + 0.5 - centre[2];
-                for y in 0..8u32 {
-                    let dy = (base[1] + y) as f32 + 0.5 - centre[1];
-                    let rest = r2 - dy * dy - dz * dz;
-                    if rest < 0.0 {
-                        continue;
-                    }
-                    let half = rest.sqrt();
-                    // Voxel x is inside when |x + 0.5 - cx| <= half.
-                    let x0 = (centre[0] - half - 0.5).ceil() - base[0] as f32;
-                    let x1 = (centre[0] + half - 0.5).floor() - base[0] as f32;
-                    let x0 = x0.max(0.0);
-                    let x1 = x1.min(7.0);
-                    if x0 > x1 {
-                        continue;
-                    }
-                    let (x0, x1) = (x0 as u32, x1 as u32);
-                    let row = ((0xFFu32 >> (7 - (x1 - x0))) << x0) as u64;
-                    mask[z as usize] |= row << (y * 8);
-                }
-            }
-        })
+        changed
     }
 
     /// Applies `mode` to every voxel in the inclusive box `min..=max`, clipped to the scene.
@@ -654,47 +621,20 @@ impl BrickMap {
         mode: BrushMode,
         colour: Colour,
     ) -> u64 {
-        let hi = std::array::from_fn::<u32, 3, _>(|i| max[i].min(self.size[i].saturating_sub(1)));
-        if (0..3).any(|i| min[i] > hi[i]) {
-            return 0;
-        }
-        self.for_bricks_in(min, hi, mode, colour, |base, mask| {
-            *mask = box_mask(base, min, hi)
-        })
+        let mut changed = 0;
+        let within = self.whole();
+        box_brushes(min, max, within, |cell, brush| {
+            changed += self.apply_brush(cell, brush, mode, colour);
+        });
+        changed
     }
 
-    /// Runs a brush over every brick overlapping the voxel box `lo..=hi` (inside the scene):
-    /// `shape` fills the brush mask of one brick given the brick's first voxel.
-    fn for_bricks_in(
-        &mut self,
-        lo: [u32; 3],
-        hi: [u32; 3],
-        mode: BrushMode,
-        colour: Colour,
-        mut shape: impl FnMut([u32; 3], &mut Mask),
-    ) -> u64 {
-        let mut changed = 0;
-        let clo = lo.map(|v| v / BRICK_EDGE);
-        let chi = hi.map(|v| v / BRICK_EDGE);
-        for cz in clo[2]..=chi[2] {
-            for cy in clo[1]..=chi[1] {
-                for cx in clo[0]..=chi[0] {
-                    let cell = [cx, cy, cz];
-                    let base = cell.map(|c| c * BRICK_EDGE);
-                    let mut brush = EMPTY_MASK;
-                    shape(base, &mut brush);
-                    // Shapes may spill past the box (and so past the scene edge): clip them.
-                    let clip = box_mask(base, lo, hi);
-                    for w in 0..8 {
-                        brush[w] &= clip[w];
-                    }
-                    if !mask_is_empty(&brush) {
-                        changed += self.apply_brush(cell, &brush, mode, colour);
-                    }
-                }
-            }
+    /// The scene as an inclusive voxel box.
+    pub fn whole(&self) -> VoxelBox {
+        VoxelBox {
+            lo: [0; 3],
+            hi: self.size.map(|s| s - 1),
         }
-        changed
     }
 
     /// Applies a brush mask to one brick. The brush must not cover voxels outside the scene.
@@ -711,45 +651,9 @@ impl BrickMap {
             Some(s) => (self.masks[s as usize], self.brick_colours(s)),
             None => (EMPTY_MASK, &[]),
         };
-        let new_mask: Mask = std::array::from_fn(|w| match mode {
-            BrushMode::Fill => old_mask[w] | brush[w],
-            BrushMode::Erase => old_mask[w] & !brush[w],
-            BrushMode::Paint => old_mask[w],
-        });
         let mut scratch = [Colour::BLACK; 512];
-        let mut n = 0usize;
-        let mut changed = 0u64;
-        let mut old_i = 0usize;
-        // Walk the union of old and new solid voxels in bit order, carrying the old colour index.
-        for w in 0..8 {
-            let mut bits = old_mask[w] | new_mask[w];
-            while bits != 0 {
-                let b = bits.trailing_zeros();
-                bits &= bits - 1;
-                let was = (old_mask[w] >> b) & 1 == 1;
-                let is = (new_mask[w] >> b) & 1 == 1;
-                let old_colour = if was {
-                    old_i += 1;
-                    Some(old_colours[old_i - 1])
-                } else {
-                    None
-                };
-                if is {
-                    let covered = (brush[w] >> b) & 1 == 1;
-                    let c = match old_colour {
-                        Some(c) if !covered || mode == BrushMode::Erase => c,
-                        _ => colour,
-                    };
-                    if old_colour != Some(c) {
-                        changed += 1;
-                    }
-                    scratch[n] = c;
-                    n += 1;
-                } else {
-                    changed += 1;
-                }
-            }
-        }
+        let (new_mask, n, changed) =
+            brush_brick((&old_mask, old_colours), brush, mode, colour, &mut scratch);
         if changed == 0 {
             return 0;
         }
@@ -789,11 +693,16 @@ impl BrickMap {
         if !brick.is_consistent() {
             return Err(MapError::InconsistentBrick(cell));
         }
+        // Only a brick at the scene's far edge on some axis can hold a voxel beyond it: the
+        // rest are not walked bit by bit (a full brick was 512 steps of every sync and write).
+        let partial = (0..3).any(|i| cell[i] * BRICK_EDGE + BRICK_EDGE > self.size[i]);
         let mut outside = false;
-        for_each_bit(&brick.mask, |b| {
-            let l = crate::brick::bit_voxel(b);
-            outside |= (0..3).any(|i| cell[i] * BRICK_EDGE + l[i] >= self.size[i]);
-        });
+        if partial {
+            for_each_bit(&brick.mask, |b| {
+                let l = crate::brick::bit_voxel(b);
+                outside |= (0..3).any(|i| cell[i] * BRICK_EDGE + l[i] >= self.size[i]);
+            });
+        }
         if outside {
             return Err(MapError::VoxelsOutOfBounds(cell));
         }
@@ -1448,6 +1357,176 @@ impl BrickMap {
         }
         Ok(())
     }
+}
+
+/// An inclusive box of voxels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct VoxelBox {
+    pub lo: [u32; 3],
+    pub hi: [u32; 3],
+}
+
+impl VoxelBox {
+    /// The part of this box inside `other`, if any.
+    pub fn clip(&self, other: &VoxelBox) -> Option<VoxelBox> {
+        let lo = std::array::from_fn(|i| self.lo[i].max(other.lo[i]));
+        let hi = std::array::from_fn(|i| self.hi[i].min(other.hi[i]));
+        (0..3)
+            .all(|i| lo[i] <= hi[i])
+            .then_some(VoxelBox { lo, hi })
+    }
+}
+
+/// The voxels a sphere brush covers (centres within `radius` of `centre`), bounded: `None` for a
+/// sphere that covers nothing or has a non-finite part. Not clipped to any scene.
+pub fn sphere_bounds(centre: [f32; 3], radius: f32) -> Option<VoxelBox> {
+    if !radius.is_finite() || radius <= 0.0 || centre.iter().any(|c| !c.is_finite()) {
+        return None;
+    }
+    let lo = centre.map(|c| (c - radius - 0.5).floor().max(0.0));
+    let hi: [f32; 3] = std::array::from_fn(|i| (centre[i] + radius - 0.5).ceil());
+    if (0..3).any(|i| lo[i] > hi[i] || hi[i] < 0.0) {
+        return None;
+    }
+    Some(VoxelBox {
+        lo: lo.map(|v| v as u32),
+        hi: hi.map(|v| v.min(u32::MAX as f32) as u32),
+    })
+}
+
+/// Calls `each(cell, brush)` for every brick where a sphere brush covers a voxel inside
+/// `within` (the scene, or a brick-aligned part of it), with the brush's mask in that brick.
+/// Changes nothing: [`BrickMap::sphere`] applies what this describes.
+pub fn sphere_brushes(
+    centre: [f32; 3],
+    radius: f32,
+    within: VoxelBox,
+    each: impl FnMut([u32; 3], &Mask),
+) {
+    let Some(bounds) = sphere_bounds(centre, radius).and_then(|b| b.clip(&within)) else {
+        return;
+    };
+    let r2 = radius * radius;
+    brick_brushes(bounds, each, |base, mask| {
+        for z in 0..8u32 {
+            let dz = (base[2] + z) as f32 + 0.5 - centre[2];
+            for y in 0..8u32 {
+                let dy = (base[1] + y) as f32 + 0.5 - centre[1];
+                let rest = r2 - dy * dy - dz * dz;
+                if rest < 0.0 {
+                    continue;
+                }
+                let half = rest.sqrt();
+                // Voxel x is inside when |x + 0.5 - cx| <= half.
+                let x0 = (centre[0] - half - 0.5).ceil() - base[0] as f32;
+                let x1 = (centre[0] + half - 0.5).floor() - base[0] as f32;
+                let x0 = x0.max(0.0);
+                let x1 = x1.min(7.0);
+                if x0 > x1 {
+                    continue;
+                }
+                let (x0, x1) = (x0 as u32, x1 as u32);
+                let row = ((0xFFu32 >> (7 - (x1 - x0))) << x0) as u64;
+                mask[z as usize] |= row << (y * 8);
+            }
+        }
+    });
+}
+
+/// [`sphere_brushes`] for the inclusive box `min..=max`.
+pub fn box_brushes(
+    min: [u32; 3],
+    max: [u32; 3],
+    within: VoxelBox,
+    each: impl FnMut([u32; 3], &Mask),
+) {
+    let Some(bounds) = (VoxelBox { lo: min, hi: max }).clip(&within) else {
+        return;
+    };
+    brick_brushes(bounds, each, |base, mask| *mask = box_mask(base, min, max));
+}
+
+/// Runs a brush shape over every brick overlapping `bounds`: `shape` fills the brush mask of
+/// one brick given the brick's first voxel; what it covers outside `bounds` is clipped, and
+/// bricks it does not cover are skipped.
+fn brick_brushes(
+    bounds: VoxelBox,
+    mut each: impl FnMut([u32; 3], &Mask),
+    mut shape: impl FnMut([u32; 3], &mut Mask),
+) {
+    let VoxelBox { lo, hi } = bounds;
+    let clo = lo.map(|v| v / BRICK_EDGE);
+    let chi = hi.map(|v| v / BRICK_EDGE);
+    for cz in clo[2]..=chi[2] {
+        for cy in clo[1]..=chi[1] {
+            for cx in clo[0]..=chi[0] {
+                let cell = [cx, cy, cz];
+                let base = cell.map(|c| c * BRICK_EDGE);
+                let mut brush = EMPTY_MASK;
+                shape(base, &mut brush);
+                // Shapes may spill past the bounds (and so past the scene edge): clip them.
+                let clip = box_mask(base, lo, hi);
+                for w in 0..8 {
+                    brush[w] &= clip[w];
+                }
+                if !mask_is_empty(&brush) {
+                    each(cell, &brush);
+                }
+            }
+        }
+    }
+}
+
+/// What a brush does to one brick (`old`: its mask and colours in bit order): the new mask,
+/// with the new colours written to `out[..n]`, and the number of voxels whose solidity or
+/// colour changed. The one definition of a brush, for the map and for plans made beside it.
+pub fn brush_brick(
+    old: (&Mask, &[Colour]),
+    brush: &Mask,
+    mode: BrushMode,
+    colour: Colour,
+    out: &mut [Colour; 512],
+) -> (Mask, usize, u64) {
+    let (old_mask, old_colours) = old;
+    let new_mask: Mask = std::array::from_fn(|w| match mode {
+        BrushMode::Fill => old_mask[w] | brush[w],
+        BrushMode::Erase => old_mask[w] & !brush[w],
+        BrushMode::Paint => old_mask[w],
+    });
+    let mut n = 0usize;
+    let mut changed = 0u64;
+    let mut old_i = 0usize;
+    // Walk the union of old and new solid voxels in bit order, carrying the old colour index.
+    for w in 0..8 {
+        let mut bits = old_mask[w] | new_mask[w];
+        while bits != 0 {
+            let b = bits.trailing_zeros();
+            bits &= bits - 1;
+            let was = (old_mask[w] >> b) & 1 == 1;
+            let is = (new_mask[w] >> b) & 1 == 1;
+            let old_colour = if was {
+                old_i += 1;
+                old_colours.get(old_i - 1).copied()
+            } else {
+                None
+            };
+            if is {
+                let covered = (brush[w] >> b) & 1 == 1;
+                let c = match old_colour {
+                    Some(c) if !covered || mode == BrushMode::Erase => c,
+                    _ => colour,
+                };
+                if old_colour != Some(c) {
+                    changed += 1;
+                }
+                out[n] = c;
+                n += 1;
+            } else {
+                changed += 1;
+            }
+        }
+    }
+    (new_mask, n, changed)
 }
 
 /// Mask of the voxels of the brick starting at `base` that lie in the inclusive box `lo..=hi`.

@@ -17,11 +17,9 @@
 //! - **Replies are bounded per connection** (`scene::outbox`): a client that sends without
 //!   reading is not read.
 //!
-//! - **Large undos are planned across turns** (`scene/undo_job.rs`) and applied in one: others
-//!   wait for at most the last turn of one (writing its bricks and broadcasting them).
-//!
-//! Not yet: a heavy *edit* is still applied in one turn, so others wait for at most that one
-//! (about 0.3 s for 15 spheres of radius 64, 0.5 s for two 256³ boxes, on the 2-core VM).
+//! - **Large undos and heavy edits are planned across turns** (`scene/jobs.rs`) and applied in
+//!   one: others wait for at most the last turn of one (writing its bricks, logging them and
+//!   broadcasting them). A heavy edit keeps its place at the gate until that last turn.
 
 use std::collections::HashMap;
 use std::net::IpAddr;

@@ -168,6 +168,8 @@ pub struct Metrics {
     pub undo_voxels_kept: AtomicU64,
     /// Undos and redos of large steps planned across turns (`scene/undo_job.rs`).
     pub undos_sliced: AtomicU64,
+    /// Heavy edits planned across turns (`scene/edit_job.rs`).
+    pub edits_sliced: AtomicU64,
     pub commits: AtomicU64,
     pub snapshots: AtomicU64,
     /// Cluster: edits and undos this node's sessions forwarded to scene owners and got an
@@ -428,6 +430,11 @@ impl Metrics {
                 "undos_sliced_total",
                 "Undos and redos of large steps planned across turns and applied in one.",
                 &self.undos_sliced,
+            ),
+            (
+                "edits_sliced_total",
+                "Heavy edits planned across turns and applied in one.",
+                &self.edits_sliced,
             ),
         ] {
             metric(name, "counter", help, get(value));

@@ -183,14 +183,19 @@ impl History {
 
     /// Records an edit message's step: onto the undo stack, clearing the redo stack.
     pub fn record_edit(&mut self, user: UserId, step: &Step) {
+        let bytes = step.encode_with(self.compressor.as_mut());
+        self.record_encoded(user, bytes, step.bricks.len());
+    }
+
+    /// [`History::record_edit`] of a step already in its stored form (of `bricks` bricks).
+    pub fn record_encoded(&mut self, user: UserId, bytes: Vec<u8>, bricks: usize) {
         let stacks = self.users.entry(user).or_default();
         for dropped in stacks.redo.drain(..) {
             self.bytes -= dropped.bytes;
             self.pending.removed.insert(dropped.id, user);
             self.pending.steps.remove(&dropped.id);
         }
-        let bytes = step.encode_with(self.compressor.as_mut());
-        self.push(user, Direction::Undo, bytes, step.bricks.len());
+        self.push(user, Direction::Undo, bytes, bricks);
     }
 
     /// The top of a user's undo (or redo) stack, left there.

@@ -30,7 +30,9 @@
 
 pub mod answered;
 mod cells;
+mod edit_job;
 pub mod history;
+mod jobs;
 pub mod log;
 mod outbox;
 mod owner;
@@ -263,9 +265,10 @@ pub struct OwnerConfig {
     /// Bytes of stored undo history over every user of the scene (`serve --max-history-bytes`;
     /// the oldest steps of idle guests go first, see `history`).
     pub max_history_bytes: u64,
-    /// An undo or redo of a step of at least this many bricks is planned a frame per turn
-    /// and applied in one (`undo_job.rs`), so others' edits go on meanwhile.
-    pub undo_slice_bricks: u32,
+    /// An undo or redo of a step of at least this many bricks, and an edit message of at
+    /// least this many bricks' work (512 voxels each), is planned a frame per turn and applied
+    /// in one (`jobs.rs`), so others' edits go on meanwhile.
+    pub slice_bricks: u32,
 }
 
 impl Default for OwnerConfig {
@@ -280,7 +283,7 @@ impl Default for OwnerConfig {
             snapshot_every: Duration::from_secs(60),
             max_history_bytes: 256 << 20,
             // 1 M voxels compared: as heavy as a heavy edit (`fair::HEAVY_WORK`).
-            undo_slice_bricks: 2048,
+            slice_bricks: 2048,
         }
     }
 }
@@ -451,7 +454,7 @@ fn run(
             Duration::from_secs(1)
         };
         let mut clock = PhaseClock::start();
-        let first = if owner.has_ready_work() || owner.has_undo_job() {
+        let first = if owner.has_ready_work() || owner.has_jobs() {
             rx.try_recv().ok()
         } else {
             match runtime.block_on(async { tokio::time::timeout(wait, rx.recv()).await }) {

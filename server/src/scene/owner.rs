@@ -28,9 +28,10 @@ use bytes::Bytes;
 use super::answered::Answered;
 use super::cells::CellSet;
 use super::history::{Direction, History, Image, Step, plan_revert, write_planned};
+use super::jobs::{Job, Jobs};
 use super::log::{LogError, SceneLog, SnapshotOf, TurnWrite};
 use super::request::Outcome;
-use super::undo_job::{UndoJob, UndoJobs};
+use super::undo_job::UndoJob;
 use super::{Clock, Command, Described, OwnerConfig, SceneInfo, SessionId, Subscriber};
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
 use crate::record::{LogRecord, REVERT_BRICK_OPS};
@@ -82,7 +83,7 @@ pub struct Owner {
     /// Ops in the log since the snapshot, and the work replaying them costs (voxels visited,
     /// `EditOp::work`): what recovery would spend.
     pub(super) log_ops: u64,
-    log_work: u64,
+    pub(super) log_work: u64,
     /// How long the last snapshot took (see [`SNAPSHOT_SPACING`]).
     last_snapshot_took: Duration,
     last_snapshot: Instant,
@@ -102,9 +103,10 @@ pub struct Owner {
     /// The log cannot be followed (cluster): the owner stops after this turn, and the scene
     /// is served again only from a fresh load.
     pub(super) broken: bool,
-    /// Large undos and redos being planned across turns, first one first (`undo_job.rs`).
-    pub(super) undo_jobs: UndoJobs,
-    /// Commands that waited behind a finished undo job: the next turn applies them first.
+    /// Large undos and redos and heavy edits being planned across turns, first one first
+    /// (`jobs.rs`).
+    pub(super) jobs: Jobs,
+    /// Commands that waited behind a finished job: the next turn applies them first.
     pub(super) released: Vec<Command>,
 }
 
@@ -203,7 +205,7 @@ pub(super) struct Reverted {
 /// What this turn logs, in order.
 pub(super) type Log = Vec<(u64, LogRecord)>;
 
-fn ack(
+pub(super) fn ack(
     to: AckTo,
     client_seq: u64,
     seq: Option<u64>,
@@ -292,7 +294,7 @@ impl Owner {
             answered: Answered::from_entries(answered),
             requests: Vec::new(),
             broken: false,
-            undo_jobs: UndoJobs::new(),
+            jobs: Jobs::new(),
             released: Vec::new(),
         };
         owner.publish_info();
@@ -394,9 +396,9 @@ impl Owner {
                     admitted,
                 } => {
                     let user = self.subs.get(&session).map(|s| s.user);
-                    if let Some(job) = user.and_then(|u| self.undo_job_of(u)) {
-                        // After the user's undo that is still being planned.
-                        job.waiting.push(Command::Edit {
+                    if let Some(waiting) = user.and_then(|u| self.waiting_behind(u)) {
+                        // After the user's job that is still being planned.
+                        waiting.push(Command::Edit {
                             session,
                             client_seq,
                             ops,
@@ -410,9 +412,14 @@ impl Owner {
                         .filter(|s| s.role == Role::Editor)
                         .map(|s| s.user);
                     let to = AckTo::Session(session);
-                    acks.push(self.apply_batch(to, client_seq, ops, editor, &mut log));
-                    // Applied: the next heavy edit may queue.
-                    drop(admitted);
+                    // A heavy edit is planned across turns and answered when applied.
+                    if let Some((ops, admitted)) =
+                        self.slice_edit(to, client_seq, ops, editor, admitted)
+                    {
+                        acks.push(self.apply_batch(to, client_seq, ops, editor, &mut log));
+                        // Applied: the next heavy edit may queue.
+                        drop(admitted);
+                    }
                 }
                 Command::Undo {
                     session,
@@ -421,8 +428,8 @@ impl Owner {
                 } => {
                     if let Some(sub) = self.subs.get(&session) {
                         let (user, editor) = (sub.user, sub.role == Role::Editor);
-                        if let Some(job) = self.undo_job_of(user) {
-                            job.waiting.push(Command::Undo {
+                        if let Some(waiting) = self.waiting_behind(user) {
+                            waiting.push(Command::Undo {
                                 session,
                                 client_seq,
                                 redo,
@@ -521,9 +528,9 @@ impl Owner {
             }
         }
         self.publish(&mut log, &mut acks, clock)?;
-        if !self.undo_jobs.is_empty() {
-            // A frame of the first large undo, or its last turn (published on its own).
-            let released = self.advance_undo(&mut log, &mut acks, self.stopping);
+        if !self.jobs.is_empty() {
+            // A frame of the first job, or its last turn (published on its own).
+            let released = self.advance_jobs(&mut log, &mut acks, self.stopping);
             self.released.extend(released);
             self.publish(&mut log, &mut acks, clock)?;
         }
@@ -701,9 +708,9 @@ impl Owner {
             return Some(ask.refuse(&self.metrics, Refusal::RateLimited));
         }
         *tokens -= cost.min(burst);
-        if self.sliced(to, top.bricks) {
+        if self.may_slice(to) && top.bricks >= self.config.slice_bricks {
             // Planned across turns, answered when applied.
-            self.undo_jobs.push_back(UndoJob::new(ask, user));
+            self.jobs.push_back(Job::Undo(UndoJob::new(ask, user)));
             return None;
         }
         let store = &self.log;
@@ -921,7 +928,7 @@ impl Owner {
         self.turn(rest, &mut PhaseClock::start())?;
         // Undos still being planned are finished (a stopping turn plans them whole), and
         // what waited behind them applied.
-        while !self.released.is_empty() || !self.undo_jobs.is_empty() {
+        while !self.released.is_empty() || !self.jobs.is_empty() {
             let waited = std::mem::take(&mut self.released);
             self.turn(waited, &mut PhaseClock::start())?;
         }

@@ -70,7 +70,7 @@ pub struct BrickChange {
 }
 
 impl BrickChange {
-    fn empty(cell: u32) -> BrickChange {
+    pub(super) fn empty(cell: u32) -> BrickChange {
         BrickChange {
             cell,
             changed: EMPTY_MASK,
@@ -82,7 +82,7 @@ impl BrickChange {
     }
 
     /// Adds one voxel's change; bits must come in increasing order.
-    fn push(&mut self, bit: u16, before: Option<Colour>, after: Option<Colour>) {
+    pub(super) fn push(&mut self, bit: u16, before: Option<Colour>, after: Option<Colour>) {
         let (w, b) = (usize::from(bit / 64) % 8, bit % 64);
         self.changed[w] |= 1 << b;
         if let Some(c) = before {

@@ -1,30 +1,16 @@
-//! A large undo or redo, planned across turns and applied in one.
+//! A large undo or redo, planned across turns and applied in one (see `jobs.rs` for the rules
+//! every job follows).
 //!
-//! **Why.** Undoing a step of two 256³ boxes reads, compares and re-records 65,536 bricks; done
-//! in one turn it held every other editor of the scene for seconds. Here the owner plans such
-//! a step a frame (`step::FRAME_BRICKS` bricks) per turn, between other people's turns, and
-//! only the last turn writes the map, logs the undo, moves the step between the stacks and
-//! broadcasts it: nobody ever sees (and no crash ever leaves) half an undo. Nothing of a job is
-//! durable before its last turn, so a crash before it loses only an undo nobody was answered.
-//!
-//! **Others' edits meanwhile** are applied as usual. A brick already planned that someone
-//! changes after it was planned is noted (every change reaches `broadcast_delta`'s touched
-//! cells), and its frame is planned again in the last turn: the result is exactly what
-//! undoing the whole step in that last turn would have done.
-//!
-//! **The user's own order.** While a job of a user is planned, that user's later edits and
-//! undos wait behind it (in arrival order), so they still apply after it, as sent.
-//!
-//! Jobs are for the scene's own sessions over an unshared log; in a cluster an undo arrives as
-//! a forwarded request whose answer is logged with its turn, and is applied in that turn.
-
-use std::collections::{HashMap, HashSet, VecDeque};
+//! Undoing a step of two 256³ boxes reads, compares and re-records 65,536 bricks: here the
+//! stored step is read a frame (`step::FRAME_BRICKS` bricks) per turn and each frame planned
+//! against the map as it is; a frame holding a cell someone changed after it was planned is
+//! planned again in the last turn.
 
 use brickcast_protocol::BrickMap;
 
-use super::Command;
 use super::history::{BrickChange, History, Revert};
-use super::owner::{AckTo, Log, Owner, PendingAck, Reverted, UndoAsk};
+use super::jobs::{Job, Planning, Progress};
+use super::owner::{Log, Owner, PendingAck, Reverted, UndoAsk};
 use super::step::{EncodedFrames, Frames, plan_revert_into};
 use crate::metrics::Metrics;
 
@@ -39,16 +25,14 @@ struct Planned {
 /// An undo or redo waiting for (or in) its planning.
 pub(super) struct UndoJob {
     ask: UndoAsk,
-    user: u64,
+    pub(super) user: u64,
     /// The step being planned, once the job started.
     started: Option<Started>,
     planned: Vec<Planned>,
-    /// Which frame planned each cell planned so far.
-    frame_of: HashMap<u32, usize>,
-    /// Frames with a cell someone changed after it was planned.
-    dirty: HashSet<usize>,
+    /// Which frame planned each cell, and the frames changed since.
+    pub(super) planning: Planning,
     /// The user's commands that arrived after this one, in order.
-    pub(super) waiting: Vec<Command>,
+    pub(super) waiting: Vec<super::Command>,
 }
 
 /// The step a job plans: its id, its stored bytes, and where its next frame starts (`Frames`
@@ -68,106 +52,69 @@ impl UndoJob {
             user,
             started: None,
             planned: Vec::new(),
-            frame_of: HashMap::new(),
-            dirty: HashSet::new(),
+            planning: Planning::default(),
             waiting: Vec::new(),
         }
     }
 }
 
 impl Owner {
-    /// The job of `user` queued or being planned, if any: the user's commands wait behind it.
-    pub(super) fn undo_job_of(&mut self, user: u64) -> Option<&mut UndoJob> {
-        self.undo_jobs.iter_mut().find(|j| j.user == user)
-    }
-
-    /// Whether a job (or what waited behind one) needs turns: the thread must not sleep.
-    pub fn has_undo_job(&self) -> bool {
-        !self.undo_jobs.is_empty() || !self.released.is_empty()
-    }
-
-    /// Whether an undo of a step of `bricks` bricks, answered to `to`, is planned across turns.
-    pub(super) fn sliced(&self, to: AckTo, bricks: u32) -> bool {
-        matches!(to, AckTo::Session(_))
-            && !self.log.shared()
-            && bricks >= self.config.undo_slice_bricks
-    }
-
-    /// Notes cells changed since the jobs planned them (from every turn's touched cells).
-    pub(super) fn note_touched(&mut self, touched: &[u32]) {
-        if let Some(job) = self.undo_jobs.front_mut() {
-            for cell in touched {
-                if let Some(&frame) = job.frame_of.get(cell) {
-                    job.dirty.insert(frame);
-                }
-            }
+    /// The first job, an undo.
+    fn undo_job(&mut self) -> &mut UndoJob {
+        match self.jobs.front_mut() {
+            Some(Job::Undo(job)) => job,
+            _ => unreachable!("the first job is an undo"),
         }
     }
 
-    /// Advances the first job by one frame, or finishes it; `all`: plans and finishes every
-    /// job now (the scene is stopping). Commands that waited behind a finished job are
-    /// returned, to be applied next, in order.
-    pub(super) fn advance_undo(
-        &mut self,
-        log: &mut Log,
-        acks: &mut Vec<PendingAck>,
-        all: bool,
-    ) -> Vec<Command> {
-        let mut released = Vec::new();
-        loop {
-            let Some(job) = self.undo_jobs.front() else {
-                return released;
-            };
-            if job.started.is_none() && !self.start_job(acks) {
-                let job = self.undo_jobs.pop_front().expect("a job is first");
-                released.extend(job.waiting);
-                continue;
-            }
-            let job = self.undo_jobs.front_mut().expect("a job is first");
-            let started = job.started.as_mut().expect("a job was started");
-            if !started.read {
-                match next_frame(started) {
-                    Ok(Some(step)) => {
-                        let index = job.planned.len();
-                        for change in &step {
-                            job.frame_of.insert(change.cell, index);
-                        }
-                        job.planned.push(plan(&self.map, step, &mut self.history));
-                        if !all {
-                            return released;
-                        }
-                        continue;
+    /// Pops the first job, an undo.
+    fn pop_undo_job(&mut self) -> UndoJob {
+        match self.jobs.pop_front() {
+            Some(Job::Undo(job)) => job,
+            _ => unreachable!("the first job is an undo"),
+        }
+    }
+
+    /// One turn of the first job, an undo: starts it, plans its next frame, or finishes it.
+    pub(super) fn undo_turn(&mut self, log: &mut Log, acks: &mut Vec<PendingAck>) -> Progress {
+        if self.undo_job().started.is_none() && !self.start_job(acks) {
+            return Progress::Skipped(self.pop_undo_job().waiting);
+        }
+        let job = self.undo_job();
+        let started = job.started.as_mut().expect("a job was started");
+        if !started.read {
+            match next_frame(started) {
+                Ok(Some(step)) => {
+                    let index = job.planned.len();
+                    for change in &step {
+                        job.planning.planned(change.cell, index);
                     }
-                    Ok(None) => started.read = true,
-                    Err(e) => {
-                        tracing::error!(scene = %self.name, user = job.user, error = %e, "an undo step could not be read; it is dropped");
-                        let job = self.undo_jobs.pop_front().expect("a job is first");
-                        // Dropped from its stack, if it is still on top of it.
-                        let id = job.started.as_ref().map(|s| s.id);
-                        let direction = job.ask.direction();
-                        if self.history.peek(job.user, direction).map(|s| s.id) == id {
-                            self.history.take_top(job.user, direction);
-                        }
-                        acks.push(job.ask.nothing(&self.metrics));
-                        released.extend(job.waiting);
-                        if !all {
-                            return released;
-                        }
-                        continue;
+                    let planned = plan(&self.map, step, &mut self.history);
+                    self.undo_job().planned.push(planned);
+                    return Progress::Planned;
+                }
+                Ok(None) => started.read = true,
+                Err(e) => {
+                    let job = self.pop_undo_job();
+                    tracing::error!(scene = %self.name, user = job.user, error = %e, "an undo step could not be read; it is dropped");
+                    // Dropped from its stack, if it is still on top of it.
+                    let id = job.started.as_ref().map(|s| s.id);
+                    let direction = job.ask.direction();
+                    if self.history.peek(job.user, direction).map(|s| s.id) == id {
+                        self.history.take_top(job.user, direction);
                     }
+                    acks.push(job.ask.nothing(&self.metrics));
+                    return Progress::Finished(job.waiting);
                 }
             }
-            let job = self.undo_jobs.pop_front().expect("a job is first");
-            released.extend(self.finish_job(job, log, acks));
-            if !all {
-                return released;
-            }
         }
+        let job = self.pop_undo_job();
+        Progress::Finished(self.finish_job(job, log, acks))
     }
 
     /// Starts the first job: reads its step. False when there is none to undo any more.
     fn start_job(&mut self, acks: &mut Vec<PendingAck>) -> bool {
-        let job = self.undo_jobs.front().expect("a job is first");
+        let job = self.undo_job();
         let (user, direction) = (job.user, job.ask.direction());
         let Some(top) = self.history.peek(user, direction) else {
             return self.refuse_first(acks, None);
@@ -184,8 +131,7 @@ impl Owner {
             }
             Err(e) => return self.refuse_first(acks, Some(e)),
         };
-        let job = self.undo_jobs.front_mut().expect("a job is first");
-        job.started = Some(Started {
+        self.undo_job().started = Some(Started {
             id: top.id,
             bytes,
             offset: 0,
@@ -197,12 +143,15 @@ impl Owner {
 
     /// Answers the first job "nothing to undo" (its step is gone, or unreadable: `error`).
     fn refuse_first(&mut self, acks: &mut Vec<PendingAck>, error: Option<String>) -> bool {
-        let job = self.undo_jobs.front_mut().expect("a job is first");
+        let (user, ask) = {
+            let job = self.undo_job();
+            (job.user, job.ask)
+        };
         if let Some(e) = error {
-            tracing::error!(scene = %self.name, user = job.user, error = %e, "an undo step could not be read; it is dropped");
-            self.history.take_top(job.user, job.ask.direction());
+            tracing::error!(scene = %self.name, user, error = %e, "an undo step could not be read; it is dropped");
+            self.history.take_top(user, ask.direction());
         }
-        acks.push(job.ask.nothing(&self.metrics));
+        acks.push(ask.nothing(&self.metrics));
         false
     }
 
@@ -213,7 +162,7 @@ impl Owner {
         mut job: UndoJob,
         log: &mut Log,
         acks: &mut Vec<PendingAck>,
-    ) -> Vec<Command> {
+    ) -> Vec<super::Command> {
         let id = job.started.take().expect("a finished job started").id;
         let direction = job.ask.direction();
         // The step must still be the user's top: its user may have left (a guest's history is
@@ -222,7 +171,7 @@ impl Owner {
             acks.push(job.ask.nothing(&self.metrics));
             return job.waiting;
         }
-        for &frame in &job.dirty {
+        for frame in job.planning.take_dirty() {
             let planned = &mut job.planned[frame];
             *planned = plan(
                 &self.map,
@@ -283,94 +232,20 @@ fn next_frame(started: &mut Started) -> Result<Option<Vec<BrickChange>>, String>
     Ok(frame)
 }
 
-/// Jobs in arrival order (the first one is planned).
-pub(super) type UndoJobs = VecDeque<UndoJob>;
-
 #[cfg(test)]
 mod tests {
     use std::sync::Arc;
-    use std::sync::atomic::AtomicUsize;
     use std::sync::atomic::Ordering::Relaxed;
-    use std::time::Instant;
 
     use brickcast_protocol::apply::apply_op;
-    use brickcast_protocol::wire::{BrushMode, EditOp, Limits, Role, ServerMsg, decode_server};
+    use brickcast_protocol::wire::{BrushMode, EditOp, Limits};
     use brickcast_protocol::{BrickMap, Colour};
-    use tokio::sync::oneshot;
 
-    use super::*;
-    use crate::metrics::PhaseClock;
+    use crate::metrics::{Metrics, PhaseClock};
+    use crate::scene::Command;
     use crate::scene::history::{Step, plan_revert, write_bricks};
-    use crate::scene::{Joiner, Outbox, OutboxReceiver, OwnerConfig};
+    use crate::scene::jobs::testing::{A, B, edit, join, open, replies};
     use crate::store::Store;
-
-    const A: u64 = 1;
-    const B: u64 = 2;
-
-    fn open(store: &Arc<Store>, metrics: &Arc<Metrics>, slice: u32) -> Owner {
-        let config = OwnerConfig {
-            undo_slice_bricks: slice,
-            ..OwnerConfig::default()
-        };
-        let loaded = store.load_scene("s").unwrap();
-        Owner::new(
-            "s".into(),
-            loaded,
-            store.clone(),
-            metrics.clone(),
-            config,
-            Arc::new(Instant::now),
-        )
-        .unwrap()
-    }
-
-    fn join(owner: &mut Owner, session: u64, user: u64) -> OutboxReceiver {
-        let (out, rx) = Outbox::new(Arc::new(AtomicUsize::new(0)));
-        let (joined, _) = oneshot::channel();
-        let cmd = Command::Join {
-            session,
-            out,
-            role: Role::Editor,
-            resume_from: None,
-            who: Joiner::solo(session, user, Role::Editor),
-            joined,
-        };
-        owner.step(vec![cmd], &mut PhaseClock::start()).unwrap();
-        rx
-    }
-
-    fn edit(session: u64, client_seq: u64, ops: Vec<EditOp>) -> Command {
-        Command::Edit {
-            session,
-            client_seq,
-            ops,
-            admitted: None,
-        }
-    }
-
-    /// Every reply (Ack or Undone) waiting in a session's queue: (client_seq, seq, kept).
-    fn replies(rx: &mut OutboxReceiver) -> Vec<(u64, Option<u64>, u64)> {
-        let mut out = Vec::new();
-        while let Some(frame) = rx.try_take() {
-            match decode_server(&frame, &Limits::hard_caps()).unwrap() {
-                ServerMsg::Ack {
-                    client_seq, seq, ..
-                } => out.push((client_seq, seq, 0)),
-                ServerMsg::Undone {
-                    client_seq,
-                    seq,
-                    kept,
-                    refused,
-                    ..
-                } => {
-                    assert_eq!(refused, None);
-                    out.push((client_seq, seq, kept));
-                }
-                _ => {}
-            }
-        }
-        out
-    }
 
     /// A large undo planned across turns while someone paints over bricks it already planned
     /// ends exactly as the same undo done whole in its last turn: the painted voxels are kept,
@@ -397,6 +272,10 @@ mod tests {
         owner
             .step(vec![edit(1, 1, vec![fill])], &mut clock)
             .unwrap();
+        // A heavy edit itself: planned across turns too.
+        while owner.has_jobs() {
+            owner.step(Vec::new(), &mut clock).unwrap();
+        }
         reference.begin_journal();
         apply_op(&mut reference, &fill, &Limits::default()).unwrap();
         let step = Step::from_journal(&mut reference);
@@ -408,7 +287,7 @@ mod tests {
             redo: false,
         };
         owner.step(vec![undo], &mut clock).unwrap();
-        assert!(owner.has_undo_job());
+        assert!(owner.has_jobs());
         // Bob paints a voxel of the first frame, already planned; Alice's next edit waits.
         let paint = EditOp::Set {
             pos: [0, 0, 0],
@@ -427,7 +306,7 @@ mod tests {
         let bob = replies(&mut b);
         assert_eq!(bob.len(), 1, "bob's edit applied while the undo is planned");
         let mut turns = 0;
-        while owner.has_undo_job() {
+        while owner.has_jobs() {
             owner.step(Vec::new(), &mut clock).unwrap();
             turns += 1;
             assert!(turns < 10, "the undo never finished");
@@ -474,7 +353,7 @@ mod tests {
                 &mut clock,
             )
             .unwrap();
-        while owner.has_undo_job() {
+        while owner.has_jobs() {
             owner.step(Vec::new(), &mut clock).unwrap();
         }
         assert_eq!(replies(&mut a).len(), 1);

@@ -176,7 +176,7 @@ impl Sim {
             snapshot_every: Duration::from_secs(60),
             // The model applies an undo in the turn it arrives; an undo planned across turns
             // has a test of its own (`scene::undo_job`), against the undo of one turn.
-            undo_slice_bricks: u32::MAX,
+            slice_bricks: u32::MAX,
             ..OwnerConfig::default()
         };
         let now = Arc::new(Mutex::new(Instant::now()));
