@@ -14,10 +14,85 @@ use std::time::Duration;
 
 use brickcast_protocol::wire::ServerMsg;
 
-/// Upper bounds of the commit latency buckets, in microseconds.
-const COMMIT_BUCKETS_US: [u64; 12] = [
-    100, 250, 500, 1_000, 2_500, 5_000, 10_000, 25_000, 50_000, 100_000, 250_000, 1_000_000,
-];
+/// A histogram's bucket bounds, in microseconds.
+pub trait Buckets {
+    const US: &'static [u64];
+}
+
+/// Durable log commits: 100 µs to 1 s.
+#[derive(Debug)]
+pub struct CommitBuckets;
+
+impl Buckets for CommitBuckets {
+    const US: &'static [u64] = &[
+        100, 250, 500, 1_000, 2_500, 5_000, 10_000, 25_000, 50_000, 100_000, 250_000, 1_000_000,
+    ];
+}
+
+/// Owner turns: 1 ms to 10 s.
+#[derive(Debug)]
+pub struct TurnBuckets;
+
+impl Buckets for TurnBuckets {
+    const US: &'static [u64] = &[
+        1_000, 2_500, 5_000, 10_000, 25_000, 50_000, 100_000, 250_000, 500_000, 1_000_000,
+        2_500_000, 10_000_000,
+    ];
+}
+
+/// A latency histogram with fixed buckets.
+#[derive(Debug)]
+pub struct Histogram<B: Buckets> {
+    buckets: Vec<AtomicU64>,
+    count: AtomicU64,
+    sum_us: AtomicU64,
+    kind: std::marker::PhantomData<B>,
+}
+
+impl<B: Buckets> Default for Histogram<B> {
+    fn default() -> Self {
+        Histogram {
+            buckets: B::US.iter().map(|_| AtomicU64::new(0)).collect(),
+            count: AtomicU64::new(0),
+            sum_us: AtomicU64::new(0),
+            kind: std::marker::PhantomData,
+        }
+    }
+}
+
+impl<B: Buckets> Histogram<B> {
+    /// Records one observation.
+    pub fn observe(&self, took: Duration) {
+        let us = took.as_micros().min(u128::from(u64::MAX)) as u64;
+        self.count.fetch_add(1, Relaxed);
+        self.sum_us.fetch_add(us, Relaxed);
+        if let Some(i) = B::US.iter().position(|&b| us <= b) {
+            self.buckets[i].fetch_add(1, Relaxed);
+        }
+    }
+
+    /// Observations so far.
+    pub fn count(&self) -> u64 {
+        self.count.load(Relaxed)
+    }
+
+    /// The exposition of `brickcast_NAME` (seconds).
+    fn render(&self, out: &mut String, name: &str, help: &str) {
+        let _ = writeln!(out, "# HELP brickcast_{name} {help}");
+        let _ = writeln!(out, "# TYPE brickcast_{name} histogram");
+        let mut cumulative = 0;
+        for (bound, bucket) in B::US.iter().zip(&self.buckets) {
+            cumulative += bucket.load(Relaxed);
+            let le = *bound as f64 / 1e6;
+            let _ = writeln!(out, "brickcast_{name}_bucket{{le=\"{le}\"}} {cumulative}");
+        }
+        let count = self.count();
+        let _ = writeln!(out, "brickcast_{name}_bucket{{le=\"+Inf\"}} {count}");
+        let sum = self.sum_us.load(Relaxed) as f64 / 1e6;
+        let _ = writeln!(out, "brickcast_{name}_sum {sum}");
+        let _ = writeln!(out, "brickcast_{name}_count {count}");
+    }
+}
 
 /// The phases of a scene owner's turn whose wall time is accounted for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -182,8 +257,10 @@ pub struct Metrics {
     /// nobody here used them for a while (see `crate::served`).
     pub scene_opens: AtomicU64,
     pub scene_closes: AtomicU64,
-    commit_buckets: [AtomicU64; COMMIT_BUCKETS_US.len()],
-    commit_sum_us: AtomicU64,
+    commit: Histogram<CommitBuckets>,
+    /// How long each owner turn held the scene (a turn that applied, planned or sent
+    /// anything; waiting for commands is not counted): what anyone's edit may wait behind.
+    pub turns: Histogram<TurnBuckets>,
     /// Owner turns (one group commit each, when they carried edits).
     pub owner_turns: AtomicU64,
     owner_ns: [AtomicU64; OwnerPhase::ALL.len()],
@@ -223,12 +300,8 @@ impl Metrics {
 
     /// Records one durable commit of the edit log.
     pub fn observe_commit(&self, took: Duration) {
-        let us = took.as_micros().min(u128::from(u64::MAX)) as u64;
         self.commits.fetch_add(1, Relaxed);
-        self.commit_sum_us.fetch_add(us, Relaxed);
-        if let Some(i) = COMMIT_BUCKETS_US.iter().position(|&b| us <= b) {
-            self.commit_buckets[i].fetch_add(1, Relaxed);
-        }
+        self.commit.observe(took);
     }
 
     /// The Prometheus text exposition of every metric.
@@ -451,31 +524,16 @@ impl Metrics {
             "Scene owner turns (each drains the queued commands and commits once).",
             get(&self.owner_turns),
         );
-        let _ = writeln!(
-            out,
-            "# HELP brickcast_log_commit_seconds Durable edit-log commit latency."
+        self.commit.render(
+            &mut out,
+            "log_commit_seconds",
+            "Durable edit-log commit latency.",
         );
-        let _ = writeln!(out, "# TYPE brickcast_log_commit_seconds histogram");
-        let mut cumulative = 0;
-        for (bound, bucket) in COMMIT_BUCKETS_US.iter().zip(&self.commit_buckets) {
-            cumulative += get(bucket);
-            let _ = writeln!(
-                out,
-                "brickcast_log_commit_seconds_bucket{{le=\"{}\"}} {cumulative}",
-                *bound as f64 / 1e6
-            );
-        }
-        let count = get(&self.commits);
-        let _ = writeln!(
-            out,
-            "brickcast_log_commit_seconds_bucket{{le=\"+Inf\"}} {count}"
+        self.turns.render(
+            &mut out,
+            "owner_turn_seconds",
+            "How long each scene owner turn held its scene (waiting for commands not counted).",
         );
-        let _ = writeln!(
-            out,
-            "brickcast_log_commit_seconds_sum {}",
-            get(&self.commit_sum_us) as f64 / 1e6
-        );
-        let _ = writeln!(out, "brickcast_log_commit_seconds_count {count}");
         family(
             &mut out,
             "frames_unencodable_total",

@@ -193,14 +193,16 @@ impl Owner {
         self.map.set_sequence(seq);
         let (mut bricks, mut voxels) = (0usize, 0u64);
         let mut frames = EncodedFrames::default();
+        let mut writes = Vec::with_capacity(job.planned.len());
         for planned in job.planned.drain(..) {
             bricks += planned.bricks;
             voxels += planned.voxels;
             frames.append(&planned.frames);
-            if let Err(e) = super::step::write_planned(&mut self.map, planned.writes) {
-                // Planned from this map's own bricks: cannot happen.
-                tracing::error!(scene = %self.name, error = %e, "an edit wrote a brick the map refused");
-            }
+            writes.push(planned.writes);
+        }
+        if let Err(e) = super::step::write_planned(&mut self.map, writes.into_iter().flatten()) {
+            // Planned from this map's own bricks: cannot happen.
+            tracing::error!(scene = %self.name, error = %e, "an edit wrote a brick the map refused");
         }
         self.seq = seq;
         // A guest's history is forgotten when it leaves: a step finished after that is not kept.

@@ -480,7 +480,13 @@ fn run(
             }
         }
         clock.mark(&metrics, OwnerPhase::Wait);
-        if owner.step(commands, &mut clock)? {
+        let busy = !commands.is_empty() || owner.has_jobs() || owner.has_ready_work();
+        let started = Instant::now();
+        let stop = owner.step(commands, &mut clock)?;
+        if busy {
+            metrics.turns.observe(started.elapsed());
+        }
+        if stop {
             return owner.stop(drain(rx));
         }
     }

@@ -53,7 +53,7 @@ const SNAPSHOT_SPACING: u32 = 10;
 /// window resumes with a delta instead of a full resync.
 const TOMBSTONE_WINDOW: u64 = 1_000_000;
 /// zstd level for deltas and sync batches: level 1 compresses at ~280 MiB/s raw on one core.
-const ZSTD_LEVEL: i32 = 1;
+pub(super) const ZSTD_LEVEL: i32 = 1;
 /// A queue this short keeps getting deltas even when the server as a whole holds too much:
 /// clients that keep up are not punished for the ones that do not.
 pub(super) const SHORT_QUEUE: usize = 256 << 10;
@@ -73,6 +73,8 @@ pub struct Owner {
     /// Sessions in id order, so every turn visits them in the same order.
     pub(super) subs: BTreeMap<SessionId, Subscriber>,
     pub(super) encoder: BlobEncoder,
+    /// Encoders of the other threads a large delta is encoded on (`sync::encode_cells`).
+    pub(super) spare_encoders: Vec<BlobEncoder>,
     /// The sequence of the last delta broadcast (its successor's `from_seq`).
     pub(super) broadcast_seq: u64,
     /// The last session whose sync got frames: the next turn serves those after it first.
@@ -193,8 +195,8 @@ impl UndoAsk {
 pub(super) struct Reverted {
     pub(super) user: u64,
     pub(super) redo: bool,
-    /// Cells whose brick changes, with the brick they get.
-    pub(super) writes: Vec<(u32, Option<Image>)>,
+    /// Cells whose brick changes, with the brick they get, frame by frame.
+    pub(super) writes: Vec<Vec<(u32, Option<Image>)>>,
     /// The stored form of the undo's record, and its bricks.
     pub(super) record: Vec<u8>,
     pub(super) bricks: usize,
@@ -277,6 +279,7 @@ impl Owner {
             config,
             subs: BTreeMap::new(),
             encoder: BlobEncoder::new(ZSTD_LEVEL).map_err(std::io::Error::other)?,
+            spare_encoders: Vec::new(),
             broadcast_seq: seq,
             sync_cursor: 0,
             // Bricks the replayed log changed are not in the snapshot yet: the next snapshot
@@ -734,7 +737,7 @@ impl Owner {
                 user,
                 redo,
                 bricks: revert.record.bricks.len(),
-                writes: revert.writes,
+                writes: vec![revert.writes],
                 record,
                 restored,
                 kept,
@@ -749,10 +752,10 @@ impl Owner {
     /// sequence.
     pub(super) fn apply_revert(&mut self, r: Reverted, log: &mut Log) -> Option<u64> {
         let mut seq = None;
-        if !r.writes.is_empty() {
+        if r.writes.iter().any(|w| !w.is_empty()) {
             let next = self.seq + 1;
             self.map.set_sequence(next);
-            if let Err(e) = write_planned(&mut self.map, r.writes) {
+            if let Err(e) = write_planned(&mut self.map, r.writes.into_iter().flatten()) {
                 // Planned from this map's own bricks: cannot happen.
                 tracing::error!(scene = %self.name, error = %e, "an undo wrote a brick the map refused");
             }

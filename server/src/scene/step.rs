@@ -597,11 +597,27 @@ pub fn write_bricks(map: &mut BrickMap, writes: &[(u32, Option<Image>)]) -> Resu
 }
 
 /// Writes a planned revert's bricks, giving them up (no copy of their colours).
-pub fn write_planned(map: &mut BrickMap, writes: Vec<(u32, Option<Image>)>) -> Result<(), String> {
-    for (cell, image) in writes {
-        write_brick(map, cell, image.map(|i| (i.mask, i.colours)))?;
+pub fn write_planned(
+    map: &mut BrickMap,
+    writes: impl IntoIterator<Item = (u32, Option<Image>)>,
+) -> Result<(), String> {
+    let cells = map.cell_dims();
+    let count = u64::from(cells[0]) * u64::from(cells[1]) * u64::from(cells[2]);
+    let mut outside = None;
+    let bricks = writes.into_iter().map_while(|(cell, image)| {
+        if u64::from(cell) >= count {
+            outside = Some(cell);
+            return None;
+        }
+        let (x, rest) = (cell % cells[0], cell / cells[0]);
+        let coords = [x, rest % cells[1], rest / cells[1]];
+        Some((coords, image.map(|i| (i.mask, i.colours))))
+    });
+    map.write_bricks(bricks).map_err(|e| e.to_string())?;
+    match outside {
+        Some(cell) => Err(format!("cell {cell} is outside the scene")),
+        None => Ok(()),
     }
-    Ok(())
 }
 
 fn write_brick(

@@ -187,7 +187,7 @@ impl Owner {
             restored += planned.revert.restored;
             kept += planned.revert.kept;
             bricks += planned.revert.record.bricks.len();
-            writes.extend(planned.revert.writes);
+            writes.push(planned.revert.writes);
             frames.append(&planned.frames);
         }
         let record = frames.finish();
