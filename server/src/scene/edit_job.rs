@@ -171,6 +171,18 @@ impl Owner {
             job.planned.push(planned);
             return Progress::Planned;
         }
+        let limit = job.planned.len();
+        let again = job.planning.take_some_dirty(limit);
+        if !again.is_empty() {
+            let Some(Job::Edit(job)) = self.jobs.front_mut() else {
+                unreachable!("the first job is an edit")
+            };
+            for frame in again {
+                let chunk = job.planned[frame].chunk;
+                job.planned[frame] = plan(&self.map, &job.resolved, chunk, &mut self.history);
+            }
+            return Progress::Planned;
+        }
         let Some(Job::Edit(job)) = self.jobs.pop_front() else {
             unreachable!("the first job is an edit")
         };
@@ -206,7 +218,7 @@ impl Owner {
         }
         self.seq = seq;
         // A guest's history is forgotten when it leaves: a step finished after that is not kept.
-        if job.stable || self.subs.contains_key(&job.session) {
+        if job.stable || self.subs.values().any(|s| s.user == job.user) {
             self.history
                 .record_encoded(job.user, frames.finish(), bricks);
         }
@@ -370,6 +382,7 @@ mod tests {
 
     use crate::metrics::{Metrics, PhaseClock};
     use crate::scene::Command;
+    use crate::scene::jobs::Job;
     use crate::scene::jobs::testing::{A, B, edit, join, open, replies};
     use crate::store::Store;
 
@@ -485,5 +498,112 @@ mod tests {
         assert_eq!(replies(&mut a).len(), 2);
         assert_eq!(owner.map().content_hash(), bobs);
         assert_ne!(bobs, empty);
+    }
+
+    /// A scene stopping right after a heavy edit finished still applies its user's commands
+    /// in the order sent: the ones that waited behind the edit before the ones still queued.
+    #[test]
+    fn commands_that_waited_behind_a_job_go_first_when_the_scene_stops() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Arc::new(Store::open(dir.path()).unwrap());
+        store
+            .create_scene("s", &BrickMap::new([128, 64, 128]).unwrap())
+            .unwrap();
+        let metrics = Arc::new(Metrics::default());
+        let mut owner = open(&store, &metrics, 64);
+        let mut a = join(&mut owner, 1, A);
+        let mut clock = PhaseClock::start();
+        let fill = EditOp::Box {
+            min: [0, 0, 0],
+            max: [94, 46, 94],
+            mode: BrushMode::Fill,
+            colour: Colour::WHITE,
+        };
+        let voxel = |colour| EditOp::Set {
+            pos: [3, 50, 3],
+            colour,
+        };
+        let (first, second) = (Colour::from_rgb8(9, 0, 0), Colour::from_rgb8(0, 9, 0));
+        owner
+            .step(
+                vec![edit(1, 1, vec![fill]), edit(1, 2, vec![voxel(first)])],
+                &mut clock,
+            )
+            .unwrap();
+        // The edit finishes; what waited behind it is applied at the start of the next turn.
+        while !owner.jobs.is_empty() {
+            owner.step(Vec::new(), &mut clock).unwrap();
+        }
+        // That turn is the stopping one, with the user's next edit still queued.
+        owner.stop(vec![edit(1, 3, vec![voxel(second)])]).unwrap();
+        let mut answered = replies(&mut a);
+        answered.sort_by_key(|r| r.0);
+        let seqs: Vec<_> = answered.iter().map(|r| r.1.unwrap()).collect();
+        assert!(
+            seqs.windows(2).all(|w| w[0] < w[1]),
+            "in the order sent: {answered:?}"
+        );
+        assert_eq!(
+            owner.map().get([3, 50, 3]),
+            Some(second),
+            "the later edit wins"
+        );
+    }
+
+    /// Someone changing every chunk a heavy edit already planned does not make its last turn
+    /// the whole edit again: the changed chunks are planned again a few per turn first, and
+    /// the edit still ends as if applied whole at the end.
+    #[test]
+    fn chunks_changed_after_planning_are_planned_again_a_few_per_turn() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Arc::new(Store::open(dir.path()).unwrap());
+        let mut reference = BrickMap::new([256, 64, 256]).unwrap();
+        store.create_scene("s", &reference).unwrap();
+        let metrics = Arc::new(Metrics::default());
+        let mut owner = open(&store, &metrics, 64);
+        let _a = join(&mut owner, 1, A);
+        let mut b = join(&mut owner, 2, B);
+        let mut clock = PhaseClock::start();
+        let limits = Limits::default();
+        // 4 × 1 × 4 chunks; bricks of the top row (y 40..47) are covered up to 46.
+        let fill = EditOp::Box {
+            min: [0, 0, 0],
+            max: [255, 46, 255],
+            mode: BrushMode::Fill,
+            colour: Colour::WHITE,
+        };
+        owner
+            .step(vec![edit(1, 1, vec![fill])], &mut clock)
+            .unwrap();
+        let planned = |owner: &crate::scene::Owner| match owner.jobs.front() {
+            Some(Job::Edit(job)) => job.next,
+            _ => panic!("the edit is not being planned"),
+        };
+        while planned(&owner) < 16 {
+            owner.step(Vec::new(), &mut clock).unwrap();
+        }
+        // Bob sets a voxel above the box in every chunk, each already planned.
+        let theirs: Vec<EditOp> = (0..16)
+            .map(|c| EditOp::Set {
+                pos: [(c % 4) * 64 + 5, 47, (c / 4) * 64 + 5],
+                colour: Colour::from_rgb8(0, 0, 200),
+            })
+            .collect();
+        owner
+            .step(vec![edit(2, 1, theirs.clone())], &mut clock)
+            .unwrap();
+        assert_eq!(replies(&mut b).len(), 1);
+        let mut turns = 0;
+        while owner.has_jobs() {
+            owner.step(Vec::new(), &mut clock).unwrap();
+            turns += 1;
+        }
+        // 16 changed chunks: 4 planned again in Bob's turn and in each of the next two, the
+        // last 4 in the last turn (without spreading, Bob's turn would have finished it).
+        assert_eq!(turns, 3);
+        for op in theirs.iter().chain([&fill]) {
+            apply_op(&mut reference, op, &limits).unwrap();
+        }
+        assert_eq!(owner.map().content_hash(), reference.content_hash());
     }
 }

@@ -12,7 +12,8 @@
 //! **Others' edits meanwhile** are applied as usual. A frame someone changes after it was
 //! planned is noted (every change reaches `broadcast_delta`'s touched cells) and planned again
 //! in the last turn: the result is exactly what doing the whole job in its last turn would
-//! have done, which is also what recovery replays.
+//! have done, which is also what recovery replays. When many frames were changed, they are
+//! planned again a few per turn before the last ([`REPLAN_PER_TURN`]).
 //!
 //! **The user's own order.** While a job of a user waits or is planned, that user's later edits
 //! and undos wait behind it (in arrival order), so they still apply after it, as sent. Jobs
@@ -34,6 +35,12 @@ pub(super) enum Job {
     Edit(EditJob),
 }
 
+/// Frames changed since they were planned that a job plans again per turn before its last,
+/// when more than this many are waiting: someone touching every planned frame would otherwise
+/// make the last turn as long as the whole job. At most as many such turns as the job has
+/// frames; the last turn plans again whatever is still changed.
+pub(super) const REPLAN_PER_TURN: usize = 4;
+
 /// Jobs in arrival order (the first one is planned).
 pub(super) type Jobs = VecDeque<Job>;
 
@@ -54,6 +61,8 @@ pub(super) enum Progress {
 pub(super) struct Planning {
     frame_of: HashMap<u32, usize>,
     dirty: HashSet<usize>,
+    /// Turns spent planning changed frames again before the last.
+    replans: usize,
 }
 
 impl Planning {
@@ -73,6 +82,22 @@ impl Planning {
     pub(super) fn take_dirty(&mut self) -> Vec<usize> {
         let mut dirty: Vec<usize> = self.dirty.drain().collect();
         dirty.sort_unstable();
+        dirty
+    }
+
+    /// Up to [`REPLAN_PER_TURN`] frames to plan again in a turn before the last, when more are
+    /// waiting and the job has had fewer than `limit` such turns; empty otherwise.
+    pub(super) fn take_some_dirty(&mut self, limit: usize) -> Vec<usize> {
+        if self.dirty.len() <= REPLAN_PER_TURN || self.replans >= limit {
+            return Vec::new();
+        }
+        self.replans += 1;
+        let mut dirty: Vec<usize> = self.dirty.iter().copied().collect();
+        dirty.sort_unstable();
+        dirty.truncate(REPLAN_PER_TURN);
+        for frame in &dirty {
+            self.dirty.remove(frame);
+        }
         dirty
     }
 }

@@ -928,7 +928,10 @@ impl Owner {
     /// Applies and commits `rest` (what was still queued), then leaves a snapshot behind.
     pub fn stop(&mut self, rest: Vec<Command>) -> Result<(), LogError> {
         self.stopping = true;
-        self.turn(rest, &mut PhaseClock::start())?;
+        // What waited behind a job that finished in the last turn arrived before `rest`.
+        let mut first = std::mem::take(&mut self.released);
+        first.extend(rest);
+        self.turn(first, &mut PhaseClock::start())?;
         // Undos still being planned are finished (a stopping turn plans them whole), and
         // what waited behind them applied.
         while !self.released.is_empty() || !self.jobs.is_empty() {

@@ -187,19 +187,30 @@ impl Owner {
             None => return Ok(Vec::new()),
         };
         let mut frames = std::thread::scope(|scope| {
+            // A run whose thread could not be started is encoded here, after the first.
             let others: Vec<_> = rest
                 .iter()
                 .zip(self.spare_encoders.iter_mut())
                 .map(|(run, encoder)| {
-                    scope.spawn(move || encode_run(map, run, encoder, limits, make))
+                    let thread = std::thread::Builder::new().name("encode".into());
+                    let spawned = thread
+                        .spawn_scoped(scope, move || encode_run(map, run, encoder, limits, make));
+                    (run, spawned.ok())
                 })
                 .collect();
             let mut frames = encode_run(map, first, &mut self.encoder, limits, make)?;
-            for other in others {
-                match other.join() {
-                    Ok(run) => frames.extend(run?),
-                    Err(panic) => std::panic::resume_unwind(panic),
-                }
+            for (run, other) in others {
+                let encoded = match other {
+                    Some(thread) => match thread.join() {
+                        Ok(encoded) => encoded,
+                        Err(panic) => std::panic::resume_unwind(panic),
+                    },
+                    None => {
+                        let mut encoder = BlobEncoder::new(ZSTD_LEVEL)?;
+                        encode_run(map, run, &mut encoder, limits, make)
+                    }
+                };
+                frames.extend(encoded?);
             }
             Ok::<_, WireError>(frames)
         })?;
@@ -395,4 +406,81 @@ fn encode_run(
         finish(encoder, &mut removed, &mut frames)?;
     }
     Ok(frames)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use brickcast_protocol::wire::{BrickBlob, Limits, ServerMsg, decode_server};
+    use brickcast_protocol::{BrickMap, BrushMode, Colour};
+
+    use crate::metrics::Metrics;
+    use crate::scene::jobs::testing::open;
+    use crate::store::Store;
+
+    /// Cells enough to be encoded on several threads come out as frames holding every brick
+    /// and every removed cell exactly once, in the order asked, each frame within its limits.
+    #[test]
+    fn many_cells_encode_on_several_threads_in_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Arc::new(Store::open(dir.path()).unwrap());
+        let mut map = BrickMap::new([512, 64, 512]).unwrap();
+        // 64 × 4 × 64 = 16,384 bricks, some of two colours.
+        map.fill_box([0, 0, 0], [511, 31, 511], BrushMode::Fill, Colour::WHITE);
+        map.sphere([100.0, 20.0, 300.0], 40.0, BrushMode::Paint, Colour::BLACK);
+        store.create_scene("s", &map).unwrap();
+        let mut owner = open(&store, &Arc::new(Metrics::default()), 64);
+        // Every cell of the lower half: bricks, then as many empty cells.
+        let dims = map.cell_dims();
+        let cells: Vec<u32> = (0..dims[0] * 8 * dims[2])
+            .map(|i| {
+                let (x, rest) = (i % dims[0], i / dims[0]);
+                map.cell_index([x, rest % 8, rest / 8])
+            })
+            .collect();
+        assert!(cells.len() > 3 * super::PARALLEL_CELLS);
+        let frames = owner
+            .encode_cells(&cells, |bricks, removed| ServerMsg::Delta {
+                from_seq: 0,
+                to_seq: 1,
+                bricks,
+                removed,
+            })
+            .unwrap();
+        let limits = Limits::default();
+        let mut seen = Vec::new();
+        for frame in &frames {
+            assert!(frame.len() <= limits.max_frame_bytes as usize);
+            let ServerMsg::Delta {
+                bricks, removed, ..
+            } = decode_server(frame, &limits).unwrap()
+            else {
+                panic!("not a delta");
+            };
+            let bricks: Vec<_> = BrickBlob::decode(&bricks, limits.max_bricks_per_frame).unwrap();
+            for brick in bricks {
+                assert_eq!(Some(&brick), map.brick(brick.cell).as_ref());
+                seen.push(map.cell_index(brick.cell));
+            }
+            seen.extend(removed.iter().map(|&c| map.cell_index(c)));
+        }
+        // Each frame lists its bricks, then its removed cells: compare as sets per frame run.
+        let mut sorted = seen.clone();
+        sorted.sort_unstable();
+        let mut expected = cells.clone();
+        expected.sort_unstable();
+        assert_eq!(sorted, expected, "every cell once");
+        let bricks_in_order: Vec<u32> = seen
+            .iter()
+            .copied()
+            .filter(|&c| map.brick(map.cell_coords(c)).is_some())
+            .collect();
+        let expected_order: Vec<u32> = cells
+            .iter()
+            .copied()
+            .filter(|&c| map.brick(map.cell_coords(c)).is_some())
+            .collect();
+        assert_eq!(bricks_in_order, expected_order, "bricks in the order asked");
+    }
 }

@@ -108,6 +108,22 @@ impl Owner {
                 }
             }
         }
+        let limit = job.planned.len();
+        let again = job.planning.take_some_dirty(limit);
+        if !again.is_empty() {
+            let Some(Job::Undo(job)) = self.jobs.front_mut() else {
+                unreachable!("the first job is an undo")
+            };
+            for frame in again {
+                let planned = &mut job.planned[frame];
+                *planned = plan(
+                    &self.map,
+                    std::mem::take(&mut planned.step),
+                    &mut self.history,
+                );
+            }
+            return Progress::Planned;
+        }
         let job = self.pop_undo_job();
         Progress::Finished(self.finish_job(job, log, acks))
     }
