@@ -373,18 +373,16 @@ fn plan(map: &BrickMap, ops: &[Resolved], chunk: u32, history: &mut History) -> 
 
 #[cfg(test)]
 mod tests {
-    use std::sync::Arc;
     use std::sync::atomic::Ordering::Relaxed;
 
     use brickcast_protocol::apply::apply_op;
     use brickcast_protocol::wire::{BrushMode, EditOp, Limits};
     use brickcast_protocol::{BrickMap, Colour};
 
-    use crate::metrics::{Metrics, PhaseClock};
+    use crate::metrics::PhaseClock;
     use crate::scene::Command;
     use crate::scene::jobs::Job;
-    use crate::scene::jobs::testing::{A, B, edit, join, open, replies};
-    use crate::store::Store;
+    use crate::scene::jobs::testing::{A, B, Scene, edit, join, replies};
 
     /// A heavy edit planned across turns while someone else changes a brick it already
     /// planned ends exactly as the same edit applied whole in its last turn: the other voxel
@@ -392,13 +390,11 @@ mod tests {
     /// map, and undoing it takes back exactly what it did.
     #[test]
     fn a_heavy_edit_planned_across_turns_ends_as_one_applied_whole() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Arc::new(Store::open(dir.path()).unwrap());
         let mut reference = BrickMap::new([128, 64, 128]).unwrap();
-        store.create_scene("s", &reference).unwrap();
-        let metrics = Arc::new(Metrics::default());
+        let scene = Scene::new(&reference);
+        let metrics = scene.metrics.clone();
         // 64 bricks' work (32,768 voxels) and up is planned across turns.
-        let mut owner = open(&store, &metrics, 64);
+        let mut owner = scene.owner(64);
         let mut a = join(&mut owner, 1, A);
         let mut b = join(&mut owner, 2, B);
         let mut clock = PhaseClock::start();
@@ -480,7 +476,7 @@ mod tests {
         // Recovery replays the logged ops to the same map.
         let hash = owner.map().content_hash();
         drop(owner);
-        let mut owner = open(&store, &metrics, 64);
+        let mut owner = scene.owner(64);
         assert_eq!(owner.map().content_hash(), hash);
         // Alice undoes her voxel, then the heavy edit: only bob's voxel is left.
         let mut a = join(&mut owner, 3, A);
@@ -504,13 +500,8 @@ mod tests {
     /// in the order sent: the ones that waited behind the edit before the ones still queued.
     #[test]
     fn commands_that_waited_behind_a_job_go_first_when_the_scene_stops() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Arc::new(Store::open(dir.path()).unwrap());
-        store
-            .create_scene("s", &BrickMap::new([128, 64, 128]).unwrap())
-            .unwrap();
-        let metrics = Arc::new(Metrics::default());
-        let mut owner = open(&store, &metrics, 64);
+        let scene = Scene::new(&BrickMap::new([128, 64, 128]).unwrap());
+        let mut owner = scene.owner(64);
         let mut a = join(&mut owner, 1, A);
         let mut clock = PhaseClock::start();
         let fill = EditOp::Box {
@@ -555,12 +546,9 @@ mod tests {
     /// the edit still ends as if applied whole at the end.
     #[test]
     fn chunks_changed_after_planning_are_planned_again_a_few_per_turn() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Arc::new(Store::open(dir.path()).unwrap());
         let mut reference = BrickMap::new([256, 64, 256]).unwrap();
-        store.create_scene("s", &reference).unwrap();
-        let metrics = Arc::new(Metrics::default());
-        let mut owner = open(&store, &metrics, 64);
+        let scene = Scene::new(&reference);
+        let mut owner = scene.owner(64);
         let _a = join(&mut owner, 1, A);
         let mut b = join(&mut owner, 2, B);
         let mut clock = PhaseClock::start();

@@ -192,6 +192,31 @@ pub(super) mod testing {
     use crate::scene::{Command, Joiner, Outbox, OutboxReceiver, Owner, OwnerConfig};
     use crate::store::Store;
 
+    /// A store holding one scene, "s", and the metrics its owners count into.
+    pub struct Scene {
+        _dir: tempfile::TempDir,
+        pub store: Arc<Store>,
+        pub metrics: Arc<Metrics>,
+    }
+
+    impl Scene {
+        pub fn new(map: &brickcast_protocol::BrickMap) -> Scene {
+            let dir = tempfile::tempdir().unwrap();
+            let store = Arc::new(Store::open(dir.path()).unwrap());
+            store.create_scene("s", map).unwrap();
+            Scene {
+                _dir: dir,
+                store,
+                metrics: Arc::new(Metrics::default()),
+            }
+        }
+
+        /// An owner of the scene as stored, planning jobs of `slice` bricks and up.
+        pub fn owner(&self, slice: u32) -> Owner {
+            open(&self.store, &self.metrics, slice)
+        }
+    }
+
     pub const A: u64 = 1;
     pub const B: u64 = 2;
 

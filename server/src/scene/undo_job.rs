@@ -250,30 +250,26 @@ fn next_frame(started: &mut Started) -> Result<Option<Vec<BrickChange>>, String>
 
 #[cfg(test)]
 mod tests {
-    use std::sync::Arc;
     use std::sync::atomic::Ordering::Relaxed;
 
     use brickcast_protocol::apply::apply_op;
     use brickcast_protocol::wire::{BrushMode, EditOp, Limits};
     use brickcast_protocol::{BrickMap, Colour};
 
-    use crate::metrics::{Metrics, PhaseClock};
+    use crate::metrics::PhaseClock;
     use crate::scene::Command;
     use crate::scene::history::{Step, plan_revert, write_bricks};
-    use crate::scene::jobs::testing::{A, B, edit, join, open, replies};
-    use crate::store::Store;
+    use crate::scene::jobs::testing::{A, B, Scene, edit, join, replies};
 
     /// A large undo planned across turns while someone paints over bricks it already planned
     /// ends exactly as the same undo done whole in its last turn: the painted voxels are kept,
     /// the user's own later edit applies after it, and recovery replays it to the same map.
     #[test]
     fn a_large_undo_planned_across_turns_ends_as_one_done_whole() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Arc::new(Store::open(dir.path()).unwrap());
         let mut reference = BrickMap::new([128, 64, 128]).unwrap();
-        store.create_scene("s", &reference).unwrap();
-        let metrics = Arc::new(Metrics::default());
-        let mut owner = open(&store, &metrics, 64);
+        let scene = Scene::new(&reference);
+        let metrics = scene.metrics.clone();
+        let mut owner = scene.owner(64);
         let mut a = join(&mut owner, 1, A);
         let mut b = join(&mut owner, 2, B);
         let mut clock = PhaseClock::start();
@@ -351,7 +347,7 @@ mod tests {
         // Recovery replays the logged undo to the same map, and redo is there.
         let hash = owner.map().content_hash();
         drop(owner);
-        let mut owner = open(&store, &metrics, 64);
+        let mut owner = scene.owner(64);
         assert_eq!(owner.map().content_hash(), hash);
         assert_eq!(
             owner.history().stacks(A).unwrap().redo.len(),
