@@ -23,6 +23,10 @@ handshake, the frames and the bincode of the few messages used are written by ha
     hostile-client.py ids HOST PORT SCENE N SECONDS RADIUS
         N connections one after another over SECONDS, each with a user id of its own, each
         painting one sphere of RADIUS: N users' undo history in one scene.
+    hostile-client.py http HOST PORT PATH N SECONDS
+        N threads each asking for PATH over HTTP/1.1 (a connection per request, from
+        127.0.0.2), again as soon as answered, for SECONDS: 200 of them on a scene's
+        thumbnail (kept stale by an editor) against 200 on "/".
 
 Holds the connections for SECONDS, then prints one JSON line: how many connected and how many
 were refused (idle viewers also: how many connections the server closed).
@@ -38,6 +42,9 @@ import time
 
 # The protocol spoken; PROTOCOL=N in the environment for an older server.
 PROTOCOL_VERSION = int(os.environ.get("PROTOCOL", "3"))
+
+
+ACK = 5  # ServerMsg::Ack's variant
 
 
 def varint(n):
@@ -70,12 +77,16 @@ def frame(payload):
     return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
 
 
-def connect(host, port, scene, source=None, user=0):
+def connect(host, port, scene, source=None, user=0, rcvbuf=4096):
     # `source`: another loopback address to come from (the server limits connections per
     # address, and the well-behaved probe must not count against the attackers' allowance).
-    s = socket.create_connection((host, port), source_address=(source, 0) if source else None)
-    # A small receive buffer: the server's data piles up on its side, as with a slow reader.
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    # A small receive buffer (set before connecting, so the window is small from the start):
+    # the server's data piles up on its side, as with a slow reader.
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+    if source:
+        s.bind((source, 0))
+    s.connect((host, port))
     key = base64.b64encode(os.urandom(16)).decode()
     s.sendall(
         (
@@ -122,6 +133,35 @@ def sphere_edit(client_seq, centre, radius, colour):
     return varint(1) + varint(client_seq) + varint(1) + sphere
 
 
+def frames(sock):
+    """Yields the payloads of the server's websocket frames (binary, unmasked)."""
+    buf = b""
+    while True:
+        while True:
+            if len(buf) >= 2:
+                n, at = buf[1] & 0x7F, 2
+                if n == 126:
+                    n, at = int.from_bytes(buf[2:4], "big"), 4
+                elif n == 127:
+                    n, at = int.from_bytes(buf[2:10], "big"), 10
+                if len(buf) >= at + n:
+                    yield buf[at:at + n]
+                    buf = buf[at + n:]
+                    continue
+            break
+        chunk = sock.recv(1 << 20)
+        if not chunk:
+            return
+        buf += chunk
+
+
+def until(stream, variant, client_seq):
+    for payload in stream:
+        if payload and payload[0] == variant and payload[1:2] == varint(client_seq)[:1]:
+            return
+    raise ConnectionError("closed before the reply")
+
+
 def ids(host, port, scene, n, seconds, radius):
     """N connections one after another over SECONDS, each with a user id of its own (as any
     client may choose without --auth), each painting one sphere of RADIUS somewhere in the
@@ -132,18 +172,12 @@ def ids(host, port, scene, n, seconds, radius):
     start = time.time()
     for i in range(n):
         try:
-            s = connect(host, port, scene, source="127.0.0.2", user=0x10000 + i)
+            s = connect(host, port, scene, source="127.0.0.2", user=0x10000 + i, rcvbuf=1 << 20)
             centre = [rng.uniform(radius, 512 - radius), rng.uniform(radius, 64.0), rng.uniform(radius, 512 - radius)]
             s.sendall(frame(sphere_edit(1, centre, float(radius), rng.randrange(1, 1 << 16))))
-            # Read until the server has said something about the edit (its ack, in among the
-            # sync), then leave.
+            # Read until the edit's ack (in among the sync), then leave.
             s.settimeout(10)
-            got = b""
-            while len(got) < 1 << 16:
-                chunk = s.recv(1 << 16)
-                if not chunk:
-                    break
-                got += chunk
+            until(frames(s), ACK, 1)
             s.close()
             done += 1
         except (ConnectionError, OSError):
@@ -152,6 +186,41 @@ def ids(host, port, scene, n, seconds, radius):
         if behind > 0:
             time.sleep(behind)
     print(json.dumps({"attack": "ids", "connections": done, "refused": refused}))
+
+
+def http_flood(host, port, path, n, seconds):
+    """N threads asking for PATH one request after another for SECONDS; prints the answers
+    counted by status."""
+    import threading
+    counts, lock = {}, threading.Lock()
+    end = time.time() + seconds
+    request = f"GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n".encode()
+
+    def one():
+        while time.time() < end:
+            status = "error"
+            try:
+                s = socket.create_connection((host, port), timeout=60, source_address=("127.0.0.2", 0))
+                s.sendall(request)
+                got = b""
+                while True:
+                    chunk = s.recv(1 << 16)
+                    if not chunk:
+                        break
+                    got += chunk
+                s.close()
+                status = got.split(b" ", 2)[1].decode() if got.startswith(b"HTTP/") else "short"
+            except OSError:
+                time.sleep(0.01)
+            with lock:
+                counts[status] = counts.get(status, 0) + 1
+
+    threads = [threading.Thread(target=one) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    print(json.dumps({"attack": "http", "path": path, "answers": counts}))
 
 
 def paced(conns, seconds, interval, first_at, message):
@@ -336,6 +405,10 @@ def main():
     if sys.argv[1] == "ids":
         host, port, scene, n, seconds, radius = sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5]), float(sys.argv[6]), float(sys.argv[7])
         ids(host, port, scene, n, seconds, radius)
+        return
+    if sys.argv[1] == "http":
+        host, port, path, n, seconds = sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5]), float(sys.argv[6])
+        http_flood(host, port, path, n, seconds)
         return
     if sys.argv[1] in ("ping", "camera", "huge"):
         kind, host, port, scene, seconds = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], float(sys.argv[5])

@@ -22,36 +22,7 @@ spec = importlib.util.spec_from_file_location(
 hostile = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(hostile)
 
-ACK, UNDONE = 5, 9  # ServerMsg variants
-
-
-def frames(sock):
-    """Yields the payloads of the server's websocket frames (binary, unmasked)."""
-    buf = b""
-    while True:
-        while True:
-            if len(buf) >= 2:
-                n, at = buf[1] & 0x7F, 2
-                if n == 126:
-                    n, at = int.from_bytes(buf[2:4], "big"), 4
-                elif n == 127:
-                    n, at = int.from_bytes(buf[2:10], "big"), 10
-                if len(buf) >= at + n:
-                    yield buf[at:at + n]
-                    buf = buf[at + n:]
-                    continue
-            break
-        chunk = sock.recv(1 << 20)
-        if not chunk:
-            return
-        buf += chunk
-
-
-def until(stream, variant, client_seq):
-    for payload in stream:
-        if payload and payload[0] == variant and payload[1:2] == hostile.varint(client_seq)[:1]:
-            return
-    raise ConnectionError("closed before the reply")
+ACK, UNDONE = hostile.ACK, 9  # ServerMsg variants
 
 
 def phases(host, port):
@@ -63,13 +34,12 @@ def phases(host, port):
 def main():
     host, port, scene = sys.argv[1], int(sys.argv[2]), sys.argv[3]
     rounds = int(sys.argv[4]) if len(sys.argv) > 4 else 6
-    s = hostile.connect(host, port, scene, user=0x30000)
-    s.setsockopt(hostile.socket.SOL_SOCKET, hostile.socket.SO_RCVBUF, 1 << 20)
-    stream = frames(s)
+    s = hostile.connect(host, port, scene, user=0x30000, rcvbuf=1 << 20)
+    stream = hostile.frames(s)
     two = [([0, 0, 0], [255, 255, 255]), ([256, 0, 256], [511, 255, 511])]
     t = time.time()
     s.sendall(hostile.frame(hostile.box_edit(1, two, 0x1234)))
-    until(stream, ACK, 1)
+    hostile.until(stream, ACK, 1)
     edit_s = time.time() - t
     before = phases(host, port)
     latencies = []
@@ -77,7 +47,7 @@ def main():
         seq = 2 + i
         t = time.time()
         s.sendall(hostile.frame(hostile.undo(seq) if i % 2 == 0 else hostile.redo(seq)))
-        until(stream, UNDONE, seq)
+        hostile.until(stream, UNDONE, seq)
         latencies.append(round((time.time() - t) * 1000, 1))
     after = phases(host, port)
     spent = {k: round((after[k] - before[k]) / (2 * rounds) * 1000, 1) for k in after if k != "wait"}

@@ -17,6 +17,7 @@ pub mod conns;
 pub mod fair;
 pub mod http;
 pub mod identity;
+pub mod ids;
 pub mod import;
 pub mod incoming;
 pub mod metrics;
@@ -90,6 +91,8 @@ pub struct ServerConfig {
     pub demo_size: [u32; 3],
     /// Websocket connections taken, in all and per address.
     pub connections: ConnectionLimits,
+    /// Lasting user ids clients of one address may choose (`ids`, `serve --ids-per-address`).
+    pub ids_per_address: usize,
     /// A client that takes no data for this long while the server has data for it is cut off.
     pub stall_timeout: Duration,
     pub http: http::HttpConfig,
@@ -121,6 +124,7 @@ impl ServerConfig {
             owner: OwnerConfig::default(),
             demo_size: DEMO_SIZE,
             connections: ConnectionLimits::default(),
+            ids_per_address: ids::PER_ADDRESS,
             stall_timeout: Duration::from_secs(30),
             http: http::HttpConfig::default(),
             cluster: None,
@@ -163,6 +167,8 @@ pub struct App {
     pub thumbnails: web::Thumbnails,
     /// Edit budgets shared by every connection of a user or of an address (see `fair`).
     pub shares: fair::Shares,
+    /// The ids each address's clients chose (see `ids`).
+    pub ids: ids::Ids,
 }
 
 /// Decrements the live-session count when a session ends, so shutdown can wait for sockets to
@@ -397,6 +403,7 @@ impl Server {
             connection_limits: config.connections,
             thumbnails: web::Thumbnails::default(),
             shares: fair::Shares::default(),
+            ids: ids::Ids::new(config.ids_per_address),
         });
         Server {
             listener,
@@ -679,8 +686,11 @@ async fn websocket(
     // Accept frames a little over the limit so the session can answer them with a clean
     // FrameTooLarge error instead of a dropped connection.
     let max = scene.limits.max_frame_bytes as usize + (64 << 10);
+    // Reads start in a 16 KiB buffer (a client's frames are small; a larger one grows it)
+    // rather than tungstenite's 128 KiB: a crowd of idle connections holds less.
     ws.max_message_size(max)
         .max_frame_size(max)
+        .read_buffer_size(16 << 10)
         .on_upgrade(move |socket| async move {
             let link = using.link.clone();
             session::run(socket, scene, link, app, peer.ip()).await;

@@ -284,6 +284,11 @@ struct ServeArgs {
     /// Websocket connections open at once from one IP address.
     #[arg(long, default_value_t = 64)]
     max_connections_per_ip: usize,
+    /// User ids clients of one address may choose whose undo history outlives their
+    /// connection (without --auth, ids come from clients); further ids from that address get
+    /// a history that goes when they leave. IPv6 counts by /64.
+    #[arg(long, default_value_t = brickcast_server::ids::PER_ADDRESS)]
+    ids_per_address: usize,
     /// Cut off a client that takes no data for this many seconds while the server has data for
     /// it.
     #[arg(long, default_value_t = 30.0, value_parser = positive_seconds)]
@@ -351,6 +356,7 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
         config.owner.max_history_bytes = args.max_history_bytes;
         config.connections.max_total = args.max_connections;
         config.connections.max_per_ip = args.max_connections_per_ip;
+        config.ids_per_address = args.ids_per_address;
         config.stall_timeout = Duration::from_secs_f64(args.stall_timeout);
         config.cluster = args.nats.map(|url| brickcast_server::ClusterConfig {
             url,

@@ -221,6 +221,9 @@ pub struct Metrics {
     pub thumbnails_rendered: AtomicU64,
     /// Connections refused by the connection limits (total or per address).
     pub refused_connections: AtomicU64,
+    /// Clients whose chosen id was over their address's allowance (`crate::ids`): served
+    /// under a connection-lived id instead.
+    pub ids_over_allowance: AtomicU64,
     /// Camera updates forwarded to scene owners (after the per-session throttle).
     pub camera_updates: AtomicU64,
     /// Presence frames queued, their bytes, and frames skipped for a long queue.
@@ -379,6 +382,12 @@ impl Metrics {
             "counter",
             "Malformed or oversized frames (the connection is closed).",
             get(&self.rejected_frames),
+        );
+        metric(
+            "ids_over_allowance_total",
+            "counter",
+            "Clients whose chosen user id was over their address's allowance (served under a connection-lived id).",
+            get(&self.ids_over_allowance),
         );
         metric(
             "edits_over_budget_total",

@@ -33,7 +33,7 @@ use crate::scene::{
 const CLOSE_GRACE: Duration = Duration::from_secs(2);
 /// Bytes of queued frames one flush may carry, so a long queue still goes out in bounded writes
 /// and the byte count the owner reads keeps moving.
-const MAX_WRITE_BATCH: usize = 1 << 20;
+const MAX_WRITE_BATCH: usize = 64 << 10;
 /// How long a new connection may take to say Hello.
 const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 
@@ -66,7 +66,7 @@ pub async fn run(
         app.stall_timeout,
     ));
 
-    match handshake(&mut stream, &scene, &app, &out, id).await {
+    match handshake(&mut stream, &scene, &app, &out, id, from).await {
         Some((role, resume_from, who)) => {
             let peer = Peer {
                 id,
@@ -144,6 +144,7 @@ async fn handshake(
     app: &App,
     out: &Outbox,
     id: SessionId,
+    from: IpAddr,
 ) -> Option<(Role, Option<u64>, Identity)> {
     let fail = |code: ErrorCode, text: String| {
         app.metrics.rejected_frames.fetch_add(1, Relaxed);
@@ -184,14 +185,15 @@ async fn handshake(
             ..
         }) => match app.auth.check(token.as_deref()) {
             Access::Granted(grant) => {
-                let who = identify(
-                    app.auth.is_open(),
-                    grant.name.as_deref(),
-                    user,
-                    &name,
-                    id,
-                    |n| app.auth.reserves(n),
-                );
+                let reserved = |n: &str| app.auth.reserves(n);
+                let open = app.auth.is_open();
+                let mut who = identify(open, grant.name.as_deref(), user, &name, id, reserved);
+                // A chosen id over its address's allowance: served as if it sent none.
+                if who.stable && !who.pinned && !app.ids.admit(from, who.user) {
+                    app.metrics.ids_over_allowance.fetch_add(1, Relaxed);
+                    tracing::info!(scene = %scene.name, %from, user = who.user, "user id over the address's allowance: history kept for this connection only");
+                    who = identify(open, None, 0, &name, id, reserved);
+                }
                 let role = grant.role;
                 tracing::info!(scene = %scene.name, client = %who.name, user = who.user, ?role, ?resume_from, "client joined");
                 Some((role, resume_from, who))

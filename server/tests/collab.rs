@@ -309,6 +309,52 @@ async fn made_up_ids_cannot_grow_a_scenes_history_past_its_cap() {
     server.shutdown().await.unwrap();
 }
 
+/// One address may bring only so many lasting ids (`--ids-per-address`): a further id's steps
+/// are undoable while it is connected and go when it leaves; ids it brought before keep theirs.
+#[tokio::test]
+async fn ids_over_an_addresss_allowance_keep_their_history_only_while_connected() {
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |c| c.ids_per_address = 2).await;
+    let url = server.url("demo");
+    for user in 1..=3u32 {
+        let mut c = Client::as_user(&url, None, u64::from(user), "someone")
+            .await
+            .unwrap();
+        let ack = c.edit(vec![set([user, 60, 3], user)]).await;
+        assert!(matches!(ack, ServerMsg::Ack { applied: 1, .. }), "{ack:?}");
+        if user == 3 {
+            // Over the allowance, yet its step is undoable while it stays.
+            assert_eq!(outcome(&c.undo(false).await).3, None);
+            assert_eq!(outcome(&c.undo(true).await).3, None);
+        }
+        c.close().await;
+    }
+    let over = common::metric(server.addr, "brickcast_ids_over_allowance_total").await;
+    assert_eq!(over, 1.0);
+    // The owner forgets user 3's history once it handles its Leave.
+    let users = "brickcast_scene_history_users{scene=\"demo\"}";
+    let mut left = common::metric(server.addr, users).await;
+    for _ in 0..500 {
+        if left == 2.0 {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        left = common::metric(server.addr, users).await;
+    }
+    assert_eq!(left, 2.0, "users with history");
+    // User 3's history went with its connection; users 1 and 2 keep theirs.
+    let mut third = Client::as_user(&url, None, 3, "someone").await.unwrap();
+    assert_eq!(
+        outcome(&third.undo(false).await).3,
+        Some(Refusal::NothingToUndo)
+    );
+    third.close().await;
+    let mut first = Client::as_user(&url, None, 1, "someone").await.unwrap();
+    assert_eq!(outcome(&first.undo(false).await).3, None);
+    first.close().await;
+    server.shutdown().await.unwrap();
+}
+
 #[tokio::test]
 async fn presence_shows_who_is_here_where_they_look_and_who_left() {
     let data = tempfile::tempdir().unwrap();

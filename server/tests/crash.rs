@@ -215,11 +215,15 @@ async fn acknowledged_edits_survive_sigkill() {
         }
 
         let progress = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        // The watcher syncs before anyone edits: a kill must not land mid-sync (syncs are
+        // queued only a little ahead of the writer, so one takes a few owner turns).
+        let (synced_tx, synced_rx) = tokio::sync::oneshot::channel();
         let watch = {
             let url = url.clone();
             tokio::spawn(async move {
                 let mut w = Client::connect(&url, None).await.unwrap();
                 w.sync().await;
+                let _ = synced_tx.send(());
                 let mut last = None;
                 loop {
                     if w.synced {
@@ -234,6 +238,7 @@ async fn acknowledged_edits_survive_sigkill() {
                 }
             })
         };
+        synced_rx.await.expect("the watcher synced");
         let mut tasks = Vec::new();
         for client in 0..3u32 {
             let url = url.clone();

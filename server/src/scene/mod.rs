@@ -457,10 +457,19 @@ fn run(
         let first = if owner.has_ready_work() || owner.has_jobs() {
             rx.try_recv().ok()
         } else {
-            match runtime.block_on(async { tokio::time::timeout(wait, rx.recv()).await }) {
-                Ok(Some(cmd)) => Some(cmd),
-                Ok(None) => return owner.stop(drain(rx)),
-                Err(_) => None,
+            // A writer that took a sync frame wakes the owner to queue the next ones.
+            let wake = owner.waker();
+            let next = async {
+                tokio::select! {
+                    biased;
+                    cmd = rx.recv() => Some(cmd),
+                    _ = wake.notified() => None,
+                }
+            };
+            match runtime.block_on(async { tokio::time::timeout(wait, next).await }) {
+                Ok(Some(Some(cmd))) => Some(cmd),
+                Ok(Some(None)) => return owner.stop(drain(rx)),
+                Ok(None) | Err(_) => None,
             }
         };
         let mut commands: Vec<Command> = first.into_iter().collect();

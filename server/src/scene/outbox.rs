@@ -89,6 +89,9 @@ struct Shared {
     drained: Notify,
     /// The owner is streaming this session a sync: its camera decides what goes next.
     syncing: AtomicBool,
+    /// Woken when the writer takes a frame while the owner streams a sync: the owner queues
+    /// a sync only a little ahead of the writer ([`Outbox::wake_owner_with`]).
+    owner: std::sync::OnceLock<Arc<Notify>>,
 }
 
 impl Shared {
@@ -125,6 +128,11 @@ impl OutboxReceiver {
 
     fn take(&self, item: Outgoing) -> Bytes {
         let shared = &self.shared;
+        if shared.syncing.load(Relaxed)
+            && let Some(owner) = shared.owner.get()
+        {
+            owner.notify_one();
+        }
         let frame = match item {
             Outgoing::Frame { frame, reply } => {
                 let cost = frame.len() + FRAME_OVERHEAD;
@@ -198,6 +206,7 @@ impl Outbox {
             refusals_folded: AtomicUsize::new(0),
             drained: Notify::new(),
             syncing: AtomicBool::new(false),
+            owner: std::sync::OnceLock::new(),
         });
         (
             Outbox {
@@ -347,6 +356,12 @@ impl Outbox {
             }
             notified.await;
         }
+    }
+
+    /// Has the writer wake `owner` each time it takes a frame while a sync streams (set by
+    /// the owner at join; the first one set stays).
+    pub fn wake_owner_with(&self, owner: Arc<Notify>) {
+        let _ = self.shared.owner.set(owner);
     }
 
     /// Marks whether the owner is streaming this session a sync (set by the owner).

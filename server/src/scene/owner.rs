@@ -75,6 +75,11 @@ pub struct Owner {
     pub(super) encoder: BlobEncoder,
     /// Encoders of the other threads a large delta is encoded on (`sync::encode_cells`).
     pub(super) spare_encoders: Vec<BlobEncoder>,
+    /// Woken by a session's writer taking a frame while its sync streams (`sync.rs`: syncs
+    /// are queued only [`super::sync::SYNC_AHEAD`] ahead of the writer).
+    pub(super) wake: Arc<tokio::sync::Notify>,
+    /// Bytes a brick took in the last sync batch: sizes the next (`sync.rs`).
+    pub(super) sync_brick_bytes: usize,
     /// The sequence of the last delta broadcast (its successor's `from_seq`).
     pub(super) broadcast_seq: u64,
     /// The last session whose sync got frames: the next turn serves those after it first.
@@ -280,6 +285,8 @@ impl Owner {
             subs: BTreeMap::new(),
             encoder: BlobEncoder::new(ZSTD_LEVEL).map_err(std::io::Error::other)?,
             spare_encoders: Vec::new(),
+            wake: Arc::default(),
+            sync_brick_bytes: 256,
             broadcast_seq: seq,
             sync_cursor: 0,
             // Bricks the replayed log changed are not in the snapshot yet: the next snapshot

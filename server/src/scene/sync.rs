@@ -18,6 +18,22 @@ use crate::metrics::Metrics;
 /// Sync frames queued per subscriber per turn.
 const FRAMES_PER_TURN: usize = 4;
 
+/// A sync (initial, resume, resync) is queued at most this far ahead of its session's writer:
+/// the next frames are encoded when the writer takes what was queued (it wakes the owner), not
+/// all at once. A client that says Hello and never reads then holds about this much of its
+/// sync in the server (plus what its writer and socket hold), not its whole scene: a thousand
+/// of them held 0.7 MB each of the demo's 1.1 MB sync (BENCHMARKS.md, "Fair share").
+pub(super) const SYNC_AHEAD: usize = 64 << 10;
+
+/// Bytes one sync batch aims at: its bricks are this over the bytes a brick took in the
+/// scene's last batch (Sibenik ~60 B, the demo's terrain ~110 B: 1,100 and 600 bricks).
+/// Frames of fewer bricks compress worse (Sibenik's sync: +3.7% bytes at 1,024 bricks a frame,
+/// +14% at 256, against 4,096), larger ones sit whole in a client that does not read.
+const SYNC_BATCH_BYTES: usize = 64 << 10;
+
+/// Bricks in one sync batch, at least (noise, 1 KiB a brick: 256 KiB).
+const SYNC_BATCH_MIN_BRICKS: usize = 256;
+
 impl Owner {
     /// Subscribes a session: queues its Welcome and starts its sync. False when the session
     /// could not be welcomed (it is gone, or the Welcome could not be encoded).
@@ -31,6 +47,7 @@ impl Owner {
     ) -> bool {
         let size = self.map.size();
         let camera = [size[0] as f32 * 0.5, size[1] as f32, size[2] as f32 * 0.5];
+        out.wake_owner_with(self.wake.clone());
         let mut sub = Subscriber {
             out,
             role,
@@ -221,7 +238,7 @@ impl Owner {
     /// Whether a sync or resync can make progress now (its client's queue has room, and the
     /// server's queues together are within their bound).
     pub fn has_ready_work(&self) -> bool {
-        let half = self.config.max_queue_bytes / 2;
+        let half = self.sync_ahead();
         let over_total = self
             .subs
             .values()
@@ -232,6 +249,18 @@ impl Owner {
                 (s.syncing && s.out.queued() < half)
                     || (s.lagging && s.out.queued() < self.config.max_queue_bytes / 4)
             })
+    }
+
+    /// How far a sync is queued ahead of its writer: [`SYNC_AHEAD`], or half the queue bound
+    /// when that is smaller.
+    fn sync_ahead(&self) -> usize {
+        SYNC_AHEAD.min(self.config.max_queue_bytes / 2)
+    }
+
+    /// The waker a session's writer rings when it takes a frame while its sync streams: the
+    /// owner's loop waits on it besides its commands.
+    pub fn waker(&self) -> std::sync::Arc<tokio::sync::Notify> {
+        self.wake.clone()
     }
 
     /// Whether a sync or resync is waiting for its client's queue to drain.
@@ -266,18 +295,23 @@ impl Owner {
             }
             let before = sub.out.queued();
             if sub.out.is_closed() {
+                // Its session is ending: the Leave that follows removes it (and forgets a
+                // guest's history), so it stays until then, with nothing more to stream.
+                sub.syncing = false;
+                sub.lagging = false;
+                self.subs.insert(id, sub);
                 continue;
             }
             if sub.lagging && sub.out.queued() < self.config.max_queue_bytes / 4 {
                 self.start_resync(&mut sub, true);
             }
             let mut frames = 0;
-            while sub.syncing
-                && frames < FRAMES_PER_TURN
-                && sub.out.queued() < self.config.max_queue_bytes / 2
-            {
-                let take =
-                    (self.config.limits.max_bricks_per_frame as usize).min(sub.pending.len());
+            let ahead = self.sync_ahead();
+            while sub.syncing && frames < FRAMES_PER_TURN && sub.out.queued() < ahead {
+                let most = self.config.limits.max_bricks_per_frame as usize;
+                let take = (SYNC_BATCH_BYTES / self.sync_brick_bytes.max(1))
+                    .clamp(SYNC_BATCH_MIN_BRICKS.min(most), most)
+                    .min(sub.pending.len());
                 let batch: Vec<u32> = sub.pending.split_off(sub.pending.len() - take);
                 // Cells emptied since the sync began were already announced by a delta.
                 let live: Vec<u32> = batch
@@ -293,6 +327,10 @@ impl Owner {
                     total,
                 }) {
                     Ok(batch_frames) => {
+                        let bytes: usize = batch_frames.iter().map(|f| f.len()).sum();
+                        if count >= 64 {
+                            self.sync_brick_bytes = bytes / count as usize;
+                        }
                         for f in batch_frames {
                             Metrics::add(&self.metrics.sync_batches_sent, 1);
                             sub.out.push(f);
@@ -323,9 +361,7 @@ impl Owner {
                 served += 1;
                 self.sync_cursor = id;
             }
-            if !sub.out.is_closed() {
-                self.subs.insert(id, sub);
-            }
+            self.subs.insert(id, sub);
         }
     }
 }
@@ -482,5 +518,112 @@ mod tests {
             .filter(|&c| map.brick(map.cell_coords(c)).is_some())
             .collect();
         assert_eq!(bricks_in_order, expected_order, "bricks in the order asked");
+    }
+
+    /// A client that takes nothing has about [`super::SYNC_AHEAD`] of its sync queued, however
+    /// large the scene; each frame its writer takes wakes the owner, which queues the next, to
+    /// the end of the sync.
+    #[test]
+    fn a_sync_is_queued_only_a_little_ahead_of_its_writer() {
+        use futures_util::FutureExt;
+
+        use crate::metrics::PhaseClock;
+        use crate::scene::jobs::testing::{A, Scene, join};
+
+        // 1,024 bricks of noise: about 1 MB of sync, eight times what may be queued ahead.
+        let mut map = BrickMap::new([128, 32, 128]).unwrap();
+        let mut x: u32 = 1;
+        for p in 0..128 * 32 * 128u32 {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            map.set([p % 128, p / 128 % 32, p / 4096], Colour(x as u16 | 1));
+        }
+        assert_eq!(map.brick_count(), 1024);
+        let scene = Scene::new(&map);
+        let mut owner = scene.owner(u32::MAX);
+        let wake = owner.waker();
+        let mut rx = join(&mut owner, 1, A);
+        let limits = Limits::default();
+        let (mut bricks, mut done, mut most) = (0, false, 0);
+        for round in 0..1000 {
+            for _ in 0..20 {
+                owner.step(Vec::new(), &mut PhaseClock::start()).unwrap();
+            }
+            let mut queued = 0;
+            while let Some(frame) = rx.try_take() {
+                queued += frame.len();
+                match decode_server(&frame, &limits).unwrap() {
+                    ServerMsg::SyncBatch { bricks: blob, .. } => {
+                        bricks += BrickBlob::decode(&blob, limits.max_bricks_per_frame)
+                            .unwrap()
+                            .len();
+                    }
+                    ServerMsg::SyncDone { .. } => done = true,
+                    _ => {}
+                }
+            }
+            if queued > 0 && !done {
+                assert!(
+                    wake.notified().now_or_never().is_some(),
+                    "taking sync frames wakes the owner (round {round}, {queued} bytes)"
+                );
+            }
+            most = most.max(queued);
+            if done {
+                assert!(round >= 3, "the sync went out in {round} rounds");
+                break;
+            }
+        }
+        assert!(done, "the sync finished");
+        assert_eq!(bricks, 1024);
+        assert!(
+            most <= super::SYNC_AHEAD + super::SYNC_BATCH_MIN_BRICKS * 1100,
+            "{most} bytes queued ahead of the writer"
+        );
+    }
+
+    /// A guest whose connection broke while its sync streamed is forgotten when it leaves:
+    /// its history goes with it (the sync used to drop the session first, so its Leave found
+    /// nobody and the guest's steps stayed in the scene's history for good).
+    #[test]
+    fn a_guest_cut_off_during_its_sync_leaves_no_history() {
+        use crate::metrics::PhaseClock;
+        use crate::scene::jobs::testing::{Scene, edit};
+        use crate::scene::{Command, Joiner, Outbox};
+        use brickcast_protocol::wire::{EditOp, Role};
+
+        let mut map = BrickMap::new([256, 32, 256]).unwrap();
+        map.fill_box([0, 0, 0], [255, 15, 255], BrushMode::Fill, Colour::WHITE);
+        let scene = Scene::new(&map);
+        let mut owner = scene.owner(u32::MAX);
+        let (out, mut rx) = Outbox::new(Arc::default());
+        let mut guest = Joiner::solo(7, 0x77, Role::Editor);
+        guest.stable = false;
+        let (joined, _) = tokio::sync::oneshot::channel();
+        let join = Command::Join {
+            session: 7,
+            out,
+            role: Role::Editor,
+            resume_from: None,
+            who: guest,
+            joined,
+        };
+        let set = EditOp::Set {
+            pos: [1, 20, 1],
+            colour: Colour::BLACK,
+        };
+        let turn = |owner: &mut super::Owner, commands| {
+            owner.step(commands, &mut PhaseClock::start()).unwrap();
+        };
+        turn(&mut owner, vec![join, edit(7, 1, vec![set])]);
+        assert_eq!(owner.history.user_count(), 1);
+        // The writer finds the peer gone mid-sync; a few turns pass before the Leave.
+        rx.abort();
+        for _ in 0..3 {
+            turn(&mut owner, Vec::new());
+        }
+        turn(&mut owner, vec![Command::Leave { session: 7 }]);
+        assert_eq!(owner.history.user_count(), 0, "the guest's history went");
     }
 }
