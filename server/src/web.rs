@@ -6,10 +6,11 @@
 //! page is exactly as new as the server. Assets are addressed with a hash of their bytes, so a
 //! browser may cache them for good and still never run an old viewer against a new server.
 //!
-//! Thumbnails are traced by the scene's owner with the CPU renderer (a few milliseconds at
-//! 320×180) and cached per sequence number; while a scene is being edited a thumbnail is
-//! re-rendered at most every [`THUMBNAIL_EVERY`], so a page of thumbnails costs the owner
-//! next to nothing.
+//! Thumbnails are traced with the CPU renderer (~30 ms on one core at 320×180 for the demo) on
+//! a blocking thread, from a copy of the scene its owner hands out (a memory copy: ~2 ms for
+//! the demo), and cached per sequence number; while a scene is being edited a thumbnail is
+//! re-rendered at most every [`THUMBNAIL_EVERY`], one render per scene at a time and at most
+//! [`RENDERS`] at once, so a flood of thumbnail requests costs the owner next to nothing.
 
 use std::collections::HashMap;
 use std::hash::{DefaultHasher, Hasher};
@@ -70,16 +71,20 @@ pub struct Thumbnails {
     /// (scenes share [`FLIGHTS`] turns by the hash of their name, so names from the URL cannot
     /// grow a table), and those waiting behind it take the picture it drew.
     flights: [tokio::sync::Mutex<()>; FLIGHTS],
+    renders: tokio::sync::Semaphore,
 }
 
-/// How many thumbnail renders may run at once, across scenes.
+/// How many scenes' thumbnail requests may wait on their own turn at once.
 const FLIGHTS: usize = 16;
+/// How many thumbnails are drawn at once, across scenes: each holds a copy of its scene.
+const RENDERS: usize = 2;
 
 impl Default for Thumbnails {
     fn default() -> Self {
         Thumbnails {
             cache: Mutex::default(),
             flights: std::array::from_fn(|_| tokio::sync::Mutex::new(())),
+            renders: tokio::sync::Semaphore::new(RENDERS),
         }
     }
 }
@@ -306,24 +311,18 @@ async fn thumbnail(State(app): State<Arc<App>>, Path(name): Path<String>) -> Res
         }
         Err(e) => return (StatusCode::SERVICE_UNAVAILABLE, format!("{e}\n")).into_response(),
     };
-    let (done, rendered) = oneshot::channel();
-    let (width, height) = THUMBNAIL_SIZE;
-    if scene
-        .send(Command::Thumbnail {
-            width,
-            height,
-            done,
-        })
-        .await
-        .is_err()
-    {
+    let Ok(_render) = app.thumbnails.renders.acquire().await else {
+        return (StatusCode::SERVICE_UNAVAILABLE, "the server is stopping\n").into_response();
+    };
+    let (done, copied) = oneshot::channel();
+    if scene.send(Command::Thumbnail { done }).await.is_err() {
         return (StatusCode::SERVICE_UNAVAILABLE, "the scene has stopped\n").into_response();
     }
-    let Ok((seq, frame)) = rendered.await else {
+    let Ok((seq, map)) = copied.await else {
         return (StatusCode::SERVICE_UNAVAILABLE, "the scene has stopped\n").into_response();
     };
     Metrics::add(&app.metrics.thumbnails_rendered, 1);
-    let encoded = tokio::task::spawn_blocking(move || encode_png(&frame)).await;
+    let encoded = tokio::task::spawn_blocking(move || encode_png(&draw(&map))).await;
     let Ok(Ok(bytes)) = encoded else {
         return (
             StatusCode::INTERNAL_SERVER_ERROR,
@@ -345,6 +344,23 @@ async fn thumbnail(State(app): State<Arc<App>>, Path(name): Path<String>) -> Res
             },
         );
     png(bytes)
+}
+
+/// The scene from its first camera, at [`THUMBNAIL_SIZE`], on one core.
+fn draw(map: &brickcast_protocol::BrickMap) -> brickcast_protocol::Frame {
+    let (width, height) = THUMBNAIL_SIZE;
+    let camera = brickcast_protocol::viewpoint::find(map, 55.0).camera;
+    match camera.project(width, height) {
+        Some(p) => {
+            brickcast_protocol::render::render(map, &p, &brickcast_protocol::Lighting::default(), 1)
+        }
+        None => brickcast_protocol::Frame {
+            width: 0,
+            height: 0,
+            pixels: Vec::new(),
+            hits: Vec::new(),
+        },
+    }
 }
 
 fn encode_png(frame: &brickcast_protocol::Frame) -> Result<Vec<u8>, image::ImageError> {

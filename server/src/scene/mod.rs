@@ -113,12 +113,11 @@ pub enum Command {
     Snapshot {
         done: oneshot::Sender<Result<(), String>>,
     },
-    /// Render a small picture of the committed scene with the CPU renderer, for the scene
-    /// list (`crate::web` caches it per sequence number).
+    /// A copy of the committed scene and its sequence, for a thumbnail: `crate::web` draws it
+    /// off the owner thread (copying is a memory copy; tracing it would hold the scene for
+    /// tens of milliseconds) and caches the picture per sequence number.
     Thumbnail {
-        width: u32,
-        height: u32,
-        done: oneshot::Sender<(u64, brickcast_protocol::Frame)>,
+        done: oneshot::Sender<(u64, Box<brickcast_protocol::BrickMap>)>,
     },
     /// Apply what is queued, commit, snapshot, and stop.
     Shutdown,

@@ -330,24 +330,6 @@ impl Owner {
     /// The committed scene from its first camera (`viewpoint::find`, as a viewer opens it),
     /// traced on this thread (one core, a few milliseconds at thumbnail size; the scene list
     /// caches it per sequence number).
-    fn thumbnail(&self, width: u32, height: u32) -> brickcast_protocol::Frame {
-        let camera = brickcast_protocol::viewpoint::find(&self.map, 55.0).camera;
-        match camera.project(width.max(1), height.max(1)) {
-            Some(p) => brickcast_protocol::render::render(
-                &self.map,
-                &p,
-                &brickcast_protocol::Lighting::default(),
-                1,
-            ),
-            None => brickcast_protocol::Frame {
-                width: 0,
-                height: 0,
-                pixels: Vec::new(),
-                hits: Vec::new(),
-            },
-        }
-    }
-
     pub fn history(&self) -> &History {
         &self.history
     }
@@ -525,14 +507,10 @@ impl Owner {
                     }
                 }
                 Command::Snapshot { done } => snapshot_requests.push(done),
-                Command::Thumbnail {
-                    width,
-                    height,
-                    done,
-                } => {
+                Command::Thumbnail { done } => {
                     // Only what is committed is shown.
                     self.publish(&mut log, &mut acks, clock)?;
-                    let _ = done.send((self.seq, self.thumbnail(width, height)));
+                    let _ = done.send((self.seq, Box::new(self.map.clone())));
                 }
                 Command::Shutdown => stop = true,
             }
