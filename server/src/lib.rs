@@ -29,6 +29,7 @@ pub mod session;
 #[cfg(test)]
 mod sim;
 pub mod store;
+mod store_rows;
 pub mod web;
 
 use std::future::Future;

@@ -26,6 +26,7 @@ use redb::{
 use serde::{Deserialize, Serialize};
 
 use crate::record::LogRecord;
+use crate::store_rows::{self, decode_row, encode_row};
 use crate::scene::history::{HistoryWrites, Stacks, StepMeta};
 use crate::scene::{AnsweredEntry, LogError, SceneLog, SnapshotOf, TurnWrite};
 
@@ -34,6 +35,8 @@ type UndoIndex<'a> = TableDefinition<'a, (u64, u64), &'static [u8]>;
 
 /// Scene name → bincode [`SceneMeta`].
 const SCENES: TableDefinition<&str, &[u8]> = TableDefinition::new("scenes");
+/// `"store"` → the newest layout the file may hold ([`store_rows::FORMAT`]); absent before 2.
+const FORMAT: TableDefinition<&str, u32> = TableDefinition::new("format");
 
 /// Why the store failed. Storage errors are fatal for a scene: the owner stops rather than
 /// acknowledge edits it could not make durable.
@@ -44,6 +47,10 @@ pub enum StoreError {
         path: PathBuf,
         source: redb::DatabaseError,
     },
+    #[error(
+        "the store at {path} was written by a newer brickcast-server (store format {found}; this build reads up to {reads}): run that version or a newer one"
+    )]
+    Newer { path: PathBuf, found: u32, reads: u32 },
     #[error("storage error: {0}")]
     Redb(#[from] redb::Error),
     #[error("stored data for scene {scene} is corrupt: {detail}")]
@@ -230,6 +237,24 @@ impl Store {
     fn init(db: Database, path: PathBuf) -> Result<Store, StoreError> {
         let txn = db.begin_write()?;
         txn.open_table(SCENES)?;
+        {
+            let mut format = txn.open_table(FORMAT)?;
+            let found = format.get("store")?.map(|v| v.value());
+            match found {
+                Some(found) if found > store_rows::FORMAT => {
+                    return Err(StoreError::Newer {
+                        path,
+                        found,
+                        reads: store_rows::FORMAT,
+                    });
+                }
+                Some(found) if found == store_rows::FORMAT => {}
+                // Older (or unrecorded): its rows still read; from now on it may hold ours.
+                _ => {
+                    format.insert("store", store_rows::FORMAT)?;
+                }
+            }
+        }
         txn.commit()?;
         Ok(Store { db, path })
     }
@@ -299,7 +324,7 @@ impl Store {
             let mut bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
             let mut row = Vec::with_capacity(64 + 1024);
             for (i, (brick, _)) in map.bricks().enumerate() {
-                encode_brick(&brick.mask, &brick.colours, &mut row);
+                encode_row(&brick.mask, &brick.colours, &mut row);
                 bricks.insert(map.cell_index(brick.cell), row.as_slice())?;
                 if i % 4096 == 4095 {
                     progress(4096);
@@ -374,7 +399,7 @@ impl Store {
             let (cell, bytes) = row?;
             let cell = cell.value();
             let coords = map.cell_coords(cell);
-            let brick = decode_brick(coords, bytes.value())
+            let brick = decode_row(coords, bytes.value())
                 .ok_or_else(|| corrupt(format!("brick row {cell}")))?;
             map.put_brick(&brick).map_err(|e| corrupt(e.to_string()))?;
         }
@@ -584,7 +609,7 @@ impl Store {
             for &cell in cells {
                 match map.brick(map.cell_coords(cell)) {
                     Some(b) => {
-                        encode_brick(&b.mask, &b.colours, &mut row);
+                        encode_row(&b.mask, &b.colours, &mut row);
                         bricks.insert(cell, row.as_slice())?;
                     }
                     None => {
@@ -733,5 +758,54 @@ mod tests {
             reopened.load_scene("nope"),
             Err(StoreError::UnknownScene(_))
         ));
+    }
+
+    #[test]
+    fn a_store_of_raw_rows_without_a_format_loads_and_a_newer_one_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut map = BrickMap::new([64, 64, 64]).unwrap();
+        map.fill_box([0, 0, 0], [63, 9, 63], BrushMode::Fill, Colour::WHITE);
+        map.fill_box([3, 3, 3], [20, 20, 20], BrushMode::Fill, Colour(0x1234));
+        Store::open(dir.path())
+            .unwrap()
+            .create_scene("s", &map)
+            .unwrap();
+        // As a store written before the format record: raw rows, no `format` table.
+        {
+            let db = Database::create(dir.path().join("brickcast.redb")).unwrap();
+            let txn = db.begin_write().unwrap();
+            assert!(txn.delete_table(FORMAT).unwrap());
+            {
+                let name = bricks_table("s");
+                let mut bricks = txn
+                    .open_table(TableDefinition::<u32, &[u8]>::new(&name))
+                    .unwrap();
+                let mut row = Vec::new();
+                for (b, _) in map.bricks() {
+                    encode_brick(&b.mask, &b.colours, &mut row);
+                    bricks.insert(map.cell_index(b.cell), row.as_slice()).unwrap();
+                }
+            }
+            txn.commit().unwrap();
+        }
+        let store = Store::open(dir.path()).unwrap();
+        assert_eq!(
+            store.load_scene("s").unwrap().map.content_hash(),
+            map.content_hash()
+        );
+        drop(store);
+        // A newer build's store is refused by name, not read as corrupt rows.
+        {
+            let db = Database::create(dir.path().join("brickcast.redb")).unwrap();
+            let txn = db.begin_write().unwrap();
+            txn.open_table(FORMAT)
+                .unwrap()
+                .insert("store", store_rows::FORMAT + 1)
+                .unwrap();
+            txn.commit().unwrap();
+        }
+        let err = Store::open(dir.path()).err().expect("a newer store is refused");
+        assert!(matches!(err, StoreError::Newer { found, .. } if found == store_rows::FORMAT + 1));
+        assert!(err.to_string().contains("newer brickcast-server"), "{err}");
     }
 }
