@@ -26,9 +26,9 @@ use redb::{
 use serde::{Deserialize, Serialize};
 
 use crate::record::LogRecord;
-use crate::store_rows::{self, decode_row, encode_row};
 use crate::scene::history::{HistoryWrites, Stacks, StepMeta};
 use crate::scene::{AnsweredEntry, LogError, SceneLog, SnapshotOf, TurnWrite};
+use crate::store_rows::{self, decode_row, encode_row};
 
 /// `undo/<scene>`: (user, step id) → bincode [`StepMeta`].
 type UndoIndex<'a> = TableDefinition<'a, (u64, u64), &'static [u8]>;
@@ -50,7 +50,11 @@ pub enum StoreError {
     #[error(
         "the store at {path} was written by a newer brickcast-server (store format {found}; this build reads up to {reads}): run that version or a newer one"
     )]
-    Newer { path: PathBuf, found: u32, reads: u32 },
+    Newer {
+        path: PathBuf,
+        found: u32,
+        reads: u32,
+    },
     #[error("storage error: {0}")]
     Redb(#[from] redb::Error),
     #[error("stored data for scene {scene} is corrupt: {detail}")]
@@ -783,7 +787,9 @@ mod tests {
                 let mut row = Vec::new();
                 for (b, _) in map.bricks() {
                     encode_brick(&b.mask, &b.colours, &mut row);
-                    bricks.insert(map.cell_index(b.cell), row.as_slice()).unwrap();
+                    bricks
+                        .insert(map.cell_index(b.cell), row.as_slice())
+                        .unwrap();
                 }
             }
             txn.commit().unwrap();
@@ -804,7 +810,9 @@ mod tests {
                 .unwrap();
             txn.commit().unwrap();
         }
-        let err = Store::open(dir.path()).err().expect("a newer store is refused");
+        let err = Store::open(dir.path())
+            .err()
+            .expect("a newer store is refused");
         assert!(matches!(err, StoreError::Newer { found, .. } if found == store_rows::FORMAT + 1));
         assert!(err.to_string().contains("newer brickcast-server"), "{err}");
     }

@@ -29,11 +29,8 @@ const UNIFORM_LEN: usize = 64 + 2 + 1;
 pub fn encode_row(mask: &Mask, colours: &[Colour], out: &mut Vec<u8>) {
     match colours.split_first() {
         Some((first, rest)) if !rest.is_empty() && rest.iter().all(|c| c == first) => {
-            out.clear();
-            for word in mask {
-                out.extend_from_slice(&word.to_le_bytes());
-            }
-            out.extend_from_slice(&first.0.to_le_bytes());
+            // A raw row of one voxel's colour, then the tag.
+            encode_brick(mask, std::slice::from_ref(first), out);
             out.push(UNIFORM);
         }
         _ => encode_brick(mask, colours, out),
@@ -46,24 +43,20 @@ pub fn decode_row(cell: [u32; 3], bytes: &[u8]) -> Option<BrickData> {
         if bytes[UNIFORM_LEN - 1] != UNIFORM {
             return None;
         }
-        let mut mask = [0u64; 8];
-        for (word, chunk) in mask.iter_mut().zip(bytes[..64].chunks_exact(8)) {
-            *word = u64::from_le_bytes(chunk.try_into().ok()?);
-        }
-        let solid: u32 = mask.iter().map(|w| w.count_ones()).sum();
+        let mut brick = decode_brick(cell, &bytes[..UNIFORM_LEN - 1])?;
+        let solid = solid(&brick.mask);
         if solid < 2 {
             return None;
         }
-        let colour = Colour(u16::from_le_bytes([bytes[64], bytes[65]]));
-        return Some(BrickData {
-            cell,
-            mask,
-            colours: vec![colour; solid as usize],
-        });
+        brick.colours = vec![brick.colours[0]; solid];
+        return Some(brick);
     }
     let brick = decode_brick(cell, bytes)?;
-    let solid: u32 = brick.mask.iter().map(|w| w.count_ones()).sum();
-    (brick.colours.len() == solid as usize).then_some(brick)
+    (brick.colours.len() == solid(&brick.mask)).then_some(brick)
+}
+
+fn solid(mask: &Mask) -> usize {
+    mask.iter().map(|w| w.count_ones() as usize).sum()
 }
 
 #[cfg(test)]
@@ -86,7 +79,10 @@ mod tests {
             encode_row(&mask, &colours, &mut row);
             assert_eq!(row.len() == UNIFORM_LEN, uniform, "{solid} solid voxels");
             let back = decode_row([1, 2, 3], &row).unwrap();
-            assert_eq!((back.cell, back.mask, back.colours), ([1, 2, 3], mask, colours));
+            assert_eq!(
+                (back.cell, back.mask, back.colours),
+                ([1, 2, 3], mask, colours)
+            );
         }
         // Two colours: raw, and still exact.
         let (mask, colours) = brick(512, |i| (i % 2) as u16);
