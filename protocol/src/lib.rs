@@ -2,6 +2,7 @@
 //!
 //! * [`brick`], [`colour`]: the 8×8×8 brick (512-bit mask + compact RGB565 colours).
 //! * [`map`]: the sparse three-level brick map, its edits, versions and memory accounting.
+//! * [`palette`]: a brick's colours coded in fewer bits (one colour, a palette, or raw).
 //! * [`trace`]: the CPU DDA tracer (the GPU shader's twin) and its flat reference.
 //! * [`beam`]: the per-tile pre-pass that starts primary rays past the empty space they share.
 //! * [`render`]: camera and the multi-threaded CPU renderer.
@@ -22,6 +23,7 @@ pub mod colour;
 pub mod demo;
 pub mod journal;
 pub mod map;
+pub mod palette;
 pub mod render;
 pub mod replica;
 pub mod roster;

@@ -133,10 +133,12 @@ fn main() -> anyhow::Result<()> {
             let store = open_store(&data)?;
             let loaded = store.load_scene(&scene)?;
             let m = loaded.map.memory();
+            let coded = brickcast_protocol::palette::Mix::of(&loaded.map);
             if json {
                 let mut value = serde_json::to_value(m)?;
                 value["scene"] = scene.into();
                 value["seq"] = loaded.seq.into();
+                value["coded_colours"] = serde_json::to_value(&coded)?;
                 println!("{value}");
             } else {
                 println!(
@@ -144,6 +146,7 @@ fn main() -> anyhow::Result<()> {
                     m.size[0], m.size[1], m.size[2], loaded.seq
                 );
                 print_memory(&m);
+                print_coded(&coded);
             }
             Ok(())
         }
@@ -259,6 +262,19 @@ fn print_memory(m: &brickcast_protocol::map::MemoryStats) {
         mib(m.paper_formula_bytes)
     );
     println!("  bytes per voxel  {:>14.2}", m.bytes_per_solid_voxel);
+}
+
+/// The colours as the store codes them (`protocol::palette`), beside the GPU layout's RGB565.
+fn print_coded(c: &brickcast_protocol::palette::Mix) {
+    println!(
+        "  colours coded    {:>10.2} MiB ({:.2} bits per voxel; the store's rows)",
+        c.bytes as f64 / (1 << 20) as f64,
+        c.bits_per_voxel
+    );
+    println!(
+        "    bricks of one colour {}, palettes of 1/2/4/8 bits {}/{}/{}/{}, raw {}",
+        c.one, c.palette[0], c.palette[1], c.palette[2], c.palette[3], c.raw
+    );
 }
 
 /// `serve`'s options: where, who may edit, and the limits that keep one client from costing the
