@@ -101,9 +101,52 @@ fn colour_word(i: u32) -> u32 {
     }
 }
 
-// RGB565 colour number `i` of the pool: two per word, the even one in the low half.
-fn colour_at(i: u32) -> u32 {
+// 16-bit word `i` of the colour pool: two per word, the even one in the low half.
+fn pool_word(i: u32) -> u32 {
     return (colour_word(i >> 1u) >> ((i & 1u) * 16u)) & 0xFFFFu;
+}
+
+// Weight `w` (0 to `top`) of the line from RGB565 `a` to `b`, channel by channel in integers
+// (`protocol::blocks::mix`).
+fn mix565(a: u32, b: u32, w: u32, top: u32) -> u32 {
+    let half = top / 2u;
+    let red = ((a >> 11u) * (top - w) + (b >> 11u) * w + half) / top;
+    let green = (((a >> 5u) & 63u) * (top - w) + ((b >> 5u) & 63u) * w + half) / top;
+    let blue = ((a & 31u) * (top - w) + (b & 31u) * w + half) / top;
+    return (red << 11u) | (green << 5u) | blue;
+}
+
+// RGB565 colour of the voxel of rank `r` in the colour block at pool word `base`
+// (`protocol::palette`, the same steps as `palette::colour_at_words`): a header word (bits 0-3
+// the index width: 0 one colour, 15 raw, 14 and 13 bounded-error groups, else a palette of bits
+// 4-11 + 1 entries), then the one colour, the raw colours, the groups of 16 (two end points and
+// 2- or 3-bit weights: `protocol::blocks`), or the palette and the packed indices.
+fn brick_colour(base: u32, r: u32) -> u32 {
+    let header = pool_word(base);
+    let bits = header & 15u;
+    if bits == 0u {
+        return pool_word(base + 1u);
+    }
+    if bits == 15u {
+        return pool_word(base + 1u + r);
+    }
+    if bits == 14u || bits == 13u {
+        // Weights of 2 bits (header 14) or 3 (header 13): groups of 2 + width words.
+        let width = 16u - bits;
+        let top = (1u << width) - 1u;
+        let g = base + 1u + (r >> 4u) * (2u + width);
+        let at = (r & 15u) * width;
+        var weights = pool_word(g + 2u + (at >> 4u));
+        if (at & 15u) + width > 16u {
+            weights = weights | (pool_word(g + 3u + (at >> 4u)) << 16u);
+        }
+        let w = (weights >> (at & 15u)) & top;
+        return mix565(pool_word(g), pool_word(g + 1u), w, top);
+    }
+    let entries = ((header >> 4u) & 255u) + 1u;
+    let at = r * bits;
+    let index = (pool_word(base + 1u + entries + (at >> 4u)) >> (at & 15u)) & ((1u << bits) - 1u);
+    return pool_word(base + 1u + min(index, entries - 1u));
 }
 
 // Solid voxels of brick `slot` before bit `bit` (`brick::rank`).
@@ -439,7 +482,7 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> Hit {
                 loop {
                     let bit = u32((v.x & 7) | ((v.y & 7) << 3u) | ((v.z & 7) << 6u));
                     if ((mask_word(slot * 16u + (bit >> 5u)) >> (bit & 31u)) & 1u) != 0u {
-                        return make_hit(colour_at(colour_bases[slot] + rank(slot, bit)));
+                        return make_hit(brick_colour(colour_bases[slot], rank(slot, bit)));
                     }
                     if budget == 0u {
                         return miss();

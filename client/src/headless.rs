@@ -1,5 +1,6 @@
 //! `brickcast render`: fetch a scene, trace one frame (GPU or CPU), write a PNG, report.
 
+use brickcast_protocol::blocks::Quality;
 use std::path::Path;
 use std::time::Instant;
 
@@ -32,10 +33,14 @@ pub struct RenderReport {
 }
 
 /// [`fetch`] from the first of `urls` that answers.
-pub async fn fetch_any(urls: &[String], token: Option<&str>) -> Result<(Replica, f64)> {
+pub async fn fetch_any(
+    urls: &[String],
+    token: Option<&str>,
+    colours: Quality,
+) -> Result<(Replica, f64)> {
     let mut last = anyhow::anyhow!("no scene address given");
     for url in urls {
-        match fetch(url, token).await {
+        match fetch(url, token, colours).await {
             Ok(done) => return Ok(done),
             Err(e) => {
                 if urls.len() > 1 {
@@ -50,13 +55,14 @@ pub async fn fetch_any(urls: &[String], token: Option<&str>) -> Result<(Replica,
 
 /// Connects to `url`, syncs the whole scene and disconnects. Returns the replica and how long
 /// the sync took in milliseconds.
-pub async fn fetch(url: &str, token: Option<&str>) -> Result<(Replica, f64)> {
+pub async fn fetch(url: &str, token: Option<&str>, colours: Quality) -> Result<(Replica, f64)> {
     let url = link::websocket_url(url)?;
     let started = Instant::now();
     let mut link = Link::connect(&url, "brickcast render", 0, token, None)
         .await
         .with_context(|| format!("connecting to {url}"))?;
     let mut replica = Replica::new(&link.welcome.scene, link.welcome.size)?;
+    replica.set_colour_bound(colours.bound());
     replica.sync_total = link.welcome.total_bricks;
     link::sync(&mut link, &mut replica, |_| {})
         .await
@@ -174,13 +180,15 @@ pub struct RenderJob<'a> {
     pub backends: BackendChoice,
     pub timed_frames: u32,
     pub lighting: Lighting,
+    /// How exactly the copy keeps colours.
+    pub colours: Quality,
 }
 
 pub fn run(job: &RenderJob<'_>) -> Result<RenderReport> {
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    let (mut replica, sync_ms) = runtime.block_on(fetch_any(job.urls, job.token))?;
+    let (mut replica, sync_ms) = runtime.block_on(fetch_any(job.urls, job.token, job.colours))?;
     let camera = camera(&replica.map, job.eye, job.target, job.fov);
     let projection = camera.project(job.width, job.height).with_context(|| {
         format!(

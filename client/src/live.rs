@@ -5,6 +5,7 @@
 //! the replica behind a mutex, held by the network side only while applying one message and by
 //! the render side only while copying changes into GPU upload buffers.
 
+use brickcast_protocol::blocks::Quality;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 pub use brickcast_client_core::session::Status;
@@ -32,7 +33,7 @@ impl Live {
         user: UserId,
         token: Option<String>,
     ) -> std::io::Result<Live> {
-        Live::start_any(vec![url], name, user, token)
+        Live::start_any(vec![url], name, user, token, Quality::Exact)
     }
 
     /// [`Live::start`] with several addresses of one scene (a cluster's nodes): it connects to
@@ -43,8 +44,12 @@ impl Live {
         name: String,
         user: UserId,
         token: Option<String>,
+        colours: Quality,
     ) -> std::io::Result<Live> {
-        let state = Arc::new(Mutex::new(Session::default()));
+        let state = Arc::new(Mutex::new(Session {
+            colours,
+            ..Session::default()
+        }));
         let (outbox, inbox) = mpsc::unbounded_channel();
         let shared = state.clone();
         let runtime = tokio::runtime::Builder::new_current_thread()

@@ -71,6 +71,9 @@ enum Command {
         vulkan: bool,
         #[command(flatten)]
         light: brickcast_client::LightArgs,
+        /// How exactly the copy keeps colours: `exact`, `bounded` or `bounded:N` (as `view`).
+        #[arg(long, default_value_t = brickcast_protocol::blocks::Quality::default())]
+        colours: brickcast_protocol::blocks::Quality,
     },
     /// Load-test a server: many clients edit one scene; report throughput and latency, and
     /// check that every client's copy ends equal to the server's (non-zero exit if not).
@@ -128,6 +131,7 @@ fn main() -> Result<()> {
             json,
             vulkan,
             light,
+            colours,
         } => {
             if width == 0 || height == 0 || width > 16384 || height > 16384 {
                 bail!("image size {width}×{height} is out of range (1..=16384 per side)");
@@ -149,6 +153,7 @@ fn main() -> Result<()> {
                 },
                 timed_frames: frames,
                 lighting: light.lighting()?,
+                colours,
             })?;
             if json {
                 println!(

@@ -45,6 +45,10 @@ use crate::present::{Presenter, acquire, sync_scene};
 /// Options of `brickcast view` besides the address.
 #[derive(Debug, Clone, clap::Args)]
 pub struct ViewArgs {
+    /// How exactly the GPU copy keeps colours: `exact`, `bounded` (every voxel within 12 of 255
+    /// per channel; about half the colour memory of a textured scene) or `bounded:N`.
+    #[arg(long, default_value_t = brickcast_protocol::blocks::Quality::default())]
+    pub colours: brickcast_protocol::blocks::Quality,
     /// Trace at 1/SCALE of the window's resolution (faster on slow GPUs).
     #[arg(long, default_value_t = 1)]
     pub scale: u32,
@@ -144,7 +148,7 @@ pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()>
         .clone()
         .unwrap_or_else(crate::identity::default_name);
     brickcast_protocol::wire::check_display_name(&name).map_err(|e| anyhow!("--name: {e}"))?;
-    let live = Live::start_any(urls, name, crate::identity::user_id(), token)
+    let live = Live::start_any(urls, name, crate::identity::user_id(), token, args.colours)
         .context("starting the network thread")?;
     let follow = Follow::by_name(args.follow.clone());
     let lighting = args.light.lighting()?;

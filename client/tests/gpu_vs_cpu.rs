@@ -157,6 +157,22 @@ fn scattered_scene(size: [u32; 3], seed: u64) -> BrickMap {
             map.sphere(centre, 2.0 + next(10) as f32, BrushMode::Fill, colour);
         }
     }
+    // Bricks of noise from 3, 12, 200 and 4096 colours: every colour coding (2- to 8-bit
+    // palettes and raw) on both tracers.
+    for (k, shades) in [3u32, 12, 200, 4096].into_iter().enumerate() {
+        let lo = [next(size[0] - 8), next(size[1] - 8), next(size[2] - 8)];
+        let palette: Vec<Colour> = (0..shades)
+            .map(|_| Colour::from_rgb8(next(256) as u8, next(256) as u8, 40 * k as u8))
+            .collect();
+        for z in 0..8 {
+            for y in 0..8 {
+                for x in 0..8 {
+                    let c = palette[next(shades) as usize];
+                    map.set([lo[0] + x, lo[1] + y, lo[2] + z], c);
+                }
+            }
+        }
+    }
     // Single voxels: the smallest thing a ray can hit.
     for _ in 0..200 {
         let p = [next(size[0]), next(size[1]), next(size[2])];
@@ -368,6 +384,59 @@ fn scattered_scene_with_odd_sizes_matches_the_cpu_tracer() {
             "seed {seed}: the cameras saw almost nothing"
         );
     }
+}
+
+/// A copy whose bricks may be coded lossily (`--colours bounded`, both weight widths): the
+/// shader decodes the same blocks as the CPU tracer, and every voxel stays within the bound.
+#[test]
+fn bounded_colour_blocks_match_the_cpu_tracer() {
+    let ctx = gpu();
+    let size = [100u32, 70, 90];
+    let mut exact = scattered_scene(size, 3);
+    // A textured slab: smooth gradients with a little grain, as an imported texture is.
+    for z in 40..72u32 {
+        for y in 20..28u32 {
+            for x in 30..62u32 {
+                let grain = ((x * 7 + y * 13 + z * 5) % 6) as u8;
+                let c = Colour::from_rgb8(
+                    (x * 4) as u8 + grain,
+                    (z * 3) as u8 + grain,
+                    (120 + y * 4) as u8,
+                );
+                exact.set([x, y, z], c);
+            }
+        }
+    }
+    exact.rebuild_clearance();
+    let mut widths = [false; 2];
+    for bound in [4, brickcast_protocol::blocks::DEFAULT_BOUND, 40] {
+        let mut map = BrickMap::new(size).expect("scene size");
+        map.set_colour_bound(Some(bound));
+        for (brick, _) in exact.bricks() {
+            map.put_brick(&brick).expect("brick");
+        }
+        map.rebuild_clearance();
+        let mix = brickcast_protocol::palette::Mix::of(&map);
+        assert!(
+            bound < 12 || mix.blocks[0] + mix.blocks[1] > 0,
+            "bound {bound}: {mix:?}"
+        );
+        widths[0] |= mix.blocks[0] > 0;
+        widths[1] |= mix.blocks[1] > 0;
+        for (brick, _) in exact.bricks() {
+            for (i, &c) in brick.colours.iter().enumerate() {
+                let got = map.brick(brick.cell).expect("brick").colours[i];
+                assert!(brickcast_protocol::blocks::error(got, c) <= bound);
+            }
+        }
+        let scene = GpuScene::new(&ctx, &mut map, None).expect("upload");
+        let mut tracer = Tracer::new(&ctx).expect("tracer");
+        for (label, camera) in cameras(size) {
+            let projection = camera.project(128, 80).expect("camera");
+            assert_twins(label, &ctx, &scene, &mut tracer, &map, &projection);
+        }
+    }
+    assert_eq!(widths, [true, true], "both weight widths traced");
 }
 
 /// Scattered single voxels: one brick each, so masks and the coarse grid dominate.

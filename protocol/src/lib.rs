@@ -18,6 +18,7 @@
 
 pub mod apply;
 pub mod beam;
+pub mod blocks;
 pub mod brick;
 pub mod colour;
 pub mod demo;

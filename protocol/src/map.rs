@@ -24,8 +24,8 @@
 use std::collections::HashMap;
 
 use crate::brick::{
-    BRICK_EDGE, BrickData, EMPTY, EMPTY_MASK, Mask, for_each_bit, mask_get, mask_is_empty,
-    mask_set, popcount, rank, voxel_bit,
+    BRICK_EDGE, BRICK_VOXELS, BrickData, EMPTY, EMPTY_MASK, Mask, for_each_bit, mask_get,
+    mask_is_empty, mask_set, popcount, rank, voxel_bit,
 };
 use crate::colour::Colour;
 
@@ -43,6 +43,12 @@ pub const MAX_SCENE_EDGE: u32 = 8192;
 /// (2·cap+1)³ regions around it, so the cap bounds that cost; 6 lets a ray leave up to 13 regions
 /// (416 voxels) in one step.
 pub const CLEARANCE_CAP: u32 = 6;
+
+/// The largest colour block: a header and 512 raw colours ([`crate::palette`]).
+pub const MAX_BLOCK_WORDS: u32 = 1 + BRICK_VOXELS;
+
+/// Voxels of a brick, as a length.
+const VOXELS: usize = BRICK_VOXELS as usize;
 /// Region entries at or above this are empty; the low byte is the clearance.
 pub const EMPTY_REGION: u32 = 0xFFFF_FF00;
 
@@ -174,7 +180,8 @@ pub struct BrickMap {
     pub(crate) cells: Vec<u32>,
     pub(crate) masks: Vec<Mask>,
     pub(crate) colour_base: Vec<u32>,
-    pub(crate) colours: Vec<Colour>,
+    /// Per brick a [`crate::palette`] block of 16-bit words at its `colour_base`.
+    pub(crate) colours: Vec<u16>,
 
     // CPU bookkeeping, per slot.
     slot_cell: Vec<u32>,
@@ -200,6 +207,11 @@ pub struct BrickMap {
     occupied: Option<([u32; 3], [u32; 3])>,
     sequence: u64,
     solid_voxels: u64,
+    /// Words of the colour pool that live bricks' blocks take.
+    coded_words: u64,
+    /// Bricks written from now on may be coded in lossy blocks within this error per channel
+    /// (0–255 scale) where that is smaller; `None`: every brick exact.
+    colour_bound: Option<u32>,
     bricks: u64,
     touched: Vec<u32>,
     track_touched: bool,
@@ -228,9 +240,9 @@ fn dilate_cells(m: [u64; 8]) -> [u64; 8] {
     })
 }
 
-/// Colour capacity given to a brick with `n` solid voxels: rounded up to a multiple of 2 (one
-/// `u32` on the GPU), then to 1/8 of its power of two, which bounds slack at 12.5% and keeps the
-/// number of classes (and so free lists) small.
+/// Colour-pool capacity given to a brick whose colour block is `n` words: rounded up to a
+/// multiple of 2 (one `u32` on the GPU), then to 1/8 of its power of two, which bounds slack at
+/// 12.5% and keeps the number of classes (and so free lists) small.
 pub const fn colour_capacity(n: u32) -> u32 {
     if n <= 16 {
         let even = n.div_ceil(2) * 2;
@@ -265,12 +277,14 @@ impl BrickMap {
             free_slots: Vec::new(),
             block_cells: Vec::new(),
             free_blocks: Vec::new(),
-            free_chunks: vec![Vec::new(); 513],
+            free_chunks: vec![Vec::new(); colour_capacity(MAX_BLOCK_WORDS) as usize + 1],
             tombstones: HashMap::new(),
             tombstone_horizon: 0,
             occupied: None,
             sequence: 0,
             solid_voxels: 0,
+            coded_words: 0,
+            colour_bound: None,
             bricks: 0,
             touched: Vec::new(),
             track_touched: false,
@@ -320,6 +334,7 @@ impl BrickMap {
     /// brick ended as it began.
     pub fn end_journal(&mut self, mut f: impl FnMut(u32, (&Mask, &[Colour]), (&Mask, &[Colour]))) {
         let journal = std::mem::take(&mut self.journal);
+        let mut scratch = [Colour::BLACK; VOXELS];
         for e in &journal.entries {
             let before = (
                 &e.mask,
@@ -330,7 +345,10 @@ impl BrickMap {
                 Some(slot) => f(
                     e.cell,
                     before,
-                    (&self.masks[slot as usize], self.brick_colours(slot)),
+                    (
+                        &self.masks[slot as usize],
+                        self.slot_colours(slot, &mut scratch),
+                    ),
                 ),
                 None => f(e.cell, before, (&EMPTY_MASK, &[])),
             }
@@ -350,12 +368,9 @@ impl BrickMap {
         }
         match self.slot_of_cell(cell) {
             Some(slot) => {
-                let s = slot as usize;
-                let base = self.colour_base[s] as usize;
-                let n = popcount(&self.masks[s]) as usize;
-                let mask = self.masks[s];
-                // Split borrows: the colours are read while the journal is written.
-                let colours = &self.colours[base..base + n];
+                let mask = self.masks[slot as usize];
+                let mut scratch = [Colour::BLACK; VOXELS];
+                let colours = self.slot_colours(slot, &mut scratch);
                 self.journal.record(index, mask, colours);
             }
             None => self.journal.record(index, EMPTY_MASK, &[]),
@@ -408,7 +423,8 @@ impl BrickMap {
     pub fn colour_bases(&self) -> &[u32] {
         &self.colour_base
     }
-    pub fn colour_pool(&self) -> &[Colour] {
+    /// Every brick's colour block ([`crate::palette`]) at its base, and free chunks.
+    pub fn colour_pool(&self) -> &[u16] {
         &self.colours
     }
 
@@ -483,8 +499,10 @@ impl BrickMap {
         let slot = self.slot_of_cell(pos.map(|p| p / BRICK_EDGE))? as usize;
         let bit = voxel_bit(pos[0], pos[1], pos[2]);
         let mask = &self.masks[slot];
-        mask_get(mask, bit)
-            .then(|| self.colours[(self.colour_base[slot] + rank(mask, bit)) as usize])
+        if !mask_get(mask, bit) {
+            return None;
+        }
+        crate::palette::colour_at_words(self.block(slot as u32), rank(mask, bit) as usize)
     }
 
     /// Whether a voxel is solid (the mask alone: no colour lookup). False outside the scene.
@@ -539,58 +557,59 @@ impl BrickMap {
         };
         let s = slot as usize;
         let solid = mask_get(&self.masks[s], bit);
-        let at = self.colour_base[s] + rank(&self.masks[s], bit);
+        let one = match crate::palette::coding_of_words(self.block(slot)) {
+            Ok(crate::palette::Coding::One) => Some(Colour(self.block(slot)[1])),
+            _ => None,
+        };
         match (mode, solid) {
-            (BrushMode::Fill | BrushMode::Paint, true) => {
-                if self.colours[at as usize] == colour {
-                    return false;
-                }
-                self.colours[at as usize] = colour;
-                self.mark_colours(at, 1);
-            }
             (BrushMode::Paint | BrushMode::Erase, false) => return false,
-            (BrushMode::Fill, false) => {
-                let len = popcount(&self.masks[s]);
-                if len + 1 > u32::from(self.slot_capacity[s]) {
-                    // Grow through the general path, which moves the chunk.
-                    let mut mask = self.masks[s];
-                    mask_set(&mut mask, bit, true);
-                    let mut scratch = [Colour::BLACK; 512];
-                    let old = self.brick_colours(slot);
-                    let r = rank(&self.masks[s], bit) as usize;
-                    scratch[..r].copy_from_slice(&old[..r]);
-                    scratch[r] = colour;
-                    scratch[r + 1..=len as usize].copy_from_slice(&old[r..]);
-                    self.replace_brick(slot, mask, &scratch[..=len as usize]);
-                    return true;
+            (BrushMode::Fill | BrushMode::Paint, true) if self.get(pos) == Some(colour) => {
+                return false;
+            }
+            (BrushMode::Erase, true) if popcount(&self.masks[s]) == 1 => {
+                self.remove_slot(slot);
+                return true;
+            }
+            // A one-colour block holds any number of voxels of its colour: only the mask moves.
+            (BrushMode::Fill, false) | (BrushMode::Erase, true)
+                if one.is_some_and(|c| mode == BrushMode::Erase || c == colour) =>
+            {
+                mask_set(&mut self.masks[s], bit, mode == BrushMode::Fill);
+                if mode == BrushMode::Fill {
+                    self.solid_voxels += 1;
+                } else {
+                    self.solid_voxels -= 1;
                 }
-                let base = self.colour_base[s];
-                let end = (base + len) as usize;
-                self.colours.copy_within(at as usize..end, at as usize + 1);
-                self.colours[at as usize] = colour;
-                mask_set(&mut self.masks[s], bit, true);
-                self.solid_voxels += 1;
-                self.mark_colours(at, base + len + 1 - at);
                 self.mark_slot(slot);
             }
-            (BrushMode::Erase, true) => {
-                let len = popcount(&self.masks[s]);
-                if len == 1 {
-                    self.remove_slot(slot);
-                    return true;
-                }
-                let base = self.colour_base[s];
-                let end = (base + len) as usize;
-                self.colours.copy_within(at as usize + 1..end, at as usize);
-                mask_set(&mut self.masks[s], bit, false);
-                self.solid_voxels -= 1;
-                self.mark_colours(at, base + len - 1 - at);
-                self.mark_slot(slot);
-                if colour_capacity(len - 1) * 2 <= u32::from(self.slot_capacity[s]) {
-                    let mask = self.masks[s];
-                    let colours: Vec<Colour> = self.brick_colours(slot).to_vec();
-                    self.replace_brick(slot, mask, &colours);
-                }
+            _ => {
+                let mut scratch = [Colour::BLACK; VOXELS + 1];
+                let len = popcount(&self.masks[s]) as usize;
+                let r = rank(&self.masks[s], bit) as usize;
+                self.slot_colours(slot, (&mut scratch[..VOXELS]).try_into().expect("512"));
+                let mut mask = self.masks[s];
+                let n = match (mode, solid) {
+                    (BrushMode::Erase, _) => {
+                        scratch.copy_within(r + 1..len, r);
+                        len - 1
+                    }
+                    (_, true) => {
+                        scratch[r] = colour;
+                        len
+                    }
+                    (_, false) => {
+                        scratch.copy_within(r..len, r + 1);
+                        scratch[r] = colour;
+                        len + 1
+                    }
+                };
+                mask_set(
+                    &mut mask,
+                    bit,
+                    mode == BrushMode::Fill || (mode == BrushMode::Paint),
+                );
+                self.replace_brick(slot, mask, &scratch[..n]);
+                return true;
             }
         }
         self.stamp(slot);
@@ -651,8 +670,9 @@ impl BrickMap {
         colour: Colour,
     ) -> u64 {
         let slot = self.slot_of_cell(cell);
+        let mut old = [Colour::BLACK; VOXELS];
         let (old_mask, old_colours): (Mask, &[Colour]) = match slot {
-            Some(s) => (self.masks[s as usize], self.brick_colours(s)),
+            Some(s) => (self.masks[s as usize], self.slot_colours(s, &mut old)),
             None => (EMPTY_MASK, &[]),
         };
         let mut scratch = [Colour::BLACK; 512];
@@ -795,14 +815,33 @@ impl BrickMap {
         BrickData {
             cell: self.cell_coords(self.slot_cell[slot as usize]),
             mask: self.masks[slot as usize],
-            colours: self.brick_colours(slot).to_vec(),
+            colours: {
+                let mut scratch = [Colour::BLACK; VOXELS];
+                self.slot_colours(slot, &mut scratch).to_vec()
+            },
         }
     }
 
-    fn brick_colours(&self, slot: u32) -> &[Colour] {
+    /// The colour block of the brick in `slot` ([`crate::palette`]): from its base to the end
+    /// of its chunk (a block knows its own length).
+    pub fn block(&self, slot: u32) -> &[u16] {
         let s = slot as usize;
         let base = self.colour_base[s] as usize;
-        &self.colours[base..base + popcount(&self.masks[s]) as usize]
+        &self.colours[base..base + usize::from(self.slot_capacity[s])]
+    }
+
+    /// The colours of the brick in `slot`, one per solid voxel in bit order, decoded into `out`.
+    pub fn slot_colours<'a>(&self, slot: u32, out: &'a mut [Colour; VOXELS]) -> &'a [Colour] {
+        let n = popcount(&self.masks[slot as usize]) as usize;
+        let out = &mut out[..n];
+        // The map wrote every block itself; `check_invariants` decodes them all.
+        if crate::palette::decode_words(self.block(slot), out).is_err() {
+            debug_assert!(
+                false,
+                "slot {slot} holds a colour block that does not decode"
+            );
+        }
+        out
     }
 
     /// Every brick, in slot order, with its version.
@@ -862,10 +901,11 @@ impl BrickMap {
         for slot in 0..self.slot_cell.len() as u32 {
             let cell = self.slot_cell[slot as usize];
             if cell != EMPTY {
+                let mut scratch = [Colour::BLACK; VOXELS];
                 total = total.wrapping_add(brick_hash(
                     cell,
                     &self.masks[slot as usize],
-                    self.brick_colours(slot),
+                    self.slot_colours(slot, &mut scratch),
                 ));
             }
         }
@@ -891,7 +931,7 @@ impl BrickMap {
             mask_bytes,
             colour_base_bytes,
             colour_bytes,
-            colour_used_bytes: self.solid_voxels * 2,
+            colour_used_bytes: self.coded_words * 2,
             total_bytes,
             paper_formula_bytes: 4 * dense_cells + 20 * self.bricks + 2048 * self.bricks,
             bytes_per_solid_voxel: if self.solid_voxels == 0 {
@@ -935,15 +975,12 @@ impl BrickMap {
                 self.masks.len() as u32 - 1
             }
         };
-        let cap = colour_capacity(colours.len() as u32);
-        let base = self.alloc_chunk(cap);
         let s = slot as usize;
         self.masks[s] = mask;
-        self.colour_base[s] = base;
-        self.slot_capacity[s] = cap as u16;
+        self.slot_capacity[s] = 0;
+        self.store_colours(slot, colours);
         let cell_index = self.cell_index(cell);
         self.slot_cell[s] = cell_index;
-        self.colours[base as usize..base as usize + colours.len()].copy_from_slice(colours);
         let local = Self::cell_in_block(cell);
         self.cells[(block * CELLS_PER_BLOCK + local) as usize] = slot;
         self.block_cells[block as usize] |= 1 << local;
@@ -958,7 +995,6 @@ impl BrickMap {
             g.cell_blocks.push(block);
         }
         self.mark_slot(slot);
-        self.mark_colours(base, colours.len() as u32);
         self.stamp(slot);
     }
 
@@ -966,23 +1002,80 @@ impl BrickMap {
     fn replace_brick(&mut self, slot: u32, mask: Mask, colours: &[Colour]) {
         debug_assert_eq!(popcount(&mask) as usize, colours.len());
         let s = slot as usize;
-        let n = colours.len() as u32;
         let old_n = popcount(&self.masks[s]);
+        self.coded_words -= self.block_words(slot) as u64;
+        self.masks[s] = mask;
+        self.store_colours(slot, colours);
+        self.solid_voxels = self.solid_voxels + colours.len() as u64 - u64::from(old_n);
+        self.mark_slot(slot);
+        self.stamp(slot);
+    }
+
+    /// Lets bricks written from now on be coded in lossy blocks ([`crate::blocks`]) where every
+    /// voxel stays within `bound` per channel (0–255 scale) and the blocks are smaller than the
+    /// exact coding; `None` (the default) keeps every brick exact. A viewer's GPU copy is the
+    /// place for it: the server's scene, its store and the wire stay exact, and each brick
+    /// arrives exact and is coded once, so errors never compound.
+    pub fn set_colour_bound(&mut self, bound: Option<u32>) {
+        self.colour_bound = bound;
+    }
+
+    pub fn colour_bound(&self) -> Option<u32> {
+        self.colour_bound
+    }
+
+    /// Each brick's coding in the colour pool and its number of voxels, in slot order.
+    pub fn codings(&self) -> impl Iterator<Item = (crate::palette::Coding, usize)> + '_ {
+        (0..self.slot_cell.len() as u32)
+            .filter(|&s| self.slot_cell[s as usize] != EMPTY)
+            .filter_map(|s| {
+                let n = popcount(&self.masks[s as usize]) as usize;
+                crate::palette::coding_of_words(self.block(s))
+                    .ok()
+                    .map(|c| (c, n))
+            })
+    }
+
+    /// Words the block of the brick in `slot` takes (its header says how it is coded).
+    fn block_words(&self, slot: u32) -> usize {
+        let n = popcount(&self.masks[slot as usize]) as usize;
+        crate::palette::coding_of_words(self.block(slot)).map_or(0, |c| c.words(n))
+    }
+
+    /// Codes `colours` into the slot's chunk, moving it to a chunk of the right class if the
+    /// block outgrew it or takes less than half of it (so a brick edited back and forth does
+    /// not thrash). A slot with capacity 0 gets its first chunk.
+    fn store_colours(&mut self, slot: u32, colours: &[Colour]) {
+        let s = slot as usize;
+        let (coding, palette) = crate::palette::choose(colours);
+        let n = colours.len();
+        let mut lossy = Vec::new();
+        if let Some(bound) = self.colour_bound {
+            // `None`: exact is smaller, or some voxel would stray past the bound; `lossy`
+            // stays empty.
+            crate::palette::lossy(colours, coding, bound, &mut lossy);
+        }
+        let words = if lossy.is_empty() {
+            coding.words(n) as u32
+        } else {
+            lossy.len() as u32
+        };
         let cap = u32::from(self.slot_capacity[s]);
-        // Shrink only when far below capacity, so a brick edited back and forth does not thrash.
-        if n > cap || colour_capacity(n) * 2 <= cap {
+        if words > cap || colour_capacity(words) * 2 <= cap {
             self.free_chunk(self.colour_base[s], cap);
-            let new_cap = colour_capacity(n);
+            let new_cap = colour_capacity(words);
             self.colour_base[s] = self.alloc_chunk(new_cap);
             self.slot_capacity[s] = new_cap as u16;
         }
         let base = self.colour_base[s];
-        self.colours[base as usize..(base + n) as usize].copy_from_slice(colours);
-        self.masks[s] = mask;
-        self.solid_voxels = self.solid_voxels + u64::from(n) - u64::from(old_n);
-        self.mark_slot(slot);
-        self.mark_colours(base, n);
-        self.stamp(slot);
+        let out = &mut self.colours[base as usize..(base + words) as usize];
+        if lossy.is_empty() {
+            crate::palette::encode_words(colours, coding, &palette, out);
+        } else {
+            out.copy_from_slice(&lossy);
+        }
+        self.coded_words += u64::from(words);
+        self.mark_colours(base, words);
     }
 
     fn remove_slot(&mut self, slot: u32) {
@@ -1006,6 +1099,7 @@ impl BrickMap {
             }
         }
         self.solid_voxels -= u64::from(popcount(&self.masks[s]));
+        self.coded_words -= self.block_words(slot) as u64;
         self.free_chunk(self.colour_base[s], u32::from(self.slot_capacity[s]));
         self.masks[s] = EMPTY_MASK;
         self.slot_cell[s] = EMPTY;
@@ -1247,8 +1341,7 @@ impl BrickMap {
             Some(base) => base,
             None => {
                 let base = self.colours.len() as u32;
-                self.colours
-                    .resize(self.colours.len() + cap as usize, Colour::BLACK);
+                self.colours.resize(self.colours.len() + cap as usize, 0);
                 base
             }
         }
@@ -1286,6 +1379,7 @@ impl BrickMap {
     pub fn check_invariants(&self) -> Result<(), String> {
         let mut bricks = 0u64;
         let mut voxels = 0u64;
+        let mut coded = 0u64;
         for (s, &cell) in self.slot_cell.iter().enumerate() {
             if cell == EMPTY {
                 if !self.free_slots.contains(&(s as u32)) {
@@ -1301,11 +1395,25 @@ impl BrickMap {
             if n == 0 {
                 return Err(format!("slot {s} holds an empty brick"));
             }
-            if n > u32::from(self.slot_capacity[s]) {
+            let mut scratch = [Colour::BLACK; VOXELS];
+            if let Err(e) =
+                crate::palette::decode_words(self.block(s as u32), &mut scratch[..n as usize])
+            {
+                return Err(format!("slot {s}'s colour block: {e}"));
+            }
+            let words = self.block_words(s as u32);
+            if words > usize::from(self.slot_capacity[s]) {
                 return Err(format!("slot {s} overflows its colour chunk"));
             }
+            coded += words as u64;
             bricks += 1;
             voxels += u64::from(n);
+        }
+        if coded != self.coded_words {
+            return Err(format!(
+                "counter {} coded words, blocks {coded}",
+                self.coded_words
+            ));
         }
         if bricks != self.bricks || voxels != self.solid_voxels {
             return Err(format!(
@@ -1876,7 +1984,8 @@ mod tests {
         let g = map.take_gpu_changes();
         assert!(g.regions.contains(&0));
         assert!(g.slots.contains(&0) && g.cell_blocks.contains(&0));
-        assert_eq!(g.colours, vec![(0, 1)]);
+        // The brick's colour block: a header and its one colour.
+        assert_eq!(g.colours, vec![(0, 2)]);
         assert!(map.take_gpu_changes().is_empty());
     }
 

@@ -45,6 +45,9 @@ pub enum Coding {
     Palette { bits: u32, entries: usize },
     /// Every voxel's colour.
     Raw,
+    /// Lossy groups of 16 voxels with `bits`-bit weights (2 or 3), within a stated error
+    /// ([`crate::blocks`]).
+    Blocks { bits: u32 },
 }
 
 impl Coding {
@@ -58,6 +61,9 @@ impl Coding {
                 entries,
             }),
             (RAW, 0) if entries == 1 => Ok(Coding::Raw),
+            (13 | 14, 0) if entries == 1 => Ok(Coding::Blocks {
+                bits: crate::blocks::bits_of_header(bits).unwrap_or(2),
+            }),
             _ => Err(PaletteError::Header(header)),
         }
     }
@@ -67,26 +73,31 @@ impl Coding {
             Coding::One => 0,
             Coding::Palette { bits, entries } => bits as u16 | ((entries as u16 - 1) << 4),
             Coding::Raw => RAW,
+            Coding::Blocks { bits } => crate::blocks::header(bits),
         }
     }
 
     /// Bytes of a block of `voxels` colours in this coding.
     pub fn bytes(self, voxels: usize) -> usize {
-        2 * match self {
+        2 * self.words(voxels)
+    }
+
+    /// 16-bit words of a block of `voxels` colours in this coding.
+    pub fn words(self, voxels: usize) -> usize {
+        match self {
             Coding::One => 2,
             Coding::Palette { bits, entries } => {
                 1 + entries + (voxels * bits as usize).div_ceil(16)
             }
             Coding::Raw => 1 + voxels,
+            Coding::Blocks { bits } => crate::blocks::words(bits, voxels),
         }
     }
 }
 
 /// The smallest coding of `colours`, and the palette (ascending, distinct) it would use.
 pub fn choose(colours: &[Colour]) -> (Coding, Vec<Colour>) {
-    let mut distinct: Vec<Colour> = colours.to_vec();
-    distinct.sort_unstable_by_key(|c| c.0);
-    distinct.dedup();
+    let distinct = distinct(colours);
     let coding = match distinct.len() {
         0 => Coding::Raw,
         1 => Coding::One,
@@ -107,79 +118,153 @@ pub fn choose(colours: &[Colour]) -> (Coding, Vec<Colour>) {
     (coding, distinct)
 }
 
+/// The distinct colours, ascending. Bricks mostly hold a few colours in runs: those are found
+/// by a scan; only a brick of more than 16 sorts a copy.
+fn distinct(colours: &[Colour]) -> Vec<Colour> {
+    let mut few: Vec<Colour> = Vec::with_capacity(16);
+    let mut last = None;
+    for &c in colours {
+        if last == Some(c) {
+            continue;
+        }
+        last = Some(c);
+        if !few.contains(&c) {
+            if few.len() == 16 {
+                let mut all = colours.to_vec();
+                all.sort_unstable();
+                all.dedup();
+                return all;
+            }
+            few.push(c);
+        }
+    }
+    few.sort_unstable();
+    few
+}
+
 /// Appends the block of `colours` (one per solid voxel, in bit order) to `out`.
 pub fn encode(colours: &[Colour], out: &mut Vec<u8>) {
     let (coding, palette) = choose(colours);
-    let word = |out: &mut Vec<u8>, w: u16| out.extend_from_slice(&w.to_le_bytes());
-    word(out, coding.header());
+    let mut words = vec![0u16; coding.words(colours.len())];
+    encode_words(colours, coding, &palette, &mut words);
+    out.extend(words.iter().flat_map(|w| w.to_le_bytes()));
+}
+
+/// Writes the block of `colours` in `coding` with `palette` (both from [`choose`]) to
+/// `out[..coding.words(colours.len())]`: the brick map's colour pool is such blocks. Exact
+/// codings only: [`crate::blocks::encode`] writes lossy ones.
+pub fn encode_words(colours: &[Colour], coding: Coding, palette: &[Colour], out: &mut [u16]) {
+    out[0] = coding.header();
     match coding {
-        Coding::One => word(out, palette[0].0),
-        Coding::Raw => colours.iter().for_each(|c| word(out, c.0)),
-        Coding::Palette { bits, .. } => {
-            palette.iter().for_each(|c| word(out, c.0));
-            let mut packed = vec![0u16; (colours.len() * bits as usize).div_ceil(16)];
-            for (i, c) in colours.iter().enumerate() {
-                let index = palette
-                    .binary_search_by_key(&c.0, |p| p.0)
-                    .expect("every colour is in its palette") as u16;
-                let at = i * bits as usize;
-                packed[at / 16] |= index << (at % 16);
+        Coding::Blocks { .. } => unreachable!("choose picks exact codings only"),
+        Coding::One => out[1] = palette[0].0,
+        Coding::Raw => {
+            for (o, c) in out[1..=colours.len()].iter_mut().zip(colours) {
+                *o = c.0;
             }
-            packed.iter().for_each(|&w| word(out, w));
+        }
+        Coding::Palette { bits, entries } => {
+            for (o, c) in out[1..=entries].iter_mut().zip(palette) {
+                *o = c.0;
+            }
+            let packed = &mut out[1 + entries..coding.words(colours.len())];
+            packed.fill(0);
+            let mut last = (palette[0], 0u16);
+            for (i, &c) in colours.iter().enumerate() {
+                if c != last.0 {
+                    let index = palette
+                        .binary_search(&c)
+                        .expect("every colour is in its palette");
+                    last = (c, index as u16);
+                }
+                let at = i * bits as usize;
+                packed[at / 16] |= last.1 << (at % 16);
+            }
         }
     }
 }
 
-fn word(bytes: &[u8], at: usize) -> Result<u16, PaletteError> {
-    match bytes.get(2 * at..2 * at + 2) {
-        Some(w) => Ok(u16::from_le_bytes([w[0], w[1]])),
+fn short(need_words: usize, have_words: usize) -> PaletteError {
+    PaletteError::Short {
+        need: 2 * need_words,
+        have: 2 * have_words,
+    }
+}
+
+fn words_of(bytes: &[u8]) -> Vec<u16> {
+    bytes
+        .chunks_exact(2)
+        .map(|w| u16::from_le_bytes([w[0], w[1]]))
+        .collect()
+}
+
+/// The coding of the block at the start of `bytes` (its header, checked).
+pub fn coding(bytes: &[u8]) -> Result<Coding, PaletteError> {
+    match bytes.get(..2) {
+        Some(w) => Coding::of_header(u16::from_le_bytes([w[0], w[1]])),
         None => Err(PaletteError::Short {
-            need: 2 * at + 2,
+            need: 2,
             have: bytes.len(),
         }),
     }
 }
 
-/// The coding of the block at the start of `bytes` (its header, checked).
-pub fn coding(bytes: &[u8]) -> Result<Coding, PaletteError> {
-    Coding::of_header(word(bytes, 0)?)
+/// The coding of the block at the start of `words` (its header, checked).
+pub fn coding_of_words(words: &[u16]) -> Result<Coding, PaletteError> {
+    Coding::of_header(*words.first().ok_or(short(1, 0))?)
 }
 
 /// Decodes the block of `voxels` colours at the start of `bytes` into `out` (cleared first);
 /// returns the bytes it took. Every index is checked against its palette, and a palette must
 /// be ascending and distinct (as [`encode`] writes it), so a block decodes one way only.
 pub fn decode(bytes: &[u8], voxels: usize, out: &mut Vec<Colour>) -> Result<usize, PaletteError> {
-    let coding = coding(bytes)?;
-    let len = coding.bytes(voxels);
-    if bytes.len() < len {
-        return Err(PaletteError::Short {
-            need: len,
-            have: bytes.len(),
-        });
-    }
+    // Only the block's own words: a reader of a longer record must not pay for the rest.
+    let len = coding(bytes)?.bytes(voxels).min(bytes.len() & !1);
     out.clear();
+    out.resize(voxels, Colour::BLACK);
+    let result = decode_words(&words_of(&bytes[..len]), out);
+    if result.is_err() {
+        out.clear();
+    }
+    result.map(|words| 2 * words)
+}
+
+/// Decodes the block of `out.len()` colours at the start of `words` into `out`; returns the
+/// words it took. Checked as [`decode`] checks.
+pub fn decode_words(words: &[u16], out: &mut [Colour]) -> Result<usize, PaletteError> {
+    let voxels = out.len();
+    let coding = coding_of_words(words)?;
+    let len = coding.words(voxels);
+    if words.len() < len {
+        return Err(short(len, words.len()));
+    }
     match coding {
-        Coding::One => out.resize(voxels, Colour(word(bytes, 1)?)),
+        Coding::Blocks { bits } => {
+            for (rank, o) in out.iter_mut().enumerate() {
+                *o = crate::blocks::colour_at(&words[1..len], bits, rank).unwrap_or(Colour::BLACK);
+            }
+        }
+        Coding::One => out.fill(Colour(words[1])),
         Coding::Raw => {
-            for i in 0..voxels {
-                out.push(Colour(word(bytes, 1 + i)?));
+            for (o, &w) in out.iter_mut().zip(&words[1..len]) {
+                *o = Colour(w);
             }
         }
         Coding::Palette { bits, entries } => {
-            let palette = (0..entries)
-                .map(|i| word(bytes, 1 + i))
-                .collect::<Result<Vec<u16>, _>>()?;
+            let palette = &words[1..=entries];
             if palette.windows(2).any(|w| w[0] >= w[1]) {
                 return Err(PaletteError::Unsorted { entries });
             }
+            let packed = &words[1 + entries..len];
             let mask = (1u16 << bits) - 1;
-            for i in 0..voxels {
+            for (i, o) in out.iter_mut().enumerate() {
                 let at = i * bits as usize;
-                let index = usize::from((word(bytes, 1 + entries + at / 16)? >> (at % 16)) & mask);
-                let colour = palette
-                    .get(index)
-                    .ok_or(PaletteError::Index { index, entries })?;
-                out.push(Colour(*colour));
+                let index = usize::from((packed[at / 16] >> (at % 16)) & mask);
+                *o = Colour(
+                    *palette
+                        .get(index)
+                        .ok_or(PaletteError::Index { index, entries })?,
+                );
             }
         }
     }
@@ -189,20 +274,52 @@ pub fn decode(bytes: &[u8], voxels: usize, out: &mut Vec<Colour>) -> Result<usiz
 /// The colour of the voxel of rank `rank` in the block at the start of `bytes`, without
 /// decoding the rest (what a shader does); `None` where the block does not hold it.
 pub fn colour_at(bytes: &[u8], rank: usize) -> Option<Colour> {
-    let header = word(bytes, 0).ok()?;
-    let w = match Coding::of_header(header).ok()? {
-        Coding::One => word(bytes, 1),
-        Coding::Raw => word(bytes, 1 + rank),
+    colour_at_words(&words_of(bytes), rank)
+}
+
+/// [`colour_at`] over 16-bit words: the CPU tracer's read of the colour pool, the same steps
+/// as `brick_colour` in `shaders/trace.wgsl`.
+pub fn colour_at_words(words: &[u16], rank: usize) -> Option<Colour> {
+    let w = match Coding::of_header(*words.first()?).ok()? {
+        Coding::Blocks { bits } => return crate::blocks::colour_at(words.get(1..)?, bits, rank),
+        Coding::One => words.get(1),
+        Coding::Raw => words.get(1 + rank),
         Coding::Palette { bits, entries } => {
             let at = rank * bits as usize;
-            let index = (word(bytes, 1 + entries + at / 16).ok()? >> (at % 16)) & ((1 << bits) - 1);
+            let index = (words.get(1 + entries + at / 16)? >> (at % 16)) & ((1 << bits) - 1);
             if usize::from(index) >= entries {
                 return None;
             }
-            word(bytes, 1 + usize::from(index))
+            words.get(1 + usize::from(index))
         }
     };
-    w.ok().map(Colour)
+    w.copied().map(Colour)
+}
+
+/// Codes `colours` in bounded-error blocks into `out` (cleared first) where that is smaller
+/// than their exact coding `exact` and every voxel stays within `bound`: 2-bit weights if they
+/// hold the bound and a mean squared error per channel of at most
+/// [`crate::blocks::MEAN_SQUARED_2BIT`], else 3-bit ones. Returns the weights' width and what was lost; `None` (and
+/// `out` empty): keep the exact coding.
+pub fn lossy(
+    colours: &[Colour],
+    exact: Coding,
+    bound: u32,
+    out: &mut Vec<u16>,
+) -> Option<(u32, crate::blocks::Loss)> {
+    out.clear();
+    let n = colours.len();
+    [2, 3]
+        .into_iter()
+        .filter(|&bits| Coding::Blocks { bits }.words(n) < exact.words(n))
+        .find_map(|bits| {
+            // Four levels that hold the bound only loosely give way to eight.
+            let max_squared = match bits {
+                2 => crate::blocks::MEAN_SQUARED_2BIT * 3 * n as u64,
+                _ => u64::MAX,
+            };
+            crate::blocks::encode(colours, bits, bound, max_squared, out).map(|l| (bits, l))
+        })
 }
 
 /// How a scene's bricks would be coded: counts per coding and the bytes of their blocks
@@ -216,33 +333,76 @@ pub struct Mix {
     /// Bricks with a palette of 1-, 2-, 4- and 8-bit indices.
     pub palette: [u64; 4],
     pub raw: u64,
+    /// Bricks in bounded-error blocks of 2- and 3-bit weights ([`crate::blocks`]).
+    pub blocks: [u64; 2],
     /// Bytes of every brick's block (headers and palettes included).
     pub bytes: u64,
     /// Bits per solid voxel the colours take coded.
     pub bits_per_voxel: f64,
+    /// The bound blocks were allowed (largest error per channel, 0–255 scale); `None`: exact.
+    pub bound: Option<u32>,
+    /// The largest error of any voxel per channel (0–255 scale), against the exact colours.
+    pub worst_error: u32,
+    /// Sum of squared channel errors over every solid voxel (0–255 scale).
+    pub squared_error: u64,
+    /// Peak signal-to-noise ratio of every solid voxel's colour against the exact colours
+    /// (channels on the 0–255 scale); `None` when nothing was lost.
+    pub psnr_db: Option<f64>,
 }
 
 impl Mix {
-    /// Every brick of `map`.
+    /// How `map`'s bricks are coded in its colour pool.
     pub fn of(map: &crate::BrickMap) -> Mix {
         let mut mix = Mix::default();
-        for (brick, _) in map.bricks() {
-            mix.add(&brick.colours);
+        for (coding, voxels) in map.codings() {
+            mix.add_coded(coding, voxels);
         }
         mix
     }
 
-    /// One brick's colours.
+    /// How `map`'s bricks would be coded in a map whose bricks may be lossy within `bound`
+    /// ([`crate::BrickMap::set_colour_bound`]), and what that loses against their exact colours.
+    pub fn bounded(map: &crate::BrickMap, bound: u32) -> Mix {
+        let mut mix = Mix {
+            bound: Some(bound),
+            ..Mix::default()
+        };
+        let mut scratch = Vec::new();
+        for (brick, _) in map.bricks() {
+            let (coding, _) = choose(&brick.colours);
+            let n = brick.colours.len();
+            match lossy(&brick.colours, coding, bound, &mut scratch) {
+                Some((bits, loss)) => {
+                    mix.worst_error = mix.worst_error.max(loss.worst);
+                    mix.squared_error += loss.squared;
+                    mix.add_coded(Coding::Blocks { bits }, n);
+                }
+                None => mix.add_coded(coding, n),
+            }
+        }
+        mix.psnr_db = (mix.squared_error > 0).then(|| {
+            let mse = mix.squared_error as f64 / (3.0 * mix.voxels as f64);
+            10.0 * (255.0f64 * 255.0 / mse).log10()
+        });
+        mix
+    }
+
+    /// One brick's colours, coded exactly.
     pub fn add(&mut self, colours: &[Colour]) {
-        let (coding, _) = choose(colours);
+        self.add_coded(choose(colours).0, colours.len());
+    }
+
+    /// One brick of `voxels` colours in `coding`.
+    pub fn add_coded(&mut self, coding: Coding, voxels: usize) {
         match coding {
             Coding::One => self.one += 1,
             Coding::Palette { bits, .. } => self.palette[bits.trailing_zeros() as usize] += 1,
             Coding::Raw => self.raw += 1,
+            Coding::Blocks { bits } => self.blocks[bits as usize - 2] += 1,
         }
         self.bricks += 1;
-        self.voxels += colours.len() as u64;
-        self.bytes += coding.bytes(colours.len()) as u64;
+        self.voxels += voxels as u64;
+        self.bytes += coding.bytes(voxels) as u64;
         self.bits_per_voxel = if self.voxels == 0 {
             0.0
         } else {

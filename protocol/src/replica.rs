@@ -44,6 +44,8 @@ pub struct Replica {
     /// Whether the map keeps a GPU change log; off for copies no GPU drains (the load
     /// generator), whose log would otherwise grow with every delta.
     gpu_log: bool,
+    /// How far bricks may stray from their colours in this copy ([`BrickMap::set_colour_bound`]).
+    colour_bound: Option<u32>,
 }
 
 /// How many deltas between clearance rebuilds. A rebuild is a few passes over the region grid
@@ -68,7 +70,17 @@ impl Replica {
             decoder: BlobDecoder::new()?,
             max_bricks: Limits::hard_caps().max_bricks_per_frame,
             gpu_log: true,
+            colour_bound: None,
         })
+    }
+
+    /// Lets this copy code bricks in lossy blocks within `bound` per channel (0–255 scale)
+    /// from now on and after every reset ([`BrickMap::set_colour_bound`]); `None`: exact. Set
+    /// it before the sync: bricks already held keep their coding. Every brick arrives whole
+    /// and exact from the server, so errors never compound.
+    pub fn set_colour_bound(&mut self, bound: Option<u32>) {
+        self.colour_bound = bound;
+        self.map.set_colour_bound(bound);
     }
 
     /// Turns the map's GPU change log on or off, now and after every reset.
@@ -111,6 +123,7 @@ impl Replica {
     fn clear(&mut self, scene: &str, size: [u32; 3]) -> Result<(), ReplicaError> {
         self.map = BrickMap::new(size)?;
         self.map.record_gpu_changes(self.gpu_log);
+        self.map.set_colour_bound(self.colour_bound);
         self.scene = scene.to_string();
         self.seq = 0;
         self.reset = true;

@@ -472,7 +472,8 @@ impl PendingHit {
     pub fn resolve(self, map: &BrickMap) -> Hit {
         let mask = &map.masks[self.slot as usize];
         let colour =
-            map.colours[(map.colour_base[self.slot as usize] + rank(mask, self.bit)) as usize];
+            crate::palette::colour_at_words(map.block(self.slot), rank(mask, self.bit) as usize)
+                .unwrap_or(Colour::BLACK);
         Hit { colour, ..self.hit }
     }
 }

@@ -17,6 +17,8 @@ enum Op {
     Sphere([f32; 3], f32, BrushMode, u16),
     Box([u32; 3], [u32; 3], BrushMode, u16),
     Reinsert([u32; 3]),
+    /// A whole brick of many colours (an 8-bit palette or raw), as an import writes one.
+    Textured([u32; 3], u16),
 }
 
 fn pos() -> impl Strategy<Value = [u32; 3]> {
@@ -43,6 +45,7 @@ fn op() -> impl Strategy<Value = Op> {
             Op::Box(std::array::from_fn(|i| a[i].min(b[i])), std::array::from_fn(|i| a[i].max(b[i])), m, c)
         }),
         1 => pos().prop_map(Op::Reinsert),
+        1 => (pos(), 0u16..3).prop_map(|(p, k)| Op::Textured(p, k)),
     ]
 }
 
@@ -80,7 +83,7 @@ struct Mirror {
     cells: Vec<u32>,
     masks: Vec<[u64; 8]>,
     bases: Vec<u32>,
-    colours: Vec<Colour>,
+    colours: Vec<u16>,
 }
 
 impl Mirror {
@@ -89,7 +92,7 @@ impl Mirror {
         self.cells.resize(map.cells().len(), 0xDEAD_BEEF);
         self.masks.resize(map.masks().len(), [0xDEAD; 8]);
         self.bases.resize(map.colour_bases().len(), 0xDEAD_BEEF);
-        self.colours.resize(map.colour_pool().len(), Colour(0xDEAD));
+        self.colours.resize(map.colour_pool().len(), 0xDEAD);
         for &r in &changes.regions {
             self.regions[r as usize] = map.regions()[r as usize];
         }
@@ -123,10 +126,14 @@ impl Mirror {
         }
         let mask = &self.masks[slot as usize];
         let bit = brickcast_protocol::brick::voxel_bit(p[0], p[1], p[2]);
-        brickcast_protocol::brick::mask_get(mask, bit).then(|| {
-            self.colours
-                [(self.bases[slot as usize] + brickcast_protocol::brick::rank(mask, bit)) as usize]
-        })
+        if !brickcast_protocol::brick::mask_get(mask, bit) {
+            return None;
+        }
+        // The block at the slot's base, read as the shader reads it.
+        brickcast_protocol::palette::colour_at_words(
+            &self.colours[self.bases[slot as usize] as usize..],
+            brickcast_protocol::brick::rank(mask, bit) as usize,
+        )
     }
 }
 
@@ -174,6 +181,32 @@ proptest! {
                         }
                     }
                     (got, want)
+                }
+                Op::Textured(p, k) => {
+                    let cell = p.map(|c| c / 8);
+                    if (0..3).any(|i| cell[i] * 8 >= SIZE[i]) {
+                        (0, 0)
+                    } else {
+                        let mut brick = BrickData { cell, mask: [0; 8], colours: Vec::new() };
+                        let distinct = [20u32, 200, 512][usize::from(k)];
+                        let mut changed = 0;
+                        for z in 0..8 {
+                            for y in 0..8 {
+                                for x in 0..8 {
+                                    let v = [cell[0] * 8 + x, cell[1] * 8 + y, cell[2] * 8 + z];
+                                    if (0..3).all(|i| v[i] < SIZE[i]) {
+                                        let bit = x + 8 * y + 64 * z;
+                                        let c = Colour((bit % distinct * 97 + 5) as u16);
+                                        brick.mask[(bit / 64) as usize] |= 1 << (bit % 64);
+                                        brick.colours.push(c);
+                                        changed += model_apply(&mut model, v, BrushMode::Fill, c);
+                                    }
+                                }
+                            }
+                        }
+                        map.put_brick(&brick).unwrap();
+                        (changed, changed)
+                    }
                 }
                 Op::Reinsert(p) => {
                     // Round-trip one brick through its compact form.

@@ -41,6 +41,10 @@ enum Cmd {
         /// Print one JSON object instead of a table.
         #[arg(long)]
         json: bool,
+        /// Also lay the scene out as a viewer with this colour quality holds it (`exact`,
+        /// `bounded`, `bounded:N`) and report its memory and colour error.
+        #[arg(long, default_value_t = brickcast_protocol::blocks::Quality::default())]
+        colours: brickcast_protocol::blocks::Quality,
     },
     /// Fold a scene's edit log into its snapshot (the server does this itself periodically).
     Snapshot {
@@ -129,16 +133,32 @@ fn main() -> anyhow::Result<()> {
             }
             Ok(())
         }
-        Cmd::Stats { scene, data, json } => {
+        Cmd::Stats {
+            scene,
+            data,
+            json,
+            colours,
+        } => {
             let store = open_store(&data)?;
             let loaded = store.load_scene(&scene)?;
             let m = loaded.map.memory();
             let coded = brickcast_protocol::palette::Mix::of(&loaded.map);
+            let viewer = viewer_copy(&loaded.map, colours)?;
+            let viewer_memory = viewer.memory();
+            let viewer_coded = match colours.bound() {
+                Some(bound) => brickcast_protocol::palette::Mix::bounded(&loaded.map, bound),
+                None => coded.clone(),
+            };
             if json {
                 let mut value = serde_json::to_value(m)?;
                 value["scene"] = scene.into();
                 value["seq"] = loaded.seq.into();
                 value["coded_colours"] = serde_json::to_value(&coded)?;
+                value["viewer"] = serde_json::json!({
+                    "colours": colours.to_string(),
+                    "memory": viewer_memory,
+                    "coded_colours": viewer_coded,
+                });
                 println!("{value}");
             } else {
                 println!(
@@ -147,6 +167,9 @@ fn main() -> anyhow::Result<()> {
                 );
                 print_memory(&m);
                 print_coded(&coded);
+                println!("as a viewer holds it with --colours {colours}:");
+                print_memory(&viewer_memory);
+                print_coded(&viewer_coded);
             }
             Ok(())
         }
@@ -267,14 +290,44 @@ fn print_memory(m: &brickcast_protocol::map::MemoryStats) {
 /// The colours as the store codes them (`protocol::palette`), beside the GPU layout's RGB565.
 fn print_coded(c: &brickcast_protocol::palette::Mix) {
     println!(
-        "  colours coded    {:>10.2} MiB ({:.2} bits per voxel; the store's rows)",
+        "  colours coded    {:>10.2} MiB ({:.2} bits per voxel, without chunk slack)",
         c.bytes as f64 / (1 << 20) as f64,
         c.bits_per_voxel
     );
     println!(
-        "    bricks of one colour {}, palettes of 1/2/4/8 bits {}/{}/{}/{}, raw {}",
-        c.one, c.palette[0], c.palette[1], c.palette[2], c.palette[3], c.raw
+        "    bricks of one colour {}, palettes of 1/2/4/8 bits {}/{}/{}/{}, raw {}, \
+         blocks of 2/3-bit weights {}/{}",
+        c.one,
+        c.palette[0],
+        c.palette[1],
+        c.palette[2],
+        c.palette[3],
+        c.raw,
+        c.blocks[0],
+        c.blocks[1]
     );
+    if let Some(psnr) = c.psnr_db {
+        println!(
+            "    colour error: PSNR {psnr:.2} dB over every solid voxel, worst {} of 255",
+            c.worst_error
+        );
+    }
+}
+
+/// The scene laid out as a viewer with colour quality `colours` holds it on its GPU: every
+/// brick written once, as a sync writes it.
+fn viewer_copy(
+    map: &brickcast_protocol::BrickMap,
+    colours: brickcast_protocol::blocks::Quality,
+) -> anyhow::Result<brickcast_protocol::BrickMap> {
+    let mut copy = brickcast_protocol::BrickMap::new(map.size())?;
+    copy.set_colour_bound(colours.bound());
+    copy.write_bricks(
+        map.bricks()
+            .map(|(b, _)| (b.cell, Some((b.mask, b.colours)))),
+    )?;
+    copy.rebuild_clearance();
+    Ok(copy)
 }
 
 /// `serve`'s options: where, who may edit, and the limits that keep one client from costing the

@@ -97,7 +97,11 @@ pub fn fetch(url: &str) -> Result<Replica> {
         .enable_all()
         .build()?;
     Ok(runtime
-        .block_on(brickcast_client::headless::fetch(url, None))?
+        .block_on(brickcast_client::headless::fetch(
+            url,
+            None,
+            brickcast_protocol::blocks::Quality::Exact,
+        ))?
         .0)
 }
 

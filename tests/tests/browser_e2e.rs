@@ -73,7 +73,22 @@ fn page_frame_matches_the_cpu_renderer() -> Result<()> {
         "the page traces through WebGPU: {state}"
     );
 
-    let map = fetch(&server.url("demo"))?.map;
+    // The page keeps colours as `--colours bounded` does: the reference is such a copy, so
+    // the page's decoding of bounded-error blocks is checked too.
+    let exact = fetch(&server.url("demo"))?.map;
+    let mut map = brickcast_protocol::BrickMap::new(exact.size())?;
+    map.set_colour_bound(brickcast_protocol::blocks::Quality::default().bound());
+    map.write_bricks(
+        exact
+            .bricks()
+            .map(|(b, _)| (b.cell, Some((b.mask, b.colours)))),
+    )?;
+    map.rebuild_clearance();
+    let mix = brickcast_protocol::palette::Mix::of(&map);
+    assert!(
+        mix.blocks[0] + mix.blocks[1] > 0,
+        "the demo has bricks in blocks: {mix:?}"
+    );
     let size = map.size();
     let cameras = [
         Camera::overview(size),

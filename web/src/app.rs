@@ -182,6 +182,7 @@ impl App {
         scene: String,
         token: Option<String>,
         name: Option<String>,
+        colours: brickcast_protocol::blocks::Quality,
     ) -> Result<Rc<RefCell<App>>, JsValue> {
         let canvas: web_sys::HtmlCanvasElement = page::document()
             .and_then(|d| d.get_element_by_id("view"))
@@ -195,7 +196,10 @@ impl App {
                 .filter(|n| !n.trim().is_empty())
                 .unwrap_or_else(|| "guest".to_string()),
             user: browser_user_id(),
-            session: Session::default(),
+            session: Session {
+                colours,
+                ..Session::default()
+            },
             seq: ClientSeq::default(),
             socket: None,
             retired: Vec::new(),

@@ -29,14 +29,21 @@ pub struct Viewer {
 }
 
 /// Starts the viewer on the page's canvas for scene `scene`, with `token` (from the URL
-/// fragment or the token form) and display name `name`.
+/// fragment or the token form), display name `name` and colour quality `colours` (`?colours=`:
+/// `exact`, `bounded` or `bounded:N`; bounded when absent). A `colours` it cannot read is an
+/// error that says what it takes.
 #[wasm_bindgen]
 pub fn start(
     scene: String,
     token: Option<String>,
     name: Option<String>,
+    colours: Option<String>,
 ) -> Result<Viewer, JsValue> {
-    let app = App::new(scene, token, name)?;
+    let colours = match colours.filter(|c| !c.is_empty()) {
+        Some(c) => c.parse().map_err(|e: String| JsValue::from_str(&e))?,
+        None => brickcast_protocol::blocks::Quality::default(),
+    };
+    let app = App::new(scene, token, name, colours)?;
     input::listen(&app)?;
     net::connect(&app);
     app::start_gpu(&app);

@@ -8,6 +8,7 @@
 
 use std::time::Duration;
 
+use brickcast_protocol::blocks::Quality;
 use brickcast_protocol::replica::{Replica, ReplicaError};
 use brickcast_protocol::roster::Roster;
 use brickcast_protocol::wire::{
@@ -152,6 +153,8 @@ pub struct Session {
     pub last_undo: Option<String>,
     /// The last refusal or error the server sent, for the status line.
     pub last_refusal: Option<String>,
+    /// How exactly the copy keeps colours (`--colours`; bounded by default: a GPU copy).
+    pub colours: Quality,
 }
 
 impl Default for Session {
@@ -168,6 +171,7 @@ impl Default for Session {
             roster: Roster::default(),
             last_undo: None,
             last_refusal: None,
+            colours: Quality::default(),
         }
     }
 }
@@ -183,7 +187,8 @@ impl Session {
     pub fn welcomed(&mut self, w: &Welcome) -> Result<(), ReplicaError> {
         let welcomed = match &mut self.replica {
             Some(r) => r.welcome(&w.scene, w.size, w.seq),
-            None => Replica::new(&w.scene, w.size).map(|r| {
+            None => Replica::new(&w.scene, w.size).map(|mut r| {
+                r.set_colour_bound(self.colours.bound());
                 self.replica = Some(r);
             }),
         };

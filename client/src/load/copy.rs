@@ -12,8 +12,9 @@
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 
+use brickcast_protocol::brick::popcount;
 use brickcast_protocol::wire::{BlobDecoder, BrickBlob, Limits, ServerMsg};
-use brickcast_protocol::{BrickData, BrickMap, Colour, Mask};
+use brickcast_protocol::{BrickData, Colour, Mask};
 
 use crate::replica::{Replica, ReplicaError};
 
@@ -183,10 +184,12 @@ impl LazyCopy {
         let decoded = cache.bricks(*from_seq, *to_seq, bricks, &mut self.decoder)?;
         if self.count_voxels {
             let map = &mut self.replica.map;
+            let mut scratch = [Colour::BLACK; 512];
             for brick in &decoded.bricks {
                 self.voxels_seen += match map.slot_of_cell(brick.cell) {
                     Some(slot) => {
-                        let (mask, colours) = slot_brick(map, slot);
+                        let colours = map.slot_colours(slot, &mut scratch);
+                        let mask = &map.masks()[slot as usize];
                         brick_difference(mask, colours, &brick.mask, &brick.colours)
                     }
                     None => brick.colours.len() as u64,
@@ -195,7 +198,7 @@ impl LazyCopy {
             }
             for &cell in removed {
                 if let Some(slot) = map.slot_of_cell(cell) {
-                    self.voxels_seen += slot_brick(map, slot).1.len() as u64;
+                    self.voxels_seen += u64::from(popcount(&map.masks()[slot as usize]));
                     map.remove_brick(cell);
                 }
             }
@@ -280,15 +283,6 @@ impl LazyCopy {
 /// Linear index of an in-grid cell (x fastest), for the written-cells bitset.
 fn map_index(dims: [u32; 3], cell: [u32; 3]) -> usize {
     (cell[0] as usize) + dims[0] as usize * (cell[1] as usize + dims[1] as usize * cell[2] as usize)
-}
-
-/// The mask and colours of the brick in `slot`, borrowed from the map's arrays (no copy).
-fn slot_brick(map: &BrickMap, slot: u32) -> (&Mask, &[Colour]) {
-    let s = slot as usize;
-    let mask = &map.masks()[s];
-    let base = map.colour_bases()[s] as usize;
-    let n: u32 = mask.iter().map(|w| w.count_ones()).sum();
-    (mask, &map.colour_pool()[base..base + n as usize])
 }
 
 /// Voxels whose solidity or colour differs between two versions of a brick.

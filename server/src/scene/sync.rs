@@ -3,12 +3,11 @@
 //! large scene goes out. Part of the owner (these are `impl Owner` methods), kept apart from
 //! the edit path in `owner.rs`.
 
-use brickcast_protocol::BrickMap;
-use brickcast_protocol::brick::popcount;
 use brickcast_protocol::wire::{
     BlobEncoder, BrickBlob, MAX_REMOVED_PER_FRAME, PROTOCOL_VERSION, Role, ServerMsg, WireError,
     encode_server,
 };
+use brickcast_protocol::{BrickMap, Colour};
 use bytes::Bytes;
 
 use super::owner::{Owner, ZSTD_LEVEL};
@@ -404,6 +403,7 @@ fn encode_run(
     let (max_raw, max_bricks) = limits;
     let mut frames = Vec::new();
     let mut removed = Vec::new();
+    let mut scratch = [Colour::BLACK; 512];
     encoder.clear();
     let finish =
         |encoder: &mut BlobEncoder, removed: &mut Vec<[u32; 3]>, frames: &mut Vec<Bytes>| {
@@ -416,12 +416,11 @@ fn encode_run(
         let coords = map.cell_coords(cell);
         match map.slot_of_cell(coords) {
             Some(slot) => {
-                // Straight from the map's arrays: a delta re-sends every brick it touched,
-                // and copying each into a `BrickData` first cost as much as compressing it.
-                let s = slot as usize;
-                let mask = &map.masks()[s];
-                let base = map.colour_bases()[s] as usize;
-                let colours = &map.colour_pool()[base..base + popcount(mask) as usize];
+                // Straight from the map's arrays into a scratch array: a delta re-sends every
+                // brick it touched, and copying each into a `BrickData` first cost as much as
+                // compressing it.
+                let mask = &map.masks()[slot as usize];
+                let colours = map.slot_colours(slot, &mut scratch);
                 // Brick rows compress ~3x but may not; budget raw bytes against half the frame.
                 if encoder.len() >= max_bricks
                     || encoder.raw_len() + 70 + 2 * colours.len() > max_raw

@@ -9,7 +9,7 @@
 //! | `colour_bases` | 1 per slot      | `BrickMap::colour_bases` |
 //! | `cells`        | 64 per block    | `BrickMap::cells`        |
 //! | `masks`        | 16 per slot     | `BrickMap::masks`        |
-//! | `colours`      | ½ per voxel     | `BrickMap::colour_pool`  |
+//! | `colours`      | ½ per pool word | `BrickMap::colour_pool`  |
 //!
 //! Updates are incremental: the map's GPU change log names the entries that changed and only
 //! those are written (coalesced into runs). A pool that runs out of room is reallocated with
@@ -98,11 +98,11 @@ impl Array {
             Array::Cells => map.cells()[r].into(),
             Array::Masks => bytemuck::cast_slice::<[u64; 8], u32>(map.masks())[r].into(),
             Array::Colours => {
-                // Two RGB565 colours per word, the even one in the low half.
+                // Two 16-bit words of colour blocks per word, the even one in the low half.
                 let pool = map.colour_pool();
                 r.map(|w| {
-                    let lo = pool.get(2 * w).map_or(0, |c| c.0);
-                    let hi = pool.get(2 * w + 1).map_or(0, |c| c.0);
+                    let lo = pool.get(2 * w).copied().unwrap_or(0);
+                    let hi = pool.get(2 * w + 1).copied().unwrap_or(0);
                     u32::from(lo) | (u32::from(hi) << 16)
                 })
                 .collect::<Vec<u32>>()
