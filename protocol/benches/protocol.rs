@@ -45,6 +45,17 @@ fn edits(c: &mut Criterion) {
             black_box(map.set(p, Colour(rng.next() as u16)))
         })
     });
+    // The same sets in the eight colours of a viewer's palette: what clicks bring.
+    let mut map = base.clone();
+    let eight: Vec<Colour> = (0..8u16)
+        .map(|i| Colour(0x1234u16.wrapping_mul(i + 1)))
+        .collect();
+    group.bench_function("set_voxel_8_colours", |b| {
+        b.iter(|| {
+            let p = [rng.below(512), rng.below(256), rng.below(512)];
+            black_box(map.set(p, eight[rng.below(8) as usize]))
+        })
+    });
     let mut map = base.clone();
     group.bench_function("clear_voxel", |b| {
         b.iter(|| {

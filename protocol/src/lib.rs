@@ -18,6 +18,7 @@
 
 pub mod apply;
 pub mod beam;
+mod block_edit;
 pub mod blocks;
 pub mod brick;
 pub mod colour;

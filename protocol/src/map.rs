@@ -582,6 +582,7 @@ impl BrickMap {
                 }
                 self.mark_slot(slot);
             }
+            _ if self.edit_block_in_place(slot, bit, mode, solid, colour) => {}
             _ => {
                 let mut scratch = [Colour::BLACK; VOXELS + 1];
                 let len = popcount(&self.masks[s]) as usize;
@@ -608,11 +609,71 @@ impl BrickMap {
                     bit,
                     mode == BrushMode::Fill || (mode == BrushMode::Paint),
                 );
-                self.replace_brick(slot, mask, &scratch[..n]);
+                // Single voxels in many colours (a 16-colour palette full, or raw already): raw,
+                // which the next such edits change in place, rather than sorting the brick's
+                // colours each time. Brushes and loads re-code it at its smallest.
+                let raw = self.colour_bound.is_none()
+                    && match crate::palette::coding_of_words(self.block(slot)) {
+                        Ok(crate::palette::Coding::Raw) => true,
+                        Ok(crate::palette::Coding::Palette { bits, entries }) => {
+                            bits >= 4 && entries == 1 << bits && mode != BrushMode::Erase
+                        }
+                        _ => false,
+                    };
+                self.replace_brick_as(slot, mask, &scratch[..n], raw);
                 return true;
             }
         }
         self.stamp(slot);
+        true
+    }
+
+    /// A single voxel's edit made in its brick's block where it lies (`crate::block_edit`):
+    /// whether it was. Not in a copy with a colour bound (its blocks are re-coded whole).
+    fn edit_block_in_place(
+        &mut self,
+        slot: u32,
+        bit: u32,
+        mode: BrushMode,
+        solid: bool,
+        colour: Colour,
+    ) -> bool {
+        use crate::block_edit::{Edit, edit_in_place};
+        if self.colour_bound.is_some() {
+            return false;
+        }
+        let s = slot as usize;
+        let n = popcount(&self.masks[s]) as usize;
+        let r = rank(&self.masks[s], bit) as usize;
+        let edit = match (mode, solid) {
+            (BrushMode::Erase, true) => Edit::Remove,
+            (BrushMode::Fill | BrushMode::Paint, true) => Edit::Recolour(colour),
+            (BrushMode::Fill, false) => Edit::Insert(colour),
+            (BrushMode::Erase | BrushMode::Paint, false) => return false,
+        };
+        let base = self.colour_base[s] as usize;
+        let cap = usize::from(self.slot_capacity[s]);
+        let Some(changed) = edit_in_place(&mut self.colours[base..base + cap], n, r, edit) else {
+            return false;
+        };
+        match edit {
+            Edit::Insert(_) => {
+                mask_set(&mut self.masks[s], bit, true);
+                self.solid_voxels += 1;
+                self.mark_slot(slot);
+            }
+            Edit::Remove => {
+                mask_set(&mut self.masks[s], bit, false);
+                self.solid_voxels -= 1;
+                self.mark_slot(slot);
+            }
+            Edit::Recolour(_) => {}
+        }
+        self.coded_words = self.coded_words + changed.words as u64 - changed.before as u64;
+        let end = changed.words.max(changed.before);
+        if end > changed.first {
+            self.mark_colours((base + changed.first) as u32, (end - changed.first) as u32);
+        }
         true
     }
 
@@ -1000,12 +1061,17 @@ impl BrickMap {
 
     /// Rewrites an existing brick, moving its colours to a chunk of the right class if needed.
     fn replace_brick(&mut self, slot: u32, mask: Mask, colours: &[Colour]) {
+        self.replace_brick_as(slot, mask, colours, false);
+    }
+
+    /// [`BrickMap::replace_brick`], with raw colours if `raw`.
+    fn replace_brick_as(&mut self, slot: u32, mask: Mask, colours: &[Colour], raw: bool) {
         debug_assert_eq!(popcount(&mask) as usize, colours.len());
         let s = slot as usize;
         let old_n = popcount(&self.masks[s]);
         self.coded_words -= self.block_words(slot) as u64;
         self.masks[s] = mask;
-        self.store_colours(slot, colours);
+        self.store_colours_as(slot, colours, raw);
         self.solid_voxels = self.solid_voxels + colours.len() as u64 - u64::from(old_n);
         self.mark_slot(slot);
         self.stamp(slot);
@@ -1046,8 +1112,18 @@ impl BrickMap {
     /// block outgrew it or takes less than half of it (so a brick edited back and forth does
     /// not thrash). A slot with capacity 0 gets its first chunk.
     fn store_colours(&mut self, slot: u32, colours: &[Colour]) {
+        self.store_colours_as(slot, colours, false);
+    }
+
+    /// [`BrickMap::store_colours`]; `raw`: raw colours, not the smallest coding (a brick whose
+    /// single-voxel edits keep bringing new colours: see `edit_voxel`).
+    fn store_colours_as(&mut self, slot: u32, colours: &[Colour], raw: bool) {
         let s = slot as usize;
-        let (coding, palette) = crate::palette::choose(colours);
+        let (coding, palette) = if raw {
+            (crate::palette::Coding::Raw, Vec::new())
+        } else {
+            crate::palette::choose(colours)
+        };
         let n = colours.len();
         let mut lossy = Vec::new();
         if let Some(bound) = self.colour_bound {

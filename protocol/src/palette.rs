@@ -68,7 +68,7 @@ impl Coding {
         }
     }
 
-    fn header(self) -> u16 {
+    pub(crate) fn header(self) -> u16 {
         match self {
             Coding::One => 0,
             Coding::Palette { bits, entries } => bits as u16 | ((entries as u16 - 1) << 4),
