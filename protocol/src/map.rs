@@ -166,6 +166,21 @@ pub struct MemoryStats {
     /// coarse grid and one RGBA texture per brick.
     pub paper_formula_bytes: u64,
     pub bytes_per_solid_voxel: f64,
+    /// Bits per solid voxel of the masks alone.
+    pub mask_bits_per_voxel: f64,
+    /// Bits per solid voxel of the colour pool (free chunks and slack included).
+    pub colour_bits_per_voxel: f64,
+}
+
+/// How a brick's exact colours are coded when the map stores them.
+#[derive(Clone, Copy)]
+enum Exact<'a> {
+    /// The smallest coding ([`crate::palette::choose`]).
+    Smallest,
+    /// Raw: a brick whose single-voxel edits keep bringing new colours (see `edit_voxel`).
+    Raw,
+    /// This block, already coded (checked by the caller to code the colours, its own length).
+    Given(&'a [u16]),
 }
 
 /// A scene as a sparse three-level brick map. See the module docs for the layout.
@@ -620,7 +635,8 @@ impl BrickMap {
                         }
                         _ => false,
                     };
-                self.replace_brick_as(slot, mask, &scratch[..n], raw);
+                let how = if raw { Exact::Raw } else { Exact::Smallest };
+                self.replace_brick_as(slot, mask, &scratch[..n], how);
                 return true;
             }
         }
@@ -765,6 +781,42 @@ impl BrickMap {
         Ok(())
     }
 
+    /// [`BrickMap::put_brick`] for a brick whose colour block is at hand, as a received blob
+    /// hands it out ([`crate::wire::BrickRef`]): the block is stored as it is, without coding
+    /// the colours again. `block` must decode to `colours`: an exact block (the blob decoder
+    /// decoded it to get them), or, in a map with a colour bound, the lossy block
+    /// [`crate::palette::lossy`] made from them within that bound. A map with a colour bound
+    /// does not try lossy blocks itself here: its caller did (a viewer codes a blob's bricks on
+    /// several threads at once, [`crate::palette::lossy_many`]) and hands over the exact block
+    /// where they did not pay. A block that names no coding or another length, or a lossy
+    /// block in an exact map, is refused as an inconsistent brick. On error nothing changes.
+    pub fn put_coded(
+        &mut self,
+        cell: [u32; 3],
+        mask: Mask,
+        colours: &[Colour],
+        block: &[u16],
+    ) -> Result<(), MapError> {
+        self.check_cell(cell)?;
+        let n = colours.len();
+        let fitting = match crate::palette::coding_of_words(block) {
+            Ok(crate::palette::Coding::Blocks { .. }) if self.colour_bound.is_none() => None,
+            Err(_) => None,
+            Ok(coding) => block.get(..coding.words(n)),
+        };
+        let block = match fitting {
+            Some(b) if n > 0 && popcount(&mask) as usize == n => b,
+            _ => return Err(MapError::InconsistentBrick(cell)),
+        };
+        self.check_voxels(cell, &mask)?;
+        self.note_before(cell);
+        match self.slot_of_cell(cell) {
+            Some(slot) => self.replace_brick_as(slot, mask, colours, Exact::Given(block)),
+            None => self.insert_brick_as(cell, mask, colours, Exact::Given(block)),
+        }
+        Ok(())
+    }
+
     /// Writes many whole bricks (`None`: the cell empties), as [`BrickMap::put_brick`] and
     /// [`BrickMap::remove_brick`] would one by one, but recomputes the clearance of the empty
     /// cells around the inserted bricks once, block by block, instead of lowering it around
@@ -823,22 +875,31 @@ impl BrickMap {
     /// Checks that a brick fits this scene: inside the coarse grid, consistent, and with no solid
     /// voxel beyond the scene's edge (the last brick on an axis may be partial).
     pub fn check_brick(&self, brick: &BrickData) -> Result<(), MapError> {
-        let cell = brick.cell;
+        self.check_cell(brick.cell)?;
+        if !brick.is_consistent() {
+            return Err(MapError::InconsistentBrick(brick.cell));
+        }
+        self.check_voxels(brick.cell, &brick.mask)
+    }
+
+    fn check_cell(&self, cell: [u32; 3]) -> Result<(), MapError> {
         if (0..3).any(|i| cell[i] >= self.cell_dims[i]) {
             return Err(MapError::CellOutOfBounds {
                 cell,
                 cells: self.cell_dims,
             });
         }
-        if !brick.is_consistent() {
-            return Err(MapError::InconsistentBrick(cell));
-        }
+        Ok(())
+    }
+
+    /// No voxel of `mask` at `cell` lies past the scene's far edge.
+    fn check_voxels(&self, cell: [u32; 3], mask: &Mask) -> Result<(), MapError> {
         // Only a brick at the scene's far edge on some axis can hold a voxel beyond it: the
         // rest are not walked bit by bit (a full brick was 512 steps of every sync and write).
         let partial = (0..3).any(|i| cell[i] * BRICK_EDGE + BRICK_EDGE > self.size[i]);
         let mut outside = false;
         if partial {
-            for_each_bit(&brick.mask, |b| {
+            for_each_bit(mask, |b| {
                 let l = crate::brick::bit_voxel(b);
                 outside |= (0..3).any(|i| cell[i] * BRICK_EDGE + l[i] >= self.size[i]);
             });
@@ -982,6 +1043,13 @@ impl BrickMap {
         let colour_bytes = self.colours.len() as u64 * 2;
         let total_bytes = region_bytes + cell_bytes + mask_bytes + colour_base_bytes + colour_bytes;
         let dense_cells: u64 = self.cell_dims.iter().map(|&d| u64::from(d)).product();
+        let per_voxel = |bytes: u64| {
+            if self.solid_voxels == 0 {
+                0.0
+            } else {
+                bytes as f64 / self.solid_voxels as f64
+            }
+        };
         MemoryStats {
             size: self.size,
             bricks: self.bricks,
@@ -995,17 +1063,20 @@ impl BrickMap {
             colour_used_bytes: self.coded_words * 2,
             total_bytes,
             paper_formula_bytes: 4 * dense_cells + 20 * self.bricks + 2048 * self.bricks,
-            bytes_per_solid_voxel: if self.solid_voxels == 0 {
-                0.0
-            } else {
-                total_bytes as f64 / self.solid_voxels as f64
-            },
+            bytes_per_solid_voxel: per_voxel(total_bytes),
+            mask_bits_per_voxel: 8.0 * per_voxel(mask_bytes),
+            colour_bits_per_voxel: 8.0 * per_voxel(colour_bytes),
         }
     }
 
     // ---- allocation ---------------------------------------------------------------------------
 
     fn insert_brick(&mut self, cell: [u32; 3], mask: Mask, colours: &[Colour]) {
+        self.insert_brick_as(cell, mask, colours, Exact::Smallest);
+    }
+
+    /// [`BrickMap::insert_brick`], the colours coded as `how` says.
+    fn insert_brick_as(&mut self, cell: [u32; 3], mask: Mask, colours: &[Colour], how: Exact) {
         debug_assert_eq!(popcount(&mask) as usize, colours.len());
         let region = self.region_index(cell.map(|c| c / REGION_CELLS));
         let mut block = self.regions[region];
@@ -1039,7 +1110,7 @@ impl BrickMap {
         let s = slot as usize;
         self.masks[s] = mask;
         self.slot_capacity[s] = 0;
-        self.store_colours(slot, colours);
+        self.store_colours_as(slot, colours, how);
         let cell_index = self.cell_index(cell);
         self.slot_cell[s] = cell_index;
         let local = Self::cell_in_block(cell);
@@ -1061,17 +1132,17 @@ impl BrickMap {
 
     /// Rewrites an existing brick, moving its colours to a chunk of the right class if needed.
     fn replace_brick(&mut self, slot: u32, mask: Mask, colours: &[Colour]) {
-        self.replace_brick_as(slot, mask, colours, false);
+        self.replace_brick_as(slot, mask, colours, Exact::Smallest);
     }
 
-    /// [`BrickMap::replace_brick`], with raw colours if `raw`.
-    fn replace_brick_as(&mut self, slot: u32, mask: Mask, colours: &[Colour], raw: bool) {
+    /// [`BrickMap::replace_brick`], the colours coded as `how` says.
+    fn replace_brick_as(&mut self, slot: u32, mask: Mask, colours: &[Colour], how: Exact) {
         debug_assert_eq!(popcount(&mask) as usize, colours.len());
         let s = slot as usize;
         let old_n = popcount(&self.masks[s]);
         self.coded_words -= self.block_words(slot) as u64;
         self.masks[s] = mask;
-        self.store_colours_as(slot, colours, raw);
+        self.store_colours_as(slot, colours, how);
         self.solid_voxels = self.solid_voxels + colours.len() as u64 - u64::from(old_n);
         self.mark_slot(slot);
         self.stamp(slot);
@@ -1110,23 +1181,23 @@ impl BrickMap {
 
     /// Codes `colours` into the slot's chunk, moving it to a chunk of the right class if the
     /// block outgrew it or takes less than half of it (so a brick edited back and forth does
-    /// not thrash). A slot with capacity 0 gets its first chunk.
-    fn store_colours(&mut self, slot: u32, colours: &[Colour]) {
-        self.store_colours_as(slot, colours, false);
-    }
-
-    /// [`BrickMap::store_colours`]; `raw`: raw colours, not the smallest coding (a brick whose
-    /// single-voxel edits keep bringing new colours: see `edit_voxel`).
-    fn store_colours_as(&mut self, slot: u32, colours: &[Colour], raw: bool) {
+    /// not thrash). A slot with capacity 0 gets its first chunk. The exact coding is as `how`
+    /// says; a map with a colour bound codes lossy blocks where they are smaller.
+    fn store_colours_as(&mut self, slot: u32, colours: &[Colour], how: Exact) {
         let s = slot as usize;
-        let (coding, palette) = if raw {
-            (crate::palette::Coding::Raw, Vec::new())
-        } else {
-            crate::palette::choose(colours)
+        let (coding, palette) = match how {
+            Exact::Smallest => crate::palette::choose(colours),
+            Exact::Raw => (crate::palette::Coding::Raw, Vec::new()),
+            Exact::Given(block) => (
+                crate::palette::coding_of_words(block).unwrap_or(crate::palette::Coding::Raw),
+                Vec::new(),
+            ),
         };
         let n = colours.len();
         let mut lossy = Vec::new();
-        if let Some(bound) = self.colour_bound {
+        if let Some(bound) = self.colour_bound
+            && !matches!(how, Exact::Given(_))
+        {
             // `None`: exact is smaller, or some voxel would stray past the bound; `lossy`
             // stays empty.
             crate::palette::lossy(colours, coding, bound, &mut lossy);
@@ -1146,7 +1217,13 @@ impl BrickMap {
         let base = self.colour_base[s];
         let out = &mut self.colours[base as usize..(base + words) as usize];
         if lossy.is_empty() {
-            crate::palette::encode_words(colours, coding, &palette, out);
+            match how {
+                // `put_coded` handed exactly the block's own words.
+                Exact::Given(block) => out.copy_from_slice(block),
+                Exact::Raw | Exact::Smallest => {
+                    crate::palette::encode_words(colours, coding, &palette, out)
+                }
+            }
         } else {
             out.copy_from_slice(&lossy);
         }
@@ -2050,6 +2127,134 @@ mod tests {
         map.put_brick(&good).unwrap();
         assert_eq!(map.get([7, 0, 0]), Some(red()));
         assert_eq!(map.brick([0, 0, 0]), Some(good));
+    }
+
+    /// Bricks of one colour, a few, many and noise, each with its exact block.
+    fn coded_bricks() -> Vec<(BrickData, Vec<u16>)> {
+        let mut seed = 7u32;
+        let mut next = move || {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            seed >> 8
+        };
+        [1u32, 3, 40, 400]
+            .into_iter()
+            .enumerate()
+            .map(|(i, distinct)| {
+                let mut mask = EMPTY_MASK;
+                for bit in 0..BRICK_VOXELS {
+                    mask_set(&mut mask, bit, next() % 3 != 0);
+                }
+                let n = popcount(&mask) as usize;
+                // Neighbouring shades, as a texture has: lossy blocks pay off on the last two.
+                let colours: Vec<Colour> = (0..n)
+                    .map(|_| {
+                        let k = (next() % distinct) as u8;
+                        Colour::from_rgb8(100 + k / 4, 80 + k / 8, 60 + k / 16)
+                    })
+                    .collect();
+                let mut bytes = Vec::new();
+                crate::palette::encode(&colours, &mut bytes);
+                let block = bytes
+                    .chunks_exact(2)
+                    .map(|w| u16::from_le_bytes([w[0], w[1]]))
+                    .collect();
+                let brick = BrickData {
+                    cell: [i as u32, 1, 0],
+                    mask,
+                    colours,
+                };
+                (brick, block)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn put_coded_stores_what_put_brick_would() {
+        for bound in [None, Some(crate::blocks::DEFAULT_BOUND)] {
+            let mut by_colours = BrickMap::new([64, 64, 64]).unwrap();
+            let mut by_block = BrickMap::new([64, 64, 64]).unwrap();
+            by_colours.set_colour_bound(bound);
+            by_block.set_colour_bound(bound);
+            // Twice: inserted into empty cells, then replacing what is there.
+            for _ in 0..2 {
+                for (brick, exact) in coded_bricks() {
+                    by_colours.put_brick(&brick).unwrap();
+                    // What a viewer hands over: the lossy block where it pays.
+                    let mut block = Vec::new();
+                    if let Some(bound) = bound {
+                        let coding = crate::palette::coding_of_words(&exact).unwrap();
+                        crate::palette::lossy(&brick.colours, coding, bound, &mut block);
+                    }
+                    if block.is_empty() {
+                        block = exact;
+                    }
+                    by_block
+                        .put_coded(brick.cell, brick.mask, &brick.colours, &block)
+                        .unwrap();
+                    let (a, b) = (
+                        by_colours.slot_of_cell(brick.cell).unwrap(),
+                        by_block.slot_of_cell(brick.cell).unwrap(),
+                    );
+                    let words = crate::palette::coding_of_words(by_block.block(b))
+                        .unwrap()
+                        .words(brick.colours.len());
+                    assert_eq!(by_colours.block(a)[..words], by_block.block(b)[..words]);
+                    if bound.is_none() {
+                        assert_eq!(by_block.brick(brick.cell), Some(brick));
+                    }
+                }
+            }
+            assert_eq!(by_colours.memory(), by_block.memory());
+            let lossy = by_block
+                .codings()
+                .filter(|(c, _)| matches!(c, crate::palette::Coding::Blocks { .. }))
+                .count();
+            assert_eq!(lossy > 0, bound.is_some(), "{lossy} lossy blocks");
+            by_block.check_invariants().unwrap();
+        }
+    }
+
+    #[test]
+    fn put_coded_refuses_a_block_that_does_not_fit_and_changes_nothing() {
+        let mut map = BrickMap::new([64, 64, 64]).unwrap();
+        let (brick, block) = coded_bricks().swap_remove(2);
+        let n = brick.colours.len();
+        let refused = |map: &mut BrickMap, mask: Mask, colours: &[Colour], block: &[u16]| {
+            map.put_coded(brick.cell, mask, colours, block)
+        };
+        let inconsistent = Err(MapError::InconsistentBrick(brick.cell));
+        // Cut short, a colour short, a lossy header, a header naming nothing, an empty mask.
+        assert_eq!(
+            refused(
+                &mut map,
+                brick.mask,
+                &brick.colours,
+                &block[..block.len() - 1]
+            ),
+            inconsistent
+        );
+        assert_eq!(
+            refused(&mut map, brick.mask, &brick.colours[..n - 1], &block),
+            inconsistent
+        );
+        let mut lossy = block.clone();
+        lossy[0] = crate::blocks::header(2);
+        assert_eq!(
+            refused(&mut map, brick.mask, &brick.colours, &lossy),
+            inconsistent
+        );
+        assert_eq!(
+            refused(&mut map, brick.mask, &brick.colours, &[0x7, 1, 2]),
+            inconsistent
+        );
+        assert_eq!(refused(&mut map, EMPTY_MASK, &[], &[0, 5]), inconsistent);
+        let far = map.put_coded([8, 0, 0], brick.mask, &brick.colours, &block);
+        assert!(
+            matches!(far, Err(MapError::CellOutOfBounds { .. })),
+            "{far:?}"
+        );
+        assert_eq!(map.brick_count(), 0);
+        map.check_invariants().unwrap();
     }
 
     #[test]

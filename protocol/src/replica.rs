@@ -188,21 +188,36 @@ impl Replica {
     }
 
     fn put_bricks(&mut self, blob: &crate::wire::BrickBlob) -> Result<(), ReplicaError> {
-        let map = &mut self.map;
-        let mut failed = None;
-        let received = &mut self.bricks_received;
-        self.decoder.for_each(blob, self.max_bricks, |brick| {
-            *received += 1;
-            if failed.is_none()
-                && let Err(e) = map.put_brick(&brick.to_brick())
-            {
-                failed = Some(e);
+        let mut bricks = Vec::with_capacity(blob.count as usize);
+        self.decoder
+            .for_each(blob, self.max_bricks, |brick| bricks.push(brick))?;
+        self.bricks_received += bricks.len() as u64;
+        // A copy that keeps colours within a bound codes the blob's bricks lossy on every core
+        // first (most of what a textured sync costs), then stores them one by one.
+        let lossy = match self.map.colour_bound() {
+            Some(bound) => {
+                let exact: Vec<_> = bricks
+                    .iter()
+                    .map(|b| {
+                        let coding = crate::palette::coding_of_words(b.block())
+                            .unwrap_or(crate::palette::Coding::Raw);
+                        (b.colours(), coding)
+                    })
+                    .collect();
+                let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+                crate::palette::lossy_many(&exact, bound, threads)
             }
-        })?;
-        match failed {
-            Some(e) => Err(e.into()),
-            None => Ok(()),
+            None => Vec::new(),
+        };
+        for (i, brick) in bricks.iter().enumerate() {
+            let block = match lossy.get(i) {
+                Some(l) if !l.is_empty() => l.as_slice(),
+                _ => brick.block(),
+            };
+            self.map
+                .put_coded(brick.cell, brick.mask, brick.colours(), block)?;
         }
+        Ok(())
     }
 }
 

@@ -542,7 +542,7 @@ fn raw_frame<T: serde::Serialize>(value: &T) -> Vec<u8> {
 
 #[test]
 fn hello_carries_the_protocol_version() {
-    assert_eq!(PROTOCOL_VERSION, 3);
+    assert_eq!(PROTOCOL_VERSION, 4);
     let bytes = encode_client(&hello()).expect("encode");
     match decode_client(&bytes, &Limits::default()).expect("decode") {
         ClientMsg::Hello { protocol, .. } => assert_eq!(protocol, PROTOCOL_VERSION),
@@ -877,14 +877,24 @@ fn blob_from_raw(count: u32, raw: &[u8]) -> BrickBlob {
     }
 }
 
-fn raw_brick(cell: [u16; 3], mask: Mask, colours: usize) -> Vec<u8> {
+/// One brick's raw blob bytes with `block` as its colour block, whatever that holds.
+fn raw_brick(cell: [u16; 3], mask: Mask, block: &[u16]) -> Vec<u8> {
     let mut raw = Vec::new();
     cell.iter()
         .for_each(|c| raw.extend_from_slice(&c.to_le_bytes()));
     mask.iter()
         .for_each(|w| raw.extend_from_slice(&w.to_le_bytes()));
-    raw.extend(std::iter::repeat_n([0x34, 0x12], colours).flatten());
+    block
+        .iter()
+        .for_each(|w| raw.extend_from_slice(&w.to_le_bytes()));
     raw
+}
+
+/// A raw colour block (header 15) of `colours` voxels of one colour.
+fn raw_block(colours: usize) -> Vec<u16> {
+    let mut block = vec![15];
+    block.extend(std::iter::repeat_n(0x1234, colours));
+    block
 }
 
 #[test]
@@ -897,17 +907,31 @@ fn blob_layout_is_as_documented() {
         mask,
         colours: vec![Colour(1), Colour(2), Colour(3)],
     };
-    let blob = BrickBlob::encode(std::slice::from_ref(&brick), 0).expect("encode");
+    // Four voxels of two colours: a palette of 1-bit indices.
+    let mut four = EMPTY_MASK;
+    four[1] = 0b1111;
+    let two_colours = BrickData {
+        cell: [3, 0, 0],
+        mask: four,
+        colours: vec![Colour(9), Colour(5), Colour(9), Colour(9)],
+    };
+    let bricks = [brick, two_colours];
+    let blob = BrickBlob::encode(&bricks, 0).expect("encode");
     let raw = zstd::bulk::decompress(&blob.data, 1 << 20).expect("zstd");
-    let mut expected = vec![1, 0, 2, 0, 1, 2];
-    mask.iter()
-        .for_each(|w| expected.extend_from_slice(&w.to_le_bytes()));
-    expected.extend_from_slice(&[1, 0, 2, 0, 3, 0]);
+    let mut expected = vec![1, 0, 2, 0, 1, 2, 3, 0, 0, 0, 0, 0];
+    for m in [mask, four] {
+        m.iter()
+            .for_each(|w| expected.extend_from_slice(&w.to_le_bytes()));
+    }
+    // Three distinct colours in three voxels: raw (header 15) is smaller than a palette.
+    expected.extend_from_slice(&[15, 0, 1, 0, 2, 0, 3, 0]);
+    // Palette header: 1-bit indices, 2 entries; entries 5, 9; indices 1,0,1,1 from bit 0.
+    expected.extend_from_slice(&[0x11, 0, 5, 0, 9, 0, 0b1101, 0]);
     assert_eq!(raw, expected);
     assert_eq!(blob.raw_len as usize, raw.len());
     assert_eq!(
-        blob_from_raw(1, &raw).decode(1).expect("decode"),
-        vec![brick]
+        blob_from_raw(2, &raw).decode(2).expect("decode"),
+        bricks.to_vec()
     );
 }
 
@@ -916,22 +940,55 @@ fn blob_with_wrong_colour_count_is_refused() {
     let mut mask = EMPTY_MASK;
     mask[3] = 0b111;
     for colours in [2, 4] {
-        let blob = blob_from_raw(1, &raw_brick([0, 0, 0], mask, colours));
+        let blob = blob_from_raw(1, &raw_brick([0, 0, 0], mask, &raw_block(colours)));
+        let res = blob.decode(1);
         assert!(
-            matches!(
-                blob.decode(1),
-                Err(WireError::ColourCount { expected: 3, .. })
-            ),
-            "{colours} colours"
+            matches!(res, Err(WireError::ColourBytes { needed: 8, .. })),
+            "{colours} colours: {res:?}"
         );
     }
-    // Odd byte count: half a colour.
-    let mut raw = raw_brick([0, 0, 0], mask, 3);
+    // Odd byte count: half a word.
+    let mut raw = raw_brick([0, 0, 0], mask, &raw_block(3));
     raw.push(0);
     assert!(matches!(
         blob_from_raw(1, &raw).decode(1),
-        Err(WireError::ColourCount { .. })
+        Err(WireError::ColourBytes { .. })
     ));
+}
+
+#[test]
+fn blob_with_a_bad_colour_block_is_refused() {
+    let mut mask = EMPTY_MASK;
+    mask[3] = 0b111;
+    let refused = |block: &[u16]| blob_from_raw(1, &raw_brick([0, 0, 0], mask, block)).decode(1);
+    // Sound: a 1-bit palette of 2 entries, indices 0,1,1.
+    assert!(refused(&[0x11, 5, 9, 0b110]).is_ok());
+    // A 2-bit palette of 3 entries whose third voxel points at a fourth entry.
+    let res = refused(&[0x22, 5, 9, 11, 0b11_01_00]);
+    assert!(
+        matches!(res, Err(WireError::ColourBlock { index: 0, .. })),
+        "{res:?}"
+    );
+    // Entries not ascending: two encodings of one brick would be possible.
+    let res = refused(&[0x11, 9, 5, 0b110]);
+    assert!(
+        matches!(res, Err(WireError::ColourBlock { index: 0, .. })),
+        "{res:?}"
+    );
+    // A header that names no coding.
+    let res = refused(&[0x7, 1, 2, 3]);
+    assert!(
+        matches!(res, Err(WireError::ColourBlock { index: 0, .. })),
+        "{res:?}"
+    );
+    // A lossy block (2-bit weights) never travels.
+    let mut lossy = vec![14];
+    lossy.resize(brickcast_protocol::blocks::words(2, 3), 0);
+    let res = refused(&lossy);
+    assert!(
+        matches!(res, Err(WireError::LossyBlock { index: 0 })),
+        "{res:?}"
+    );
 }
 
 #[test]
@@ -945,8 +1002,8 @@ fn blob_with_an_empty_mask_is_refused_and_nothing_is_delivered() {
         .iter()
         .chain(&EMPTY_MASK)
         .for_each(|w| raw.extend_from_slice(&w.to_le_bytes()));
-    raw.extend_from_slice(&[9, 9]);
-    raw.extend_from_slice(&[0; 2]); // pad to the two-brick minimum size
+    raw.extend_from_slice(&[0, 0, 9, 9]); // one colour
+    raw.extend_from_slice(&[0; 4]); // pad to the two-brick minimum size
     let blob = blob_from_raw(2, &raw);
     let mut calls = 0;
     let res = BlobDecoder::new()
@@ -963,7 +1020,7 @@ fn blob_with_an_empty_mask_is_refused_and_nothing_is_delivered() {
 fn blob_whose_data_is_longer_or_shorter_than_announced_is_refused() {
     let mut mask = EMPTY_MASK;
     mask[5] = 0xF0;
-    let raw = raw_brick([0, 0, 0], mask, 4);
+    let raw = raw_brick([0, 0, 0], mask, &raw_block(4));
     let mut blob = blob_from_raw(1, &raw);
     blob.raw_len -= 2;
     assert!(matches!(blob.decode(1), Err(WireError::Decompress(_))));
@@ -1036,14 +1093,16 @@ fn encoder_and_decoder_are_reusable() {
             enc.push_brick(b).expect("push");
         }
         assert_eq!(enc.len(), round + 1);
-        assert_eq!(enc.raw_len(), bricks.len() * (6 + 64 + 1024));
+        // One colour each: a 4-byte block.
+        assert_eq!(enc.raw_len(), bricks.len() * (6 + 64 + 4));
         let blob = enc.finish().expect("finish");
         assert!(enc.is_empty());
         assert_eq!(dec.decode(&blob, 64).expect("decode"), bricks);
         let mut seen = Vec::new();
         dec.for_each(&blob, 64, |b| {
             assert_eq!(b.colour_count(), 512);
-            assert_eq!(&b.colour_bytes()[..2], &[0x34, 0x12]);
+            assert_eq!(b.block(), &[0, 0x1234]);
+            assert_eq!(b.colours()[511], Colour(0x1234));
             seen.push(b.to_brick());
         })
         .expect("for_each");

@@ -272,12 +272,17 @@ fn print_memory(m: &brickcast_protocol::map::MemoryStats) {
         mib(m.cell_bytes),
         m.cell_blocks
     );
-    println!("  masks            {:>10.2} MiB", mib(m.mask_bytes));
+    println!(
+        "  masks            {:>10.2} MiB ({:.2} bits per voxel)",
+        mib(m.mask_bytes),
+        m.mask_bits_per_voxel
+    );
     println!("  colour bases     {:>10.2} MiB", mib(m.colour_base_bytes));
     println!(
-        "  colours          {:>10.2} MiB ({:.2} MiB live)",
+        "  colours          {:>10.2} MiB ({:.2} MiB live; {:.2} bits per voxel)",
         mib(m.colour_bytes),
-        mib(m.colour_used_bytes)
+        mib(m.colour_used_bytes),
+        m.colour_bits_per_voxel
     );
     println!("  total            {:>10.2} MiB", mib(m.total_bytes));
     println!(

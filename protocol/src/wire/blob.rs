@@ -8,10 +8,15 @@
 //! | --- | --- | --- |
 //! | cells | `count × 6` | `[x, y, z]` as `u16` LE each |
 //! | masks | `count × 64` | 8 × `u64` LE each, bit order as in [`crate::brick`] |
-//! | colours | `2 × Σ popcount` | `u16` LE RGB565, brick after brick, bit order within a brick |
+//! | colours | `2 × Σ block words` | each brick's colour block ([`crate::palette`]), brick after brick |
 //!
-//! The colour section is the GPU's upload format already, which is why [`BrickRef`] hands it out
-//! as bytes.
+//! A colour block is the brick's exact coding — one colour, a palette of 1/2/4/8-bit indices,
+//! or raw RGB565, as `u16` LE words — the same bytes the brick map's colour pool, the GPU copy
+//! of an exact viewer and the redb store rows hold (protocol 4; protocol 3 sent every voxel's
+//! RGB565). Lossy blocks ([`crate::blocks`]) never travel: a viewer that wants them codes the
+//! exact colours itself, once. Each block says its own length (its header and the mask's
+//! popcount), and the decoder decodes every block before it hands out any brick, so a bad index
+//! or an unsorted palette refuses the whole blob.
 
 use serde::{Deserialize, Serialize};
 
@@ -19,6 +24,7 @@ use super::zstd_frame::{Compressor, Decompressor};
 use super::{MAX_BRICKS_PER_FRAME, WireError, bounded};
 use crate::brick::{BRICK_VOXELS, BrickData, Mask, mask_is_empty, popcount};
 use crate::colour::Colour;
+use crate::palette::{self, Coding};
 
 /// Raw bytes per brick for its cell.
 const CELL_BYTES: usize = 6;
@@ -26,6 +32,10 @@ const CELL_BYTES: usize = 6;
 const MASK_BYTES: usize = 64;
 /// Raw bytes per brick before its colours.
 const FIXED_BYTES: u64 = (CELL_BYTES + MASK_BYTES) as u64;
+/// Bytes of the smallest colour block (one colour: header and colour).
+const MIN_BLOCK_BYTES: u64 = 4;
+/// Bytes of the largest exact colour block (raw: header and 512 colours).
+const MAX_BLOCK_BYTES: u64 = 2 * (1 + BRICK_VOXELS as u64);
 
 /// A batch of bricks, zstd-compressed.
 ///
@@ -94,8 +104,8 @@ impl BrickBlob {
     pub fn validate_header(&self, max_bricks: u32) -> Result<(), WireError> {
         check_count(self.count as usize, max_bricks.min(MAX_BRICKS_PER_FRAME))?;
         let count = u64::from(self.count);
-        let min = count * (FIXED_BYTES + 2);
-        let max = count * (FIXED_BYTES + 2 * u64::from(BRICK_VOXELS));
+        let min = count * (FIXED_BYTES + MIN_BLOCK_BYTES);
+        let max = count * (FIXED_BYTES + MAX_BLOCK_BYTES);
         let raw_len = u64::from(self.raw_len);
         if raw_len < min || raw_len > max {
             return Err(WireError::BlobRawLen {
@@ -141,6 +151,8 @@ pub struct BlobEncoder {
     masks: Vec<u8>,
     colours: Vec<u8>,
     raw: Vec<u8>,
+    /// One block's words while [`BlobEncoder::push`] codes it.
+    scratch: Vec<u16>,
     count: u32,
 }
 
@@ -153,16 +165,41 @@ impl BlobEncoder {
             masks: Vec::new(),
             colours: Vec::new(),
             raw: Vec::new(),
+            scratch: vec![0; 1 + BRICK_VOXELS as usize],
             count: 0,
         })
     }
 
-    /// Adds one brick. On error nothing is added and the batch so far stays usable.
+    /// Adds one brick, coding its colours exactly ([`palette::choose`]). On error nothing is
+    /// added and the batch so far stays usable.
     pub fn push(
         &mut self,
         cell: [u32; 3],
         mask: &Mask,
         colours: &[Colour],
+    ) -> Result<(), WireError> {
+        let index = self.count as usize;
+        if mask_is_empty(mask) || colours.len() != popcount(mask) as usize {
+            return Err(WireError::InconsistentBrick { index, cell });
+        }
+        let (coding, entries) = palette::choose(colours);
+        let words = &mut self.scratch[..coding.words(colours.len())];
+        palette::encode_words(colours, coding, &entries, words);
+        let block = std::mem::take(&mut self.scratch);
+        let result = self.push_block(cell, mask, &block[..coding.words(colours.len())]);
+        self.scratch = block;
+        result
+    }
+
+    /// Adds one brick whose colours are already coded: `block` starts with an exact colour
+    /// block of `popcount(mask)` colours (as [`crate::BrickMap::block`] hands out; words past
+    /// the block's own length are ignored). Only the header and the length are checked here —
+    /// the receiver decodes every block. On error nothing is added.
+    pub fn push_block(
+        &mut self,
+        cell: [u32; 3],
+        mask: &Mask,
+        block: &[u16],
     ) -> Result<(), WireError> {
         let index = self.count as usize;
         if self.count >= MAX_BRICKS_PER_FRAME {
@@ -172,7 +209,17 @@ impl BlobEncoder {
                 max: MAX_BRICKS_PER_FRAME as usize,
             });
         }
-        if mask_is_empty(mask) || colours.len() != popcount(mask) as usize {
+        if mask_is_empty(mask) {
+            return Err(WireError::InconsistentBrick { index, cell });
+        }
+        let voxels = popcount(mask) as usize;
+        let len = match palette::coding_of_words(block) {
+            Ok(Coding::Blocks { .. }) | Err(_) => {
+                return Err(WireError::InconsistentBrick { index, cell });
+            }
+            Ok(coding) => coding.words(voxels),
+        };
+        if block.len() < len {
             return Err(WireError::InconsistentBrick { index, cell });
         }
         let mut short = [0u16; 3];
@@ -185,9 +232,9 @@ impl BlobEncoder {
         for word in mask {
             self.masks.extend_from_slice(&word.to_le_bytes());
         }
-        self.colours.reserve(colours.len() * 2);
-        for c in colours {
-            self.colours.extend_from_slice(&c.0.to_le_bytes());
+        self.colours.reserve(len * 2);
+        for w in &block[..len] {
+            self.colours.extend_from_slice(&w.to_le_bytes());
         }
         self.count += 1;
         Ok(())
@@ -236,7 +283,7 @@ impl BlobEncoder {
             .compressor
             .compress(&self.raw)
             .map_err(WireError::Compress)?;
-        // At most 8192 bricks of at most 1094 bytes: far inside u32.
+        // At most 8192 bricks of at most 1096 bytes: far inside u32.
         let raw_len = self.raw.len() as u32;
         Ok(BrickBlob {
             count,
@@ -246,32 +293,31 @@ impl BlobEncoder {
     }
 }
 
-/// One brick inside a decompressed blob, borrowed from the decoder's buffer.
-///
-/// Lets a client copy colours straight into its GPU upload buffer (they are already `u16` LE)
-/// without building a `Vec<Colour>` per brick.
+/// One brick inside a decompressed blob, borrowed from the decoder's buffers: its exact colour
+/// block as it travelled, and its colours already decoded (the decoder decoded every block to
+/// check the blob).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct BrickRef<'a> {
     pub cell: [u32; 3],
     pub mask: Mask,
-    colour_bytes: &'a [u8],
+    block: &'a [u16],
+    colours: &'a [Colour],
 }
 
 impl<'a> BrickRef<'a> {
-    /// The colours as `u16` little-endian, in bit order; `2 × popcount(mask)` bytes.
-    pub fn colour_bytes(&self) -> &'a [u8] {
-        self.colour_bytes
+    /// The brick's colour block ([`crate::palette`]), exactly its own words.
+    pub fn block(&self) -> &'a [u16] {
+        self.block
     }
 
     /// Number of solid voxels (and colours).
     pub fn colour_count(&self) -> usize {
-        self.colour_bytes.len() / 2
+        self.colours.len()
     }
 
     /// The colours in bit order.
-    pub fn colours(&self) -> impl ExactSizeIterator<Item = Colour> + 'a {
-        let (pairs, _) = self.colour_bytes.as_chunks::<2>();
-        pairs.iter().map(|p| Colour(u16::from_le_bytes(*p)))
+    pub fn colours(&self) -> &'a [Colour] {
+        self.colours
     }
 
     /// An owned copy.
@@ -279,16 +325,22 @@ impl<'a> BrickRef<'a> {
         BrickData {
             cell: self.cell,
             mask: self.mask,
-            colours: self.colours().collect(),
+            colours: self.colours.to_vec(),
         }
     }
 }
 
-/// Decompresses blobs with one zstd context and one buffer kept between blobs; the client's
+/// Decompresses blobs with one zstd context and buffers kept between blobs; the client's
 /// counterpart of [`BlobEncoder`].
 pub struct BlobDecoder {
     decompressor: Decompressor,
     raw: Vec<u8>,
+    /// The colour section as words.
+    words: Vec<u16>,
+    /// Every brick's colours, decoded, brick after brick.
+    colours: Vec<Colour>,
+    /// Where each brick's block starts in `words`.
+    starts: Vec<u32>,
 }
 
 impl BlobDecoder {
@@ -296,6 +348,9 @@ impl BlobDecoder {
         Ok(BlobDecoder {
             decompressor: Decompressor::new().map_err(WireError::Decompress)?,
             raw: Vec::new(),
+            words: Vec::new(),
+            colours: Vec::new(),
+            starts: Vec::new(),
         })
     }
 
@@ -314,12 +369,13 @@ impl BlobDecoder {
 
     /// Checks the whole blob, then calls `f` for each brick in order. `f` is not called at all
     /// unless the blob is entirely valid, so a caller can apply bricks as they come without
-    /// ever applying half a bad blob. Returns the number of bricks.
-    pub fn for_each(
-        &mut self,
+    /// ever applying half a bad blob. Returns the number of bricks. The bricks borrow the
+    /// decoder until its next blob, so a caller may also keep them to work on all at once.
+    pub fn for_each<'a>(
+        &'a mut self,
         blob: &BrickBlob,
         max_bricks: u32,
-        mut f: impl FnMut(BrickRef<'_>),
+        mut f: impl FnMut(BrickRef<'a>),
     ) -> Result<u32, WireError> {
         blob.validate_header(max_bricks)?;
         if blob.count == 0 {
@@ -340,39 +396,83 @@ impl BlobDecoder {
 
         let count = blob.count as usize;
         let length_error = || WireError::BlobLength { expected, actual };
-        let (cells, rest) = self
+        let (_, rest) = self
             .raw
             .split_at_checked(count * CELL_BYTES)
             .ok_or_else(length_error)?;
         let (masks, colours) = rest
             .split_at_checked(count * MASK_BYTES)
             .ok_or_else(length_error)?;
-        let (cells, _) = cells.as_chunks::<CELL_BYTES>();
         let (masks, _) = masks.as_chunks::<MASK_BYTES>();
+        let (pairs, odd) = colours.as_chunks::<2>();
+        if !odd.is_empty() {
+            return Err(WireError::ColourBytes {
+                needed: colours.len() as u64 + 1,
+                actual_bytes: colours.len(),
+            });
+        }
+        self.words.clear();
+        self.words
+            .extend(pairs.iter().map(|p| u16::from_le_bytes(*p)));
 
-        // First pass: every mask non-empty and the colour section exactly the right size.
-        let mut solid = 0u64;
+        // First pass: every mask non-empty, every block exact and decodable, the colour
+        // section exactly the blocks.
+        self.colours.clear();
+        self.starts.clear();
+        let mut at = 0usize;
         for (index, m) in masks.iter().enumerate() {
             let mask = read_mask(m);
             if mask_is_empty(&mask) {
                 return Err(WireError::EmptyMask { index });
             }
-            solid += u64::from(popcount(&mask));
+            let voxels = popcount(&mask) as usize;
+            let rest = &self.words[at..];
+            let len = match palette::coding_of_words(rest) {
+                Ok(Coding::Blocks { .. }) => return Err(WireError::LossyBlock { index }),
+                Ok(coding) => coding.words(voxels),
+                Err(_) if rest.is_empty() => {
+                    return Err(WireError::ColourBytes {
+                        needed: 2 * (at as u64 + 1),
+                        actual_bytes: colours.len(),
+                    });
+                }
+                Err(source) => return Err(WireError::ColourBlock { index, source }),
+            };
+            if rest.len() < len {
+                return Err(WireError::ColourBytes {
+                    needed: 2 * (at + len) as u64,
+                    actual_bytes: colours.len(),
+                });
+            }
+            let from = self.colours.len();
+            self.colours.resize(from + voxels, Colour::BLACK);
+            palette::decode_words(&rest[..len], &mut self.colours[from..])
+                .map_err(|source| WireError::ColourBlock { index, source })?;
+            self.starts.push(at as u32);
+            at += len;
         }
-        if colours.len() as u64 != solid * 2 {
-            return Err(WireError::ColourCount {
-                expected: solid,
+        if at != self.words.len() {
+            return Err(WireError::ColourBytes {
+                needed: 2 * at as u64,
                 actual_bytes: colours.len(),
             });
         }
 
         // Second pass: hand out the bricks; the slicing cannot fail after the first pass.
-        let mut rest = colours;
-        for (c, m) in cells.iter().zip(masks) {
+        let this: &'a BlobDecoder = self;
+        let cells = &this.raw[..count * CELL_BYTES];
+        let masks = &this.raw[count * CELL_BYTES..count * (CELL_BYTES + MASK_BYTES)];
+        let (cells, _) = cells.as_chunks::<CELL_BYTES>();
+        let (masks, _) = masks.as_chunks::<MASK_BYTES>();
+        let mut from = 0usize;
+        for (i, (c, m)) in cells.iter().zip(masks).enumerate() {
             let mask = read_mask(m);
-            let n = popcount(&mask) as usize * 2;
-            let (mine, tail) = rest.split_at_checked(n).unwrap_or((rest, &[]));
-            rest = tail;
+            let voxels = popcount(&mask) as usize;
+            let start = self.starts[i] as usize;
+            let end = self
+                .starts
+                .get(i + 1)
+                .map_or(self.words.len(), |&e| e as usize);
             let cell = [
                 u32::from(u16::from_le_bytes([c[0], c[1]])),
                 u32::from(u16::from_le_bytes([c[2], c[3]])),
@@ -381,8 +481,10 @@ impl BlobDecoder {
             f(BrickRef {
                 cell,
                 mask,
-                colour_bytes: mine,
+                block: &this.words[start..end],
+                colours: &this.colours[from..from + voxels],
             });
+            from += voxels;
         }
         Ok(blob.count)
     }

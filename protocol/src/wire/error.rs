@@ -95,7 +95,23 @@ pub enum WireError {
     #[error("brick {index} in blob has an empty mask")]
     EmptyMask { index: usize },
 
-    /// The colour section does not hold exactly one colour per solid voxel.
-    #[error("brick blob masks need {expected} colours, data holds {actual_bytes} colour bytes")]
-    ColourCount { expected: u64, actual_bytes: usize },
+    /// The colour section does not hold exactly one colour block per brick: it ends inside a
+    /// block (`needed`: where that block ends) or goes on past the last one.
+    #[error(
+        "brick blob's colour blocks take {needed} bytes, data holds {actual_bytes} colour bytes"
+    )]
+    ColourBytes { needed: u64, actual_bytes: usize },
+
+    /// A brick's colour block names no coding or does not decode (an index past its palette,
+    /// an unsorted palette: [`crate::palette`]).
+    #[error("brick {index} in blob has a bad colour block: {source}")]
+    ColourBlock {
+        index: usize,
+        #[source]
+        source: crate::palette::PaletteError,
+    },
+
+    /// Lossy colour blocks ([`crate::blocks`]) never travel: the wire carries exact colours.
+    #[error("brick {index} in blob has a lossy colour block; the wire carries exact colours")]
+    LossyBlock { index: usize },
 }

@@ -51,8 +51,9 @@ pub use names::{MAX_MARKS_PER_LETTER, check_display_name, clean_display_name};
 /// [`ErrorCode::VersionMismatch`] rather than a decode failure, so that old clients learn why.
 ///
 /// 2 added identity (`Hello.user`, `Welcome.you`/`peers`), presence, undo/redo and the history
-/// and presence limits. 3 added `Refusal::NameTaken`.
-pub const PROTOCOL_VERSION: u32 = 3;
+/// and presence limits. 3 added `Refusal::NameTaken`. 4 sends each brick's colours as its
+/// exact colour block ([`crate::palette`]) instead of every voxel's RGB565.
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// Largest frame either side will ever encode or decode, whatever a server announces. It is also
 /// bincode's decode limit, the ceiling on what a length prefix can make the decoder reserve.

@@ -3,11 +3,12 @@
 //! large scene goes out. Part of the owner (these are `impl Owner` methods), kept apart from
 //! the edit path in `owner.rs`.
 
+use brickcast_protocol::brick::popcount;
 use brickcast_protocol::wire::{
     BlobEncoder, BrickBlob, MAX_REMOVED_PER_FRAME, PROTOCOL_VERSION, Role, ServerMsg, WireError,
     encode_server,
 };
-use brickcast_protocol::{BrickMap, Colour};
+use brickcast_protocol::{BrickMap, Colour, palette};
 use bytes::Bytes;
 
 use super::owner::{Owner, ZSTD_LEVEL};
@@ -416,18 +417,23 @@ fn encode_run(
         let coords = map.cell_coords(cell);
         match map.slot_of_cell(coords) {
             Some(slot) => {
-                // Straight from the map's arrays into a scratch array: a delta re-sends every
-                // brick it touched, and copying each into a `BrickData` first cost as much as
-                // compressing it.
+                // Straight from the map's arrays: a delta re-sends every brick it touched, and
+                // copying each into a `BrickData` first cost as much as compressing it. The
+                // server's map is exact, so its colour blocks are what the wire carries.
                 let mask = &map.masks()[slot as usize];
-                let colours = map.slot_colours(slot, &mut scratch);
-                // Brick rows compress ~3x but may not; budget raw bytes against half the frame.
-                if encoder.len() >= max_bricks
-                    || encoder.raw_len() + 70 + 2 * colours.len() > max_raw
-                {
+                let block = map.block(slot);
+                let words = palette::coding_of_words(block)
+                    .map_or(block.len(), |c| c.words(popcount(mask) as usize));
+                // Brick rows usually compress but may not; budget raw bytes against half the frame.
+                if encoder.len() >= max_bricks || encoder.raw_len() + 70 + 2 * words > max_raw {
                     finish(encoder, &mut removed, &mut frames)?;
                 }
-                encoder.push(coords, mask, colours)?;
+                if encoder.push_block(coords, mask, block).is_err() {
+                    // A lossy block (a map with a colour bound): send its colours exactly as
+                    // it holds them.
+                    let colours = map.slot_colours(slot, &mut scratch);
+                    encoder.push(coords, mask, colours)?;
+                }
             }
             None => {
                 if removed.len() >= MAX_REMOVED_PER_FRAME {
