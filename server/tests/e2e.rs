@@ -276,7 +276,10 @@ async fn bad_frames_close_only_their_connection() {
             code: ErrorCode::VersionMismatch,
             message,
         } => assert!(
-            message.contains("protocol 3") && message.contains("client 1"),
+            message.contains(&format!(
+                "protocol {}",
+                brickcast_protocol::wire::PROTOCOL_VERSION
+            )) && message.contains("client 1"),
             "{message}"
         ),
         other => panic!("{other:?}"),
