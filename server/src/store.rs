@@ -17,7 +17,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use brickcast_protocol::brick::{BrickData, Mask};
+use brickcast_protocol::brick::BrickData;
 use brickcast_protocol::wire::UserId;
 use brickcast_protocol::{BrickMap, Colour};
 use redb::{
@@ -155,8 +155,14 @@ fn bincode_config() -> bincode::config::Configuration {
     bincode::config::standard()
 }
 
-/// One brick row: 64 mask bytes then the colours as u16 LE.
-pub(crate) fn encode_brick(mask: &Mask, colours: &[Colour], out: &mut Vec<u8>) {
+/// One raw brick row: 64 mask bytes then the colours as u16 LE (what stores before format 2
+/// and cluster snapshots before `S3`/`D2` hold; only tests write it now).
+#[cfg(test)]
+pub(crate) fn encode_brick(
+    mask: &brickcast_protocol::brick::Mask,
+    colours: &[Colour],
+    out: &mut Vec<u8>,
+) {
     out.clear();
     for word in mask {
         out.extend_from_slice(&word.to_le_bytes());

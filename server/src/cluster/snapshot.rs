@@ -30,9 +30,9 @@
 use std::collections::{BTreeMap, HashMap};
 use std::hash::{BuildHasher, Hasher};
 
-use brickcast_protocol::BrickMap;
-use brickcast_protocol::brick::BrickData;
+use brickcast_protocol::brick::{BrickData, popcount};
 use brickcast_protocol::wire::UserId;
+use brickcast_protocol::{BrickMap, Colour, palette};
 use serde::{Deserialize, Serialize};
 
 use super::jet::{Bucket, Jet, PortError};
@@ -40,14 +40,28 @@ use super::log::{decode_as, encode_as};
 use crate::scene::AnsweredEntry;
 use crate::scene::LogError;
 use crate::scene::history::{History, StepMeta};
-use crate::store::{StoreError, decode_brick, encode_brick};
+use crate::store::{StoreError, decode_brick};
 
-/// First bytes of a base written before deltas existed (no id: no delta follows it).
+/// First bytes of a base written before deltas existed (no id: no delta follows it; raw rows).
 const BASE_V1: [u8; 2] = [b'S', 1];
-/// First bytes of a base.
-const BASE_MAGIC: [u8; 2] = [b'S', 2];
-/// First bytes of a delta.
-const DELTA_MAGIC: [u8; 2] = [b'D', 1];
+/// First bytes of a base whose rows are raw (mask, then every voxel's RGB565).
+const BASE_V2: [u8; 2] = [b'S', 2];
+/// First bytes of a base whose rows are coded (mask, then the brick's colour block).
+const BASE_MAGIC: [u8; 2] = [b'S', 3];
+/// First bytes of a delta whose rows are raw.
+const DELTA_V1: [u8; 2] = [b'D', 1];
+/// First bytes of a delta whose rows are coded.
+const DELTA_MAGIC: [u8; 2] = [b'D', 2];
+
+/// How an object's brick rows hold colours; its magic says which.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Rows {
+    /// `64 + 2n` bytes: the mask, then each solid voxel's RGB565 (written before issue #29).
+    Raw,
+    /// The mask, then the brick's exact colour block ([`palette`]): the same words as the
+    /// map's colour pool, the redb rows and the wire.
+    Coded,
+}
 /// At most this many deltas follow a base.
 pub const MAX_DELTAS: u32 = 32;
 
@@ -76,8 +90,8 @@ struct Undo {
     answered: Vec<AnsweredEntry>,
 }
 
-/// Linear cells, and their bricks as the redb store's rows, back to back (a row's length
-/// follows from its mask).
+/// Linear cells, and their bricks as rows ([`Rows`]), back to back (a row's length follows
+/// from its mask, and for a coded row its block's header).
 #[derive(Serialize, Deserialize)]
 struct Bricks {
     cells: Vec<u32>,
@@ -156,8 +170,9 @@ impl Encoded {
     }
 }
 
-/// Format of [`Head`].
-const HEAD_VERSION: u32 = 1;
+/// Format of [`Head`]. 2: the chain's objects may hold coded rows (`S3`/`D2`), which a node
+/// that reads only 1 would refuse object by object; it refuses the head by name instead.
+const HEAD_VERSION: u32 = 2;
 
 /// What `brickcast_snapshot_heads` says of a scene: its newest snapshot is base `base` and its
 /// deltas `1..=deltas`, at scene sequence `seq` and log position `pos`.
@@ -219,19 +234,32 @@ fn delta_fits(chain: &Chain, changed: usize, bricks: u64) -> bool {
         && (changed as u64).saturating_mul(4) <= bricks.max(1)
 }
 
-/// Bricks at `cells` (linear indices) as rows, back to back; the cells holding none apart.
+/// Bricks at `cells` (linear indices) as coded rows, back to back; the cells holding none
+/// apart. A row's block is copied from the map's colour pool (the owner's map is exact).
 fn rows_of(map: &BrickMap, cells: impl Iterator<Item = u32>) -> (Bricks, Vec<u32>) {
-    let (mut solid, mut rows, mut empty, mut row) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut solid, mut rows, mut empty) = (Vec::new(), Vec::new(), Vec::new());
+    let mut scratch = [Colour::BLACK; 512];
     for cell in cells {
-        match map.brick(map.cell_coords(cell)) {
-            Some(b) => {
-                encode_brick(&b.mask, &b.colours, &mut row);
-                rows.extend_from_slice(&row);
-                solid.push(cell);
-            }
-            None => empty.push(cell),
+        let coords = map.cell_coords(cell);
+        let Some(slot) = map.slot_of_cell(coords) else {
+            empty.push(cell);
+            continue;
+        };
+        let mask = &map.masks()[slot as usize];
+        for word in mask {
+            rows.extend_from_slice(&word.to_le_bytes());
         }
+        let block = map.block(slot);
+        match palette::coding_of_words(block) {
+            Ok(palette::Coding::Blocks { .. }) | Err(_) => {
+                palette::encode(map.slot_colours(slot, &mut scratch), &mut rows)
+            }
+            Ok(coding) => {
+                let words = &block[..coding.words(popcount(mask) as usize).min(block.len())];
+                rows.extend(words.iter().flat_map(|w| w.to_le_bytes()));
+            }
+        }
+        solid.push(cell);
     }
     (Bricks { cells: solid, rows }, empty)
 }
@@ -381,10 +409,11 @@ fn index(history: &[(UserId, u64, StepMeta)]) -> BTreeMap<u64, (UserId, StepMeta
     history.iter().map(|(u, id, m)| (*id, (*u, *m))).collect()
 }
 
-/// Puts `bricks` into `map` (checked: a corrupt object is an error).
-fn put_rows(map: &mut BrickMap, bricks: &Bricks) -> Result<(), String> {
+/// Puts `bricks`, rows of `format`, into `map` (checked: a corrupt object is an error).
+fn put_rows(map: &mut BrickMap, bricks: &Bricks, format: Rows) -> Result<(), String> {
     let (cells, rows) = (&bricks.cells, &bricks.rows);
     let total: u64 = map.cell_dims().iter().map(|&d| u64::from(d)).product();
+    let mut colours = Vec::new();
     let mut at = 0usize;
     for &cell in cells {
         if u64::from(cell) >= total {
@@ -395,13 +424,37 @@ fn put_rows(map: &mut BrickMap, bricks: &Bricks) -> Result<(), String> {
             return Err(format!("brick {cell} is cut short"));
         };
         let solid: usize = mask_bytes.iter().map(|b| b.count_ones() as usize).sum();
-        let end = mask_end + 2 * solid;
-        let row = rows
-            .get(at..end)
-            .ok_or_else(|| format!("brick {cell} is cut short"))?;
-        let brick: BrickData = decode_brick(map.cell_coords(cell), row)
-            .ok_or_else(|| format!("brick {cell} does not decode"))?;
-        map.put_brick(&brick).map_err(|e| e.to_string())?;
+        let coords = map.cell_coords(cell);
+        let end = match format {
+            Rows::Raw => {
+                let end = mask_end + 2 * solid;
+                let row = rows
+                    .get(at..end)
+                    .ok_or_else(|| format!("brick {cell} is cut short"))?;
+                let brick: BrickData = decode_brick(coords, row)
+                    .ok_or_else(|| format!("brick {cell} does not decode"))?;
+                map.put_brick(&brick).map_err(|e| e.to_string())?;
+                end
+            }
+            Rows::Coded => {
+                let bytes = &rows[mask_end.min(rows.len())..];
+                let len = palette::decode(bytes, solid, &mut colours)
+                    .map_err(|e| format!("brick {cell}'s colours: {e}"))?;
+                let mut mask = [0u64; 8];
+                for (word, chunk) in mask.iter_mut().zip(mask_bytes.chunks_exact(8)) {
+                    let mut le = [0u8; 8];
+                    le.copy_from_slice(chunk);
+                    *word = u64::from_le_bytes(le);
+                }
+                let block: Vec<u16> = bytes[..len]
+                    .chunks_exact(2)
+                    .map(|w| u16::from_le_bytes([w[0], w[1]]))
+                    .collect();
+                map.put_coded(coords, mask, &colours, &block)
+                    .map_err(|e| e.to_string())?;
+                mask_end + len
+            }
+        };
         at = end;
     }
     if at != rows.len() {
@@ -413,18 +466,21 @@ fn put_rows(map: &mut BrickMap, bricks: &Bricks) -> Result<(), String> {
 impl Restored {
     /// A base's scene.
     pub fn from_base(bytes: &[u8]) -> Result<Restored, String> {
-        let base = if bytes.get(..2) == Some(&BASE_V1[..]) {
-            Base {
-                id: 0,
-                whole: decode_as(BASE_V1, bytes, "snapshot")?,
-            }
+        let (base, format) = if bytes.get(..2) == Some(&BASE_V1[..]) {
+            let whole = decode_as(BASE_V1, bytes, "snapshot")?;
+            (Base { id: 0, whole }, Rows::Raw)
+        } else if bytes.get(..2) == Some(&BASE_V2[..]) {
+            (decode_as::<Base>(BASE_V2, bytes, "snapshot")?, Rows::Raw)
         } else {
-            decode_as::<Base>(BASE_MAGIC, bytes, "snapshot")?
+            (
+                decode_as::<Base>(BASE_MAGIC, bytes, "snapshot")?,
+                Rows::Coded,
+            )
         };
         let w = base.whole;
         let mut map = BrickMap::new(w.size).map_err(|e| e.to_string())?;
         map.set_sequence(w.seq);
-        put_rows(&mut map, &w.bricks).map_err(|e| format!("snapshot: {e}"))?;
+        put_rows(&mut map, &w.bricks, format).map_err(|e| format!("snapshot: {e}"))?;
         Ok(Restored {
             map,
             size: w.size,
@@ -443,7 +499,11 @@ impl Restored {
     /// leftover of another chain), an error when it does not decode.
     pub fn apply_delta(&mut self, number: u32, bytes: &[u8]) -> Result<bool, String> {
         let what = format!("snapshot delta {number}");
-        let d: Delta = decode_as(DELTA_MAGIC, bytes, &what)?;
+        let (d, format): (Delta, Rows) = if bytes.get(..2) == Some(&DELTA_V1[..]) {
+            (decode_as(DELTA_V1, bytes, &what)?, Rows::Raw)
+        } else {
+            (decode_as(DELTA_MAGIC, bytes, &what)?, Rows::Coded)
+        };
         if self.base == 0
             || d.base != self.base
             || d.number != number
@@ -453,7 +513,7 @@ impl Restored {
             return Ok(false);
         }
         self.map.set_sequence(d.seq);
-        put_rows(&mut self.map, &d.bricks).map_err(|e| format!("{what}: {e}"))?;
+        put_rows(&mut self.map, &d.bricks, format).map_err(|e| format!("{what}: {e}"))?;
         let total: u64 = self.map.cell_dims().iter().map(|&c| u64::from(c)).product();
         for &cell in &d.emptied {
             if u64::from(cell) >= total {
@@ -512,7 +572,7 @@ pub async fn read(jet: &impl Jet, scene: &str) -> Result<Restored, LogError> {
     let Some((head, _)) = head else {
         return read_legacy(jet, scene).await;
     };
-    if head.version != HEAD_VERSION {
+    if !(1..=HEAD_VERSION).contains(&head.version) {
         return Err(corrupt(format!(
             "its snapshot head has format {} (this brickcast reads {HEAD_VERSION}): upgrade every node",
             head.version
@@ -753,7 +813,10 @@ mod tests {
         let (delta, chain2) = chain_of(delta, "s", Some(chain.clone()));
         assert!(!delta.is_base);
         assert_eq!(delta.name, format!("{}+1", base.name));
-        assert!(delta.bytes.len() < base.bytes.len());
+        // Only the changed bricks (the base's one-colour rows are as small as a delta's now).
+        let d: Delta = decode_as(DELTA_MAGIC, &delta.bytes, "delta").unwrap();
+        assert_eq!(d.bricks.cells.len() + d.emptied.len(), changed.len());
+        assert!((d.bricks.cells.len() as u64) < map.brick_count());
         assert_eq!(chain2.next, 2);
 
         let mut restored = Restored::from_base(&base.bytes).unwrap();
@@ -800,8 +863,7 @@ mod tests {
             rows: Vec<u8>,
         }
         let map = scene();
-        let every = map.bricks().map(|(b, _)| map.cell_index(b.cell));
-        let (bricks, _) = rows_of(&map, every);
+        let bricks = raw_rows(&map);
         let old = OldSnapshotBody {
             size: map.size(),
             seq: 5,
@@ -822,6 +884,130 @@ mod tests {
         );
         assert_eq!(restored.steps.get(&3), Some(&vec![1, 2, 3]));
         assert_eq!(restored.base, 0, "no delta follows an old base");
+    }
+
+    /// Every brick of `map` as raw rows, as snapshots before coded rows held them.
+    fn raw_rows(map: &BrickMap) -> Bricks {
+        let (mut cells, mut rows, mut row) = (Vec::new(), Vec::new(), Vec::new());
+        for (b, _) in map.bricks() {
+            crate::store::encode_brick(&b.mask, &b.colours, &mut row);
+            rows.extend_from_slice(&row);
+            cells.push(map.cell_index(b.cell));
+        }
+        Bricks { cells, rows }
+    }
+
+    /// A chain written before coded rows (`S2` base, `D1` delta) still loads, and a new
+    /// delta (coded) can follow it.
+    #[test]
+    fn chains_of_raw_rows_still_load() {
+        let history = History::new(Vec::new(), 0, 1, 0);
+        let mut map = scene();
+        // Many colours in one brick, so the coded rows are not all one colour.
+        for x in 0..8 {
+            map.set([x, 10, 0], Colour::from_rgb8(10 * x as u8, 7, 99));
+        }
+        let old_base = Base {
+            id: 77,
+            whole: Whole {
+                size: map.size(),
+                seq: 5,
+                pos: 9,
+                undo: Undo {
+                    history: Vec::new(),
+                    steps: Vec::new(),
+                    last_step_id: 0,
+                    answered: Vec::new(),
+                },
+                bricks: raw_rows(&map),
+            },
+        };
+        let before = map.content_hash();
+        map.sphere(
+            [20.0, 20.0, 20.0],
+            4.0,
+            BrushMode::Fill,
+            Colour::from_rgb8(1, 2, 3),
+        );
+        let mut changed_map = BrickMap::new(map.size()).unwrap();
+        for (b, _) in map.bricks().filter(|(b, _)| b.cell[1] >= 2) {
+            changed_map.put_brick(&b).unwrap();
+        }
+        let old_delta = Delta {
+            base: 77,
+            number: 1,
+            seq: 6,
+            pos: 11,
+            undo: Undo {
+                history: Vec::new(),
+                steps: Vec::new(),
+                last_step_id: 0,
+                answered: Vec::new(),
+            },
+            bricks: raw_rows(&changed_map),
+            emptied: Vec::new(),
+        };
+        let mut restored = Restored::from_base(&encode_as(BASE_V2, &old_base).unwrap()).unwrap();
+        assert_eq!(restored.map.content_hash(), before);
+        assert!(
+            restored
+                .apply_delta(1, &encode_as(DELTA_V1, &old_delta).unwrap())
+                .unwrap()
+        );
+        assert_eq!(restored.map.content_hash(), map.content_hash());
+        // The next snapshot on that chain is a coded delta.
+        let chain = Chain {
+            base: 77,
+            base_bytes: 1 << 20,
+            next: 2,
+            delta_bytes: 0,
+            last_step_id: 0,
+        };
+        map.set([1, 20, 1], Colour::from_rgb8(50, 60, 70));
+        let cell = map.cell_index([0, 2, 0]);
+        let delta = prepare(
+            Some(&chain),
+            &map,
+            &[cell],
+            7,
+            12,
+            &history,
+            &HashMap::new(),
+            Vec::new(),
+        );
+        let (delta, _) = chain_of(delta, "s", Some(chain));
+        assert_eq!(delta.bytes.get(..2), Some(&DELTA_MAGIC[..]));
+        assert!(restored.apply_delta(2, &delta.bytes).unwrap());
+        assert_eq!(restored.map.content_hash(), map.content_hash());
+    }
+
+    /// A coded row whose block does not decode is an error naming the brick, not a panic.
+    #[test]
+    fn a_coded_row_that_does_not_decode_is_an_error() {
+        let map = scene();
+        let every = map.bricks().map(|(b, _)| map.cell_index(b.cell));
+        let (bricks, _) = rows_of(&map, every);
+        // Turn the first row's block header (one colour) into a palette of 2 entries whose
+        // indices then run into the next row; or cut the rows short; or name no coding.
+        for bad in [0x11u16, 0x7] {
+            let mut rows = bricks.rows.clone();
+            rows[64..66].copy_from_slice(&bad.to_le_bytes());
+            let broken = Bricks {
+                cells: bricks.cells.clone(),
+                rows,
+            };
+            let mut fresh = BrickMap::new(map.size()).unwrap();
+            assert!(put_rows(&mut fresh, &broken, Rows::Coded).is_err());
+        }
+        let cut = Bricks {
+            cells: bricks.cells.clone(),
+            rows: bricks.rows[..bricks.rows.len() - 1].to_vec(),
+        };
+        let mut fresh = BrickMap::new(map.size()).unwrap();
+        assert!(put_rows(&mut fresh, &cut, Rows::Coded).is_err());
+        let mut fresh = BrickMap::new(map.size()).unwrap();
+        put_rows(&mut fresh, &bricks, Rows::Coded).unwrap();
+        assert_eq!(fresh.content_hash(), map.content_hash());
     }
 
     #[test]
