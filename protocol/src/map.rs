@@ -773,12 +773,17 @@ impl BrickMap {
     /// whatever the cell held. Validates it against the scene first; on error nothing changes.
     pub fn put_brick(&mut self, brick: &BrickData) -> Result<(), MapError> {
         self.check_brick(brick)?;
-        self.note_before(brick.cell);
-        match self.slot_of_cell(brick.cell) {
-            Some(slot) => self.replace_brick(slot, brick.mask, &brick.colours),
-            None => self.insert_brick(brick.cell, brick.mask, &brick.colours),
-        }
+        self.write_checked(brick.cell, brick.mask, &brick.colours, Exact::Smallest);
         Ok(())
+    }
+
+    /// Stores a checked brick at `cell` (inserted or replacing), its colours coded as `how`.
+    fn write_checked(&mut self, cell: [u32; 3], mask: Mask, colours: &[Colour], how: Exact) {
+        self.note_before(cell);
+        match self.slot_of_cell(cell) {
+            Some(slot) => self.replace_brick_as(slot, mask, colours, how),
+            None => self.insert_brick_as(cell, mask, colours, how),
+        }
     }
 
     /// [`BrickMap::put_brick`] for a brick whose colour block is at hand, as a received blob
@@ -809,11 +814,7 @@ impl BrickMap {
             _ => return Err(MapError::InconsistentBrick(cell)),
         };
         self.check_voxels(cell, &mask)?;
-        self.note_before(cell);
-        match self.slot_of_cell(cell) {
-            Some(slot) => self.replace_brick_as(slot, mask, colours, Exact::Given(block)),
-            None => self.insert_brick_as(cell, mask, colours, Exact::Given(block)),
-        }
+        self.write_checked(cell, mask, colours, Exact::Given(block));
         Ok(())
     }
 
@@ -2154,10 +2155,7 @@ mod tests {
                     .collect();
                 let mut bytes = Vec::new();
                 crate::palette::encode(&colours, &mut bytes);
-                let block = bytes
-                    .chunks_exact(2)
-                    .map(|w| u16::from_le_bytes([w[0], w[1]]))
-                    .collect();
+                let block = crate::palette::words_of(&bytes);
                 let brick = BrickData {
                     cell: [i as u32, 1, 0],
                     mask,

@@ -192,7 +192,8 @@ fn short(need_words: usize, have_words: usize) -> PaletteError {
     }
 }
 
-fn words_of(bytes: &[u8]) -> Vec<u16> {
+/// Little-endian bytes as 16-bit words (a trailing odd byte is dropped).
+pub fn words_of(bytes: &[u8]) -> Vec<u16> {
     bytes
         .chunks_exact(2)
         .map(|w| u16::from_le_bytes([w[0], w[1]]))

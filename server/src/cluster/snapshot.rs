@@ -446,10 +446,7 @@ fn put_rows(map: &mut BrickMap, bricks: &Bricks, format: Rows) -> Result<(), Str
                     le.copy_from_slice(chunk);
                     *word = u64::from_le_bytes(le);
                 }
-                let block: Vec<u16> = bytes[..len]
-                    .chunks_exact(2)
-                    .map(|w| u16::from_le_bytes([w[0], w[1]]))
-                    .collect();
+                let block = palette::words_of(&bytes[..len]);
                 map.put_coded(coords, mask, &colours, &block)
                     .map_err(|e| e.to_string())?;
                 mask_end + len
