@@ -29,6 +29,28 @@ use crate::scene::{
     Command, MAX_REPLY_BACKLOG, Outbox, OutboxReceiver, RequestItem, SceneHandle, SessionId,
 };
 
+/// Waits, without reading the client, while its replies are backlogged (over
+/// [`MAX_REPLY_BACKLOG`]) or its queue holds more than twice `max_queue_bytes`, until both are
+/// down to half. Deltas are bounded by resyncs and syncs by their lookahead, so what makes a
+/// queue that large is replies to a client that writes without reading: it is not read again
+/// until the writer catches up, and the writer cuts it off if it takes nothing for the stall
+/// timeout. False when the session should end instead (closed, or the server shutting down).
+async fn hold_while_backlogged(
+    out: &Outbox,
+    max_queue_bytes: usize,
+    shutdown: &mut tokio::sync::watch::Receiver<bool>,
+    metrics: &Metrics,
+) -> bool {
+    if out.reply_backlog() <= MAX_REPLY_BACKLOG && out.queued() <= 2 * max_queue_bytes {
+        return true;
+    }
+    Metrics::add(&metrics.reads_paused, 1);
+    tokio::select! {
+        _ = out.drained_to(MAX_REPLY_BACKLOG / 2, max_queue_bytes) => !out.is_closed(),
+        _ = shutdown.changed() => false,
+    }
+}
+
 /// How long a closing connection keeps reading so its peer can receive the close.
 const CLOSE_GRACE: Duration = Duration::from_secs(2);
 /// Bytes of queued frames one flush may carry, so a long queue still goes out in bounded writes
@@ -337,13 +359,8 @@ async fn read_loop(
     loop {
         // A client that sends faster than it reads its replies is not read until the writer
         // catches up (see `scene::outbox`): its requests wait in its own socket.
-        if out.reply_backlog() > MAX_REPLY_BACKLOG {
-            Metrics::add(&app.metrics.reads_paused, 1);
-            tokio::select! {
-                _ = out.replies_within(MAX_REPLY_BACKLOG / 2) => {}
-                _ = shutdown.changed() => return,
-            }
-            continue;
+        if !hold_while_backlogged(&out, scene.max_queue_bytes, &mut shutdown, &app.metrics).await {
+            return;
         }
         let next = tokio::select! {
             next = stream.next() => next,
@@ -381,13 +398,12 @@ async fn read_loop(
             }
         };
         app.metrics.bytes_in.fetch_add(bytes.len() as u64, Relaxed);
-        // Deltas to a slow reader are bounded by resyncs, but replies (acks, errors) to a client
-        // that keeps writing without reading are not: cut such a client off.
-        if out.queued() > 2 * scene.max_queue_bytes {
-            return reject(
-                ErrorCode::RateLimited,
-                "the client sends but does not read its replies".into(),
-            );
+        // The owner may have answered a run of requests since the check above (it answers a
+        // turn's worth at once): hold this frame until they are written, so a client that
+        // writes without reading meets the pause and then its writer's stall timeout, however
+        // the owner's turns fall.
+        if !hold_while_backlogged(&out, scene.max_queue_bytes, &mut shutdown, &app.metrics).await {
+            return;
         }
         let started = Instant::now();
         let decoded = decode_client(&bytes, limits);

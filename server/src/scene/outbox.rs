@@ -286,12 +286,13 @@ impl Outbox {
         s.replies.load(Relaxed) + folded.saturating_mul(COALESCED_COST)
     }
 
-    /// Resolves once the reply backlog is at most `bound`, or the session is closed.
-    pub async fn replies_within(&self, bound: usize) {
+    /// Resolves once the reply backlog is at most `replies` and the queue holds at most
+    /// `queued` bytes, or the session is closed.
+    pub async fn drained_to(&self, replies: usize, queued: usize) {
         loop {
             let drained = self.shared.drained.notified();
             let closed = self.shared.notify.notified();
-            if self.reply_backlog() <= bound || self.is_closed() {
+            if (self.reply_backlog() <= replies && self.queued() <= queued) || self.is_closed() {
                 return;
             }
             tokio::select! {
@@ -482,7 +483,7 @@ mod tests {
         );
         let waiter = tokio::spawn({
             let out = out.clone();
-            async move { out.replies_within(0).await }
+            async move { out.drained_to(0, usize::MAX).await }
         });
         tokio::task::yield_now().await;
         assert!(!waiter.is_finished());
