@@ -572,13 +572,21 @@ impl BrickMap {
         };
         let s = slot as usize;
         let solid = mask_get(&self.masks[s], bit);
-        let one = match crate::palette::coding_of_words(self.block(slot)) {
-            Ok(crate::palette::Coding::One) => Some(Colour(self.block(slot)[1])),
+        let r = rank(&self.masks[s], bit) as usize;
+        let block = self.block(slot);
+        // Where a raw block keeps this voxel, read beside the header rather than after it: the
+        // two cache misses overlap (a random edit's time is its misses).
+        std::hint::black_box(block.get(1 + r).copied());
+        let coding = crate::palette::coding_of_words(block).ok();
+        let one = match coding {
+            Some(crate::palette::Coding::One) => block.get(1).copied().map(Colour),
             _ => None,
         };
         match (mode, solid) {
             (BrushMode::Paint | BrushMode::Erase, false) => return false,
-            (BrushMode::Fill | BrushMode::Paint, true) if self.get(pos) == Some(colour) => {
+            (BrushMode::Fill | BrushMode::Paint, true)
+                if crate::palette::colour_at_words(block, r) == Some(colour) =>
+            {
                 return false;
             }
             (BrushMode::Erase, true) if popcount(&self.masks[s]) == 1 => {
@@ -597,11 +605,10 @@ impl BrickMap {
                 }
                 self.mark_slot(slot);
             }
-            _ if self.edit_block_in_place(slot, bit, mode, solid, colour) => {}
+            _ if self.edit_block_in_place(slot, bit, r, mode, solid, colour) => {}
             _ => {
                 let mut scratch = [Colour::BLACK; VOXELS + 1];
                 let len = popcount(&self.masks[s]) as usize;
-                let r = rank(&self.masks[s], bit) as usize;
                 self.slot_colours(slot, (&mut scratch[..VOXELS]).try_into().expect("512"));
                 let mut mask = self.masks[s];
                 let n = match (mode, solid) {
@@ -628,9 +635,9 @@ impl BrickMap {
                 // which the next such edits change in place, rather than sorting the brick's
                 // colours each time. Brushes and loads re-code it at its smallest.
                 let raw = self.colour_bound.is_none()
-                    && match crate::palette::coding_of_words(self.block(slot)) {
-                        Ok(crate::palette::Coding::Raw) => true,
-                        Ok(crate::palette::Coding::Palette { bits, entries }) => {
+                    && match coding {
+                        Some(crate::palette::Coding::Raw) => true,
+                        Some(crate::palette::Coding::Palette { bits, entries }) => {
                             bits >= 4 && entries == 1 << bits && mode != BrushMode::Erase
                         }
                         _ => false,
@@ -644,12 +651,14 @@ impl BrickMap {
         true
     }
 
-    /// A single voxel's edit made in its brick's block where it lies (`crate::block_edit`):
-    /// whether it was. Not in a copy with a colour bound (its blocks are re-coded whole).
+    /// A single voxel's edit (voxel `bit`, the `r`th solid one of its brick) made in its
+    /// brick's block where it lies (`crate::block_edit`): whether it was. Not in a copy with a
+    /// colour bound (its blocks are re-coded whole).
     fn edit_block_in_place(
         &mut self,
         slot: u32,
         bit: u32,
+        r: usize,
         mode: BrushMode,
         solid: bool,
         colour: Colour,
@@ -660,7 +669,6 @@ impl BrickMap {
         }
         let s = slot as usize;
         let n = popcount(&self.masks[s]) as usize;
-        let r = rank(&self.masks[s], bit) as usize;
         let edit = match (mode, solid) {
             (BrushMode::Erase, true) => Edit::Remove,
             (BrushMode::Fill | BrushMode::Paint, true) => Edit::Recolour(colour),
