@@ -366,6 +366,22 @@ pub fn lossy_many(bricks: &[(&[Colour], Coding)], bound: u32, threads: usize) ->
     })
 }
 
+/// The order-0 entropy of `colours` in bits, all of them together: Σ −log2(count/n) over the
+/// voxels, `n` times the entropy of the brick's colour histogram. `scratch` is reused.
+pub fn entropy_bits(colours: &[Colour], scratch: &mut Vec<u16>) -> f64 {
+    let n = colours.len() as f64;
+    scratch.clear();
+    scratch.extend(colours.iter().map(|c| c.0));
+    scratch.sort_unstable();
+    scratch
+        .chunk_by(|a, b| a == b)
+        .map(|run| {
+            let k = run.len() as f64;
+            k * (n / k).log2()
+        })
+        .sum()
+}
+
 /// How a scene's bricks would be coded: counts per coding and the bytes of their blocks
 /// (`brickcast-server stats`).
 #[derive(Debug, Default, Clone, PartialEq, serde::Serialize)]
@@ -383,6 +399,12 @@ pub struct Mix {
     pub bytes: u64,
     /// Bits per solid voxel the colours take coded.
     pub bits_per_voxel: f64,
+    /// The order-0 entropy of each brick's exact colours, in bits per solid voxel over the
+    /// scene: what any code of a brick that spends a fixed number of bits on each of its
+    /// colours (a palette, whatever its indices) cannot go below, before the palette itself is
+    /// paid for (of the exact colours, also in a bounded mix). `None` where the mix was counted
+    /// without the colours (`add_coded` alone).
+    pub entropy_bits_per_voxel: Option<f64>,
     /// The bound blocks were allowed (largest error per channel, 0–255 scale); `None`: exact.
     pub bound: Option<u32>,
     /// The largest error of any voxel per channel (0–255 scale), against the exact colours.
@@ -401,6 +423,16 @@ impl Mix {
         for (coding, voxels) in map.codings() {
             mix.add_coded(coding, voxels);
         }
+        let mut scratch = Vec::new();
+        let bits: f64 = map
+            .bricks()
+            .map(|(brick, _)| entropy_bits(&brick.colours, &mut scratch))
+            .sum();
+        mix.entropy_bits_per_voxel = Some(if mix.voxels == 0 {
+            0.0
+        } else {
+            bits / mix.voxels as f64
+        });
         mix
     }
 
@@ -411,10 +443,11 @@ impl Mix {
             bound: Some(bound),
             ..Mix::default()
         };
-        let mut scratch = Vec::new();
+        let (mut scratch, mut sorted, mut entropy) = (Vec::new(), Vec::new(), 0.0);
         for (brick, _) in map.bricks() {
             let (coding, _) = choose(&brick.colours);
             let n = brick.colours.len();
+            entropy += entropy_bits(&brick.colours, &mut sorted);
             match lossy(&brick.colours, coding, bound, &mut scratch) {
                 Some((bits, loss)) => {
                     mix.worst_error = mix.worst_error.max(loss.worst);
@@ -424,6 +457,11 @@ impl Mix {
                 None => mix.add_coded(coding, n),
             }
         }
+        mix.entropy_bits_per_voxel = Some(if mix.voxels == 0 {
+            0.0
+        } else {
+            entropy / mix.voxels as f64
+        });
         mix.psnr_db = (mix.squared_error > 0).then(|| {
             let mse = mix.squared_error as f64 / (3.0 * mix.voxels as f64);
             10.0 * (255.0f64 * 255.0 / mse).log10()
@@ -459,6 +497,23 @@ impl Mix {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn entropy_counts_bits_of_each_colours_share() {
+        let mut scratch = Vec::new();
+        let c = |v: u16| Colour(v);
+        assert_eq!(entropy_bits(&[], &mut scratch), 0.0);
+        assert_eq!(entropy_bits(&[c(7); 9], &mut scratch), 0.0);
+        // Two colours half each: one bit a voxel.
+        assert_eq!(entropy_bits(&[c(1), c(2), c(2), c(1)], &mut scratch), 4.0);
+        // Eight colours, equally often: three bits a voxel, in any order.
+        let eight: Vec<Colour> = (0..64).map(|i| c((i * 5 % 8) as u16)).collect();
+        assert!((entropy_bits(&eight, &mut scratch) - 192.0).abs() < 1e-9);
+        // 3:1 — 0.811 bits a voxel.
+        let skew = [c(1), c(1), c(1), c(2)];
+        let h = -(0.75f64 * 0.75f64.log2() + 0.25 * 0.25f64.log2());
+        assert!((entropy_bits(&skew, &mut scratch) - 4.0 * h).abs() < 1e-9);
+    }
 
     #[test]
     fn lossy_many_codes_as_one_brick_at_a_time_does() {

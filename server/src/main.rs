@@ -311,6 +311,11 @@ fn print_coded(c: &brickcast_protocol::palette::Mix) {
         c.blocks[0],
         c.blocks[1]
     );
+    if let Some(h) = c.entropy_bits_per_voxel {
+        println!(
+            "    entropy of each brick's colours {h:.2} bits per voxel (no palette code goes below it)"
+        );
+    }
     if let Some(psnr) = c.psnr_db {
         println!(
             "    colour error: PSNR {psnr:.2} dB over every solid voxel, worst {} of 255",
