@@ -10,7 +10,7 @@ use crate::colour::Colour;
 use crate::map::{BrickMap, BrushMode, MapError};
 
 /// Integer hash → 0..1, the lattice of the value noise.
-fn lattice(x: i32, z: i32, seed: u32) -> f32 {
+pub(crate) fn lattice(x: i32, z: i32, seed: u32) -> f32 {
     let mut h = (x as u32).wrapping_mul(0x8DA6_B343)
         ^ (z as u32).wrapping_mul(0xD816_3841)
         ^ seed.wrapping_mul(0xCB1A_B31F);
@@ -21,7 +21,7 @@ fn lattice(x: i32, z: i32, seed: u32) -> f32 {
 }
 
 /// Smoothly interpolated value noise at scale `cell` voxels.
-fn value_noise(x: f32, z: f32, cell: f32, seed: u32) -> f32 {
+pub(crate) fn value_noise(x: f32, z: f32, cell: f32, seed: u32) -> f32 {
     let (fx, fz) = (x / cell, z / cell);
     let (ix, iz) = (fx.floor() as i32, fz.floor() as i32);
     let (tx, tz) = (fx - ix as f32, fz - iz as f32);
@@ -32,15 +32,18 @@ fn value_noise(x: f32, z: f32, cell: f32, seed: u32) -> f32 {
     a + (b - a) * sz
 }
 
-/// Terrain layout for a scene of a given size.
-struct Terrain {
-    size: [u32; 3],
-    water: u32,
+/// Terrain layout for a scene of a given size: heights from three octaves of value noise
+/// (`scales` in voxels, `seeds` per octave, weights 0.55 / 0.3 / 0.15), water at `water`.
+pub(crate) struct Terrain {
+    pub size: [u32; 3],
+    pub water: u32,
+    pub scales: [f32; 3],
+    pub seeds: [u32; 3],
 }
 
 /// Height scale of the terrain: half the horizontal extent, or the scene height if lower, so a
 /// taller scene gets more sky rather than steeper mountains.
-fn relief(size: [u32; 3]) -> u32 {
+pub(crate) fn relief(size: [u32; 3]) -> u32 {
     size[1].min(size[0].max(size[2]) / 2).max(1)
 }
 
@@ -49,12 +52,24 @@ impl Terrain {
         relief(self.size)
     }
 
-    fn height(&self, x: u32, z: u32) -> u32 {
-        let s = self.size[0].max(self.size[2]) as f32;
+    /// The demo's terrain: noise scales relative to the scene, so any size is one landscape.
+    fn demo(size: [u32; 3]) -> Terrain {
+        let s = size[0].max(size[2]) as f32;
+        Terrain {
+            size,
+            water: relief(size) * 3 / 16,
+            scales: [s / 4.0, s / 10.0, s / 32.0],
+            seeds: [1, 2, 3],
+        }
+    }
+
+    pub fn height(&self, x: u32, z: u32) -> u32 {
         let (x, z) = (x as f32, z as f32);
-        let n = 0.55 * value_noise(x, z, s / 4.0, 1)
-            + 0.3 * value_noise(x, z, s / 10.0, 2)
-            + 0.15 * value_noise(x, z, s / 32.0, 3);
+        let [a, b, c] = self.scales;
+        let [sa, sb, sc] = self.seeds;
+        let n = 0.55 * value_noise(x, z, a, sa)
+            + 0.3 * value_noise(x, z, b, sb)
+            + 0.15 * value_noise(x, z, c, sc);
         let top = self.relief() as f32;
         ((top * (0.12 + 0.5 * n * n)) as u32).clamp(1, self.size[1] - 1)
     }
@@ -80,83 +95,18 @@ impl Terrain {
 /// The demo scene at `size` voxels (the server uses 512³).
 pub fn demo_scene(size: [u32; 3]) -> Result<BrickMap, MapError> {
     let mut map = BrickMap::new(size)?;
-    let terrain = Terrain {
-        size,
-        water: relief(size) * 3 / 16,
-    };
+    let terrain = Terrain::demo(size);
     let cells = map.cell_dims();
-    let mut heights = vec![0u32; 10 * 10];
+    let mut heights = Vec::new();
     for cz in 0..cells[2] {
         for cx in 0..cells[0] {
-            // Heights of this brick column's 8×8 voxel columns and one ring around it: the crust
-            // reaches down to the lowest neighbour so steep slopes have no holes.
-            for dz in 0..10u32 {
-                for dx in 0..10u32 {
-                    let x = (cx * BRICK_EDGE + dx).saturating_sub(1).min(size[0] - 1);
-                    let z = (cz * BRICK_EDGE + dz).saturating_sub(1).min(size[2] - 1);
-                    heights[(dz * 10 + dx) as usize] = terrain.height(x, z);
+            let mut result = Ok(());
+            terrain.crust(cx, cz, &mut heights, |brick| {
+                if result.is_ok() {
+                    result = map.put_brick(&brick);
                 }
-            }
-            let column = |lx: u32, lz: u32| -> Option<(u32, u32)> {
-                let (x, z) = (cx * BRICK_EDGE + lx, cz * BRICK_EDGE + lz);
-                if x >= size[0] || z >= size[2] {
-                    return None;
-                }
-                let h = heights[((lz + 1) * 10 + lx + 1) as usize];
-                let low = [(0, 1), (2, 1), (1, 0), (1, 2)]
-                    .iter()
-                    .map(|&(ox, oz)| heights[((lz + oz) * 10 + lx + ox) as usize])
-                    .min()
-                    .unwrap_or(h);
-                let surface = h.max(terrain.water);
-                Some((low.min(h).saturating_sub(3), surface))
-            };
-            let (mut lo, mut hi) = (u32::MAX, 0);
-            for lz in 0..8 {
-                for lx in 0..8 {
-                    if let Some((a, b)) = column(lx, lz) {
-                        lo = lo.min(a);
-                        hi = hi.max(b);
-                    }
-                }
-            }
-            if lo > hi {
-                continue;
-            }
-            for cy in lo / BRICK_EDGE..=hi / BRICK_EDGE {
-                let mut brick = BrickData {
-                    cell: [cx, cy, cz],
-                    mask: EMPTY_MASK,
-                    colours: Vec::new(),
-                };
-                // Bit order is x fastest, then y, then z: emit colours in that order.
-                for lz in 0..8 {
-                    for ly in 0..8 {
-                        for lx in 0..8 {
-                            let Some((bottom, surface)) = column(lx, lz) else {
-                                continue;
-                            };
-                            let y = cy * BRICK_EDGE + ly;
-                            if y < bottom || y > surface || y >= size[1] {
-                                continue;
-                            }
-                            let (x, z) = (cx * BRICK_EDGE + lx, cz * BRICK_EDGE + lz);
-                            let ground = heights[((lz + 1) * 10 + lx + 1) as usize];
-                            let colour = if y > ground {
-                                let ripple = (lattice(x as i32, z as i32, 5) * 20.0) as u8;
-                                Colour::from_rgb8(40, 90 + ripple, 170 + ripple)
-                            } else {
-                                terrain.colour(x, y, z, ground)
-                            };
-                            mask_set(&mut brick.mask, voxel_bit(lx, ly, lz), true);
-                            brick.colours.push(colour);
-                        }
-                    }
-                }
-                if !brick.colours.is_empty() {
-                    map.put_brick(&brick)?;
-                }
-            }
+            });
+            result?;
         }
     }
     add_village(&mut map, &terrain);
@@ -164,15 +114,90 @@ pub fn demo_scene(size: [u32; 3]) -> Result<BrickMap, MapError> {
     Ok(map)
 }
 
+impl Terrain {
+    /// The bricks of the brick column `(cx, cz)` (scene cells), bottom up, handed to `out`:
+    /// the ground's crust a few voxels thick and the water above low ground. `heights` is
+    /// scratch space.
+    pub fn crust(&self, cx: u32, cz: u32, heights: &mut Vec<u32>, mut out: impl FnMut(BrickData)) {
+        let (size, terrain) = (self.size, self);
+        // Heights of this brick column's 8×8 voxel columns and one ring around it: the crust
+        // reaches down to the lowest neighbour so steep slopes have no holes.
+        heights.clear();
+        heights.resize(10 * 10, 0);
+        for dz in 0..10u32 {
+            for dx in 0..10u32 {
+                let x = (cx * BRICK_EDGE + dx).saturating_sub(1).min(size[0] - 1);
+                let z = (cz * BRICK_EDGE + dz).saturating_sub(1).min(size[2] - 1);
+                heights[(dz * 10 + dx) as usize] = terrain.height(x, z);
+            }
+        }
+        let column = |lx: u32, lz: u32| -> Option<(u32, u32)> {
+            let (x, z) = (cx * BRICK_EDGE + lx, cz * BRICK_EDGE + lz);
+            if x >= size[0] || z >= size[2] {
+                return None;
+            }
+            let h = heights[((lz + 1) * 10 + lx + 1) as usize];
+            let low = [(0, 1), (2, 1), (1, 0), (1, 2)]
+                .iter()
+                .map(|&(ox, oz)| heights[((lz + oz) * 10 + lx + ox) as usize])
+                .min()
+                .unwrap_or(h);
+            let surface = h.max(terrain.water);
+            Some((low.min(h).saturating_sub(3), surface))
+        };
+        let (mut lo, mut hi) = (u32::MAX, 0);
+        for lz in 0..8 {
+            for lx in 0..8 {
+                if let Some((a, b)) = column(lx, lz) {
+                    lo = lo.min(a);
+                    hi = hi.max(b);
+                }
+            }
+        }
+        if lo > hi {
+            return;
+        }
+        for cy in lo / BRICK_EDGE..=hi / BRICK_EDGE {
+            let mut brick = BrickData {
+                cell: [cx, cy, cz],
+                mask: EMPTY_MASK,
+                colours: Vec::new(),
+            };
+            // Bit order is x fastest, then y, then z: emit colours in that order.
+            for lz in 0..8 {
+                for ly in 0..8 {
+                    for lx in 0..8 {
+                        let Some((bottom, surface)) = column(lx, lz) else {
+                            continue;
+                        };
+                        let y = cy * BRICK_EDGE + ly;
+                        if y < bottom || y > surface || y >= size[1] {
+                            continue;
+                        }
+                        let (x, z) = (cx * BRICK_EDGE + lx, cz * BRICK_EDGE + lz);
+                        let ground = heights[((lz + 1) * 10 + lx + 1) as usize];
+                        let colour = if y > ground {
+                            let ripple = (lattice(x as i32, z as i32, 5) * 20.0) as u8;
+                            Colour::from_rgb8(40, 90 + ripple, 170 + ripple)
+                        } else {
+                            terrain.colour(x, y, z, ground)
+                        };
+                        mask_set(&mut brick.mask, voxel_bit(lx, ly, lz), true);
+                        brick.colours.push(colour);
+                    }
+                }
+            }
+            if !brick.colours.is_empty() {
+                out(brick);
+            }
+        }
+    }
+}
+
 /// Houses and trees on dry, gentle ground, placed by the same deterministic hash.
 fn add_village(map: &mut BrickMap, terrain: &Terrain) {
     let size = terrain.size;
     let unit = (size[0].min(size[2]) / 64).max(2);
-    let wall = Colour::from_rgb8(226, 214, 190);
-    let roof = Colour::from_rgb8(168, 60, 44);
-    let glass = Colour::from_rgb8(60, 80, 110);
-    let trunk = Colour::from_rgb8(96, 64, 36);
-    let leaves = Colour::from_rgb8(46, 112, 40);
     let mut placed = 0;
     for i in 0..400u32 {
         if placed >= 24 {
@@ -181,66 +206,96 @@ fn add_village(map: &mut BrickMap, terrain: &Terrain) {
         let x = (lattice(i as i32, 1, 11) * (size[0] - 8 * unit) as f32) as u32 + 4 * unit;
         let z = (lattice(i as i32, 2, 11) * (size[2] - 8 * unit) as f32) as u32 + 4 * unit;
         let (w, d) = (3 * unit, 2 * unit + (i % 3) * unit / 2);
-        let corners = [(x, z), (x + w, z), (x, z + d), (x + w, z + d)]
-            .map(|(cx, cz)| terrain.height(cx.min(size[0] - 1), cz.min(size[2] - 1)));
-        let (lo, hi) = (
-            corners.iter().min().copied().unwrap_or(0),
-            corners.iter().max().copied().unwrap_or(0),
-        );
-        if lo <= terrain.water + 2 || hi - lo > unit || hi + 4 * unit >= size[1] {
+        let Some((lo, hi)) = terrain.building_ground(x, z, w, d, unit) else {
             continue;
-        }
+        };
         placed += 1;
         if i % 3 == 2 {
-            // A tree.
-            let h = 3 * unit;
-            map.fill_box(
-                [x, lo, z],
-                [x + unit / 2, hi + h, z + unit / 2],
-                BrushMode::Fill,
-                trunk,
-            );
-            let centre = [
-                x as f32 + unit as f32 * 0.25,
-                (hi + h) as f32,
-                z as f32 + unit as f32 * 0.25,
-            ];
-            map.sphere(centre, unit as f32 * 1.4, BrushMode::Fill, leaves);
-            continue;
+            draw_tree(map, [x, z], [lo, hi], unit);
+        } else {
+            draw_house(map, [x, z], [w, d], [lo, hi], unit);
         }
-        let top = hi + 2 * unit;
-        map.fill_box([x, lo, z], [x + w, top, z + d], BrushMode::Fill, wall);
+    }
+}
+
+impl Terrain {
+    /// The lowest and highest ground under the corners of a `w`×`d` footprint at `(x, z)`,
+    /// where something `unit`-sized may stand there: dry, gentle ground with room above.
+    pub fn building_ground(&self, x: u32, z: u32, w: u32, d: u32, unit: u32) -> Option<(u32, u32)> {
+        let size = self.size;
+        let corners = [(x, z), (x + w, z), (x, z + d), (x + w, z + d)]
+            .map(|(cx, cz)| self.height(cx.min(size[0] - 1), cz.min(size[2] - 1)));
+        let lo = corners.iter().min().copied().unwrap_or(0);
+        let hi = corners.iter().max().copied().unwrap_or(0);
+        (lo > self.water + 2 && hi - lo <= unit && hi + 4 * unit < size[1]).then_some((lo, hi))
+    }
+}
+
+/// A tree on ground between `ground[0]` and `ground[1]` at `(x, z)` of `map`: a trunk
+/// `unit / 2` wide and `3·unit` above the ground, a crown of radius `1.4·unit`.
+pub(crate) fn draw_tree(map: &mut BrickMap, [x, z]: [u32; 2], [lo, hi]: [u32; 2], unit: u32) {
+    let trunk = Colour::from_rgb8(96, 64, 36);
+    let leaves = Colour::from_rgb8(46, 112, 40);
+    let h = 3 * unit;
+    map.fill_box(
+        [x, lo, z],
+        [x + unit / 2, hi + h, z + unit / 2],
+        BrushMode::Fill,
+        trunk,
+    );
+    let centre = [
+        x as f32 + unit as f32 * 0.25,
+        (hi + h) as f32,
+        z as f32 + unit as f32 * 0.25,
+    ];
+    map.sphere(centre, unit as f32 * 1.4, BrushMode::Fill, leaves);
+}
+
+/// A house of `w`×`d` voxels at `(x, z)` of `map` on ground between `ground[0]` and
+/// `ground[1]`: hollow walls `2·unit` above the ground, windows along the long walls, a
+/// stepped roof.
+pub(crate) fn draw_house(
+    map: &mut BrickMap,
+    [x, z]: [u32; 2],
+    [w, d]: [u32; 2],
+    [lo, hi]: [u32; 2],
+    unit: u32,
+) {
+    let wall = Colour::from_rgb8(226, 214, 190);
+    let roof = Colour::from_rgb8(168, 60, 44);
+    let glass = Colour::from_rgb8(60, 80, 110);
+    let top = hi + 2 * unit;
+    map.fill_box([x, lo, z], [x + w, top, z + d], BrushMode::Fill, wall);
+    map.fill_box(
+        [x + 1, hi + 1, z + 1],
+        [x + w - 1, top - 1, z + d - 1],
+        BrushMode::Erase,
+        wall,
+    );
+    // Windows along the long walls.
+    let win = (unit / 2).max(1);
+    let mut wx = x + unit / 2;
+    while wx + win < x + w {
         map.fill_box(
-            [x + 1, hi + 1, z + 1],
-            [x + w - 1, top - 1, z + d - 1],
-            BrushMode::Erase,
-            wall,
+            [wx, hi + unit / 2, z],
+            [wx + win, hi + unit / 2 + win, z + d],
+            BrushMode::Paint,
+            glass,
         );
-        // Windows along the long walls.
-        let win = (unit / 2).max(1);
-        let mut wx = x + unit / 2;
-        while wx + win < x + w {
-            map.fill_box(
-                [wx, hi + unit / 2, z],
-                [wx + win, hi + unit / 2 + win, z + d],
-                BrushMode::Paint,
-                glass,
-            );
-            wx += unit;
+        wx += unit;
+    }
+    // A stepped roof.
+    for step in 0..=unit {
+        let y = top + 1 + step;
+        if step * 2 > d || y >= map.size()[1] {
+            break;
         }
-        // A stepped roof.
-        for step in 0..=unit {
-            let y = top + 1 + step;
-            if step * 2 > d || y >= size[1] {
-                break;
-            }
-            map.fill_box(
-                [x, y, z + step],
-                [x + w, y, z + d - step],
-                BrushMode::Fill,
-                roof,
-            );
-        }
+        map.fill_box(
+            [x, y, z + step],
+            [x + w, y, z + d - step],
+            BrushMode::Fill,
+            roof,
+        );
     }
 }
 

@@ -34,6 +34,7 @@ pub mod shadow;
 pub mod trace;
 pub mod viewpoint;
 pub mod wire;
+pub mod world;
 
 pub use brick::{BrickData, EMPTY, Mask};
 pub use colour::Colour;

@@ -10,6 +10,7 @@ use brickcast_server::store::Store;
 use brickcast_server::{Server, ServerConfig};
 use clap::{Parser, Subcommand};
 
+mod generate_cli;
 mod import_cli;
 
 #[derive(Parser)]
@@ -62,6 +63,10 @@ enum Cmd {
     ///
     /// With a server running on the same store, the scene is handed to it and served at once.
     Import(import_cli::Args),
+    /// Make a procedural world into the store, tile by tile on every core (for worlds too large
+    /// to build whole first).
+    #[command(subcommand)]
+    Generate(generate_cli::Kind),
     /// Ask a cluster what it holds.
     Cluster {
         #[command(subcommand)]
@@ -194,6 +199,7 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Cmd::Import(args) => import_cli::run(args),
+        Cmd::Generate(kind) => generate_cli::run(kind),
         Cmd::Cluster {
             command: ClusterCmd::Status { nats, json },
         } => {

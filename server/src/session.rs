@@ -359,7 +359,7 @@ async fn read_loop(
     loop {
         // A client that sends faster than it reads its replies is not read until the writer
         // catches up (see `scene::outbox`): its requests wait in its own socket.
-        if !hold_while_backlogged(&out, scene.max_queue_bytes, &mut shutdown, &app.metrics).await {
+        if !hold_while_backlogged(out, scene.max_queue_bytes, &mut shutdown, &app.metrics).await {
             return;
         }
         let next = tokio::select! {
@@ -402,7 +402,7 @@ async fn read_loop(
         // turn's worth at once): hold this frame until they are written, so a client that
         // writes without reading meets the pause and then its writer's stall timeout, however
         // the owner's turns fall.
-        if !hold_while_backlogged(&out, scene.max_queue_bytes, &mut shutdown, &app.metrics).await {
+        if !hold_while_backlogged(out, scene.max_queue_bytes, &mut shutdown, &app.metrics).await {
             return;
         }
         let started = Instant::now();

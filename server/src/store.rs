@@ -30,6 +30,9 @@ use crate::scene::history::{HistoryWrites, Stacks, StepMeta};
 use crate::scene::{AnsweredEntry, LogError, SceneLog, SnapshotOf, TurnWrite};
 use crate::store_rows::{self, decode_row, encode_row};
 
+mod streamed;
+pub use streamed::SceneWriter;
+
 /// `undo/<scene>`: (user, step id) → bincode [`StepMeta`].
 type UndoIndex<'a> = TableDefinition<'a, (u64, u64), &'static [u8]>;
 
@@ -63,6 +66,13 @@ pub enum StoreError {
     UnknownScene(String),
     #[error("scene {0} already exists")]
     SceneExists(String),
+    /// A brick handed to a [`SceneWriter`] that the scene cannot hold.
+    #[error("scene {scene}: brick at cell {cell:?} cannot be stored: {detail}")]
+    BadBrick {
+        scene: String,
+        cell: [u32; 3],
+        detail: String,
+    },
     #[error(
         "scene name {0:?} is invalid: use 1-64 letters, digits, '-', '_' or '.', starting with a letter or digit"
     )]
@@ -110,6 +120,15 @@ pub struct SceneMeta {
     pub size: [u32; 3],
     /// Sequence number the brick snapshot reflects; log entries after it are replayed.
     pub snapshot_seq: u64,
+}
+
+impl SceneMeta {
+    fn bytes(&self, scene: &str) -> Result<Vec<u8>, StoreError> {
+        bincode::serde::encode_to_vec(self, bincode_config()).map_err(|e| StoreError::Corrupt {
+            scene: scene.into(),
+            detail: e.to_string(),
+        })
+    }
 }
 
 /// Scene names become redb table names, URL path segments and spool file names: keep them
@@ -323,13 +342,7 @@ impl Store {
                 size: map.size(),
                 snapshot_seq: map.sequence(),
             };
-            let bytes = bincode::serde::encode_to_vec(&meta, bincode_config()).map_err(|e| {
-                StoreError::Corrupt {
-                    scene: name.into(),
-                    detail: e.to_string(),
-                }
-            })?;
-            scenes.insert(name, bytes.as_slice())?;
+            scenes.insert(name, meta.bytes(name)?.as_slice())?;
             let bricks_name = bricks_table(name);
             let mut bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
             let mut row = Vec::with_capacity(64 + 1024);
