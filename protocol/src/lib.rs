@@ -11,6 +11,7 @@
 //! * [`wire`]: the websocket messages and their compact, compressed brick payloads.
 //! * [`apply`]: what a wire edit op does to a brick map (shared by the server and log replay).
 //! * [`demo`]: the built-in procedural demo scene.
+//! * [`lod`]: levels of detail, a mip pyramid of the map kept current as edits land.
 //! * [`journal`]: before-images of the bricks an edit changes (for undo), and brick diffs.
 //! * [`replica`]: a client's copy of a scene, kept current by applying server messages.
 //! * [`roster`]: a client's list of who else is present and what they look at.
@@ -24,6 +25,7 @@ pub mod brick;
 pub mod colour;
 pub mod demo;
 pub mod journal;
+pub mod lod;
 pub mod map;
 pub mod palette;
 pub mod render;

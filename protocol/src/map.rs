@@ -35,9 +35,13 @@ pub const REGION_CELLS: u32 = 4;
 pub const REGION_EDGE: u32 = REGION_CELLS * BRICK_EDGE;
 /// Cells in one cell block.
 pub const CELLS_PER_BLOCK: u32 = REGION_CELLS * REGION_CELLS * REGION_CELLS;
-/// Largest scene edge in voxels. Keeps every coordinate exact in `f32` (< 2^24) and the region
-/// array at most 256³ entries (64 MiB).
-pub const MAX_SCENE_EDGE: u32 = 8192;
+/// Largest scene edge in voxels: BrickMap's 16384×512×16384 world fits. Keeps every coordinate
+/// exact in `f32` (< 2^24), coarse cells in `u16` on the wire, and the tracers' settle shortcut
+/// sound (`trace::clearly_inside_voxel` allows planes up to this).
+pub const MAX_SCENE_EDGE: u32 = 16384;
+/// Most regions a scene may have: the region array is at most 64 MiB however the scene is shaped
+/// (a 16384×512×16384 world has 4 Mi regions; a 16384³ cube, 128 Mi, is refused).
+pub const MAX_REGIONS: u64 = 1 << 24;
 
 /// Largest clearance stored for an empty region. Allocating a region lowers the clearance of the
 /// (2·cap+1)³ regions around it, so the cap bounds that cost; 6 lets a ray leave up to 13 regions
@@ -91,6 +95,10 @@ pub const fn region_clearance(entry: u32) -> u32 {
 pub enum MapError {
     #[error("scene size {0:?} is invalid: every axis must be 1..={MAX_SCENE_EDGE} voxels")]
     BadSize([u32; 3]),
+    #[error(
+        "scene size {size:?} is too large: it needs {regions} regions of {REGION_EDGE}³ voxels, at most {MAX_REGIONS} are allowed (e.g. 16384×512×16384 or 8192³)"
+    )]
+    TooManyRegions { size: [u32; 3], regions: u64 },
     #[error("brick cell {cell:?} lies outside the scene's coarse grid {cells:?}")]
     CellOutOfBounds { cell: [u32; 3], cells: [u32; 3] },
     #[error("brick at cell {0:?} has solid voxels outside the scene bounds")]
@@ -271,9 +279,7 @@ pub const fn colour_capacity(n: u32) -> u32 {
 impl BrickMap {
     /// An empty scene of `size` voxels.
     pub fn new(size: [u32; 3]) -> Result<BrickMap, MapError> {
-        if size.iter().any(|&s| s == 0 || s > MAX_SCENE_EDGE) {
-            return Err(MapError::BadSize(size));
-        }
+        Self::check_size(size)?;
         let cell_dims = size.map(|s| s.div_ceil(BRICK_EDGE));
         let region_dims = cell_dims.map(|c| c.div_ceil(REGION_CELLS));
         let region_count = region_dims.iter().map(|&d| d as usize).product();
@@ -307,6 +313,23 @@ impl BrickMap {
             journal: crate::journal::Journal::default(),
             deferred_clearance: None,
         })
+    }
+
+    /// Whether a scene of `size` voxels may exist: every axis 1..=[`MAX_SCENE_EDGE`] and at most
+    /// [`MAX_REGIONS`] regions. Allocates nothing, so a caller can check a world too large to build
+    /// whole.
+    pub fn check_size(size: [u32; 3]) -> Result<(), MapError> {
+        if size.iter().any(|&s| s == 0 || s > MAX_SCENE_EDGE) {
+            return Err(MapError::BadSize(size));
+        }
+        let regions = size
+            .iter()
+            .map(|&s| u64::from(s.div_ceil(REGION_EDGE)))
+            .product::<u64>();
+        if regions > MAX_REGIONS {
+            return Err(MapError::TooManyRegions { size, regions });
+        }
+        Ok(())
     }
 
     pub fn size(&self) -> [u32; 3] {
@@ -2439,5 +2462,19 @@ mod tests {
         assert!(BrickMap::new([MAX_SCENE_EDGE + 1, 1, 1]).is_err());
         let big = BrickMap::new([4096, 4096, 4096]).unwrap();
         assert_eq!(big.memory().region_bytes, 128 * 128 * 128 * 4);
+        // BrickMap's world is allowed; a cube of the same edge would need 512 MiB of regions.
+        let world = BrickMap::new([MAX_SCENE_EDGE, 512, MAX_SCENE_EDGE]).unwrap();
+        assert_eq!(world.memory().region_bytes, 512 * 16 * 512 * 4);
+        let cube = [MAX_SCENE_EDGE; 3];
+        let err = BrickMap::check_size(cube).unwrap_err();
+        assert_eq!(
+            err,
+            MapError::TooManyRegions {
+                size: cube,
+                regions: 512 * 512 * 512
+            }
+        );
+        assert!(err.to_string().contains("16384×512×16384"), "{err}");
+        assert!(BrickMap::check_size([8192; 3]).is_ok());
     }
 }

@@ -118,9 +118,10 @@ pub struct Frame {
     pub hits: Vec<u32>,
 }
 
-/// Linear index of a voxel, as used in [`Frame::hits`].
+/// Linear index of a voxel, as used in [`Frame::hits`]. Scenes of more than 2^32 voxels wrap it
+/// (it only identifies a hit for comparing renderers), so no scene size can make it panic.
 pub fn voxel_index(size: [u32; 3], v: [u32; 3]) -> u32 {
-    v[0] + size[0] * (v[1] + size[1] * v[2])
+    v[0].wrapping_add(size[0].wrapping_mul(v[1].wrapping_add(size[1].wrapping_mul(v[2]))))
 }
 
 /// Shaded colour and voxel index of a primary ray's result.

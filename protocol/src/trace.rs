@@ -99,9 +99,10 @@ const SETTLE_RANGE: f32 = 16384.0;
 
 /// Whether `p = o + d·at` is so far inside voxel `guess` that every plane time below it is
 /// before `at` and every one above after it, so that settling needs no plane times at all.
-/// Why it holds: with `|o|, |p| < 16384` and planes below 8192, a plane time's relative error
-/// (`(g − o)·(1/d)` in `f32`, about 1.8e-7) is at most 4.4e-3 voxels as a position, and `p`'s
-/// own rounding at most 3e-3: 7.4e-3 in all, under the 1/64 margin. Ties, which the event order
+/// Why it holds: with `|o|, |p| < 16384` and planes at most 16384 (`map::MAX_SCENE_EDGE`), a
+/// plane time's relative error (`(g − o)·(1/d)` in `f32`, about 1.8e-7) is at most 5.9e-3 voxels
+/// as a position (`|g − o| < 32768`), and `p`'s own rounding at most 3e-3: 8.9e-3 in all, under
+/// the 1/64 margin (1.56e-2). Beyond the range the exact path runs instead. Ties, which the event order
 /// breaks by axis, need a position on a plane, so they never reach this shortcut.
 #[inline(always)]
 fn clearly_inside_voxel(o: f32, p: f32, guess: i32) -> bool {

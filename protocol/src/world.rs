@@ -36,10 +36,7 @@ impl World {
     /// The world of `size` voxels from `seed`. Errors where a scene of that size could not be
     /// made ([`BrickMap::new`]).
     pub fn new(size: [u32; 3], seed: u32) -> Result<World, MapError> {
-        BrickMap::new([size[0].min(TILE_EDGE), size[1], size[2].min(TILE_EDGE)])?;
-        if size.iter().any(|&s| s > crate::map::MAX_SCENE_EDGE) {
-            return Err(MapError::BadSize(size));
-        }
+        BrickMap::check_size(size)?;
         let octave = |i: u32| seed.wrapping_mul(0x9E37_79B9).wrapping_add(101 + i);
         Ok(World {
             terrain: Terrain {
@@ -238,5 +235,23 @@ mod tests {
     fn sizes_past_the_limit_are_refused() {
         assert!(World::new([0, 64, 64], 1).is_err());
         assert!(World::new([crate::map::MAX_SCENE_EDGE + 8, 64, 64], 1).is_err());
+        assert!(World::new([16384; 3], 1).is_err(), "too many regions");
+    }
+
+    #[test]
+    fn brickmaps_world_size_generates_to_its_far_corner() {
+        let world = World::new([16384, 512, 16384], 7).unwrap();
+        assert_eq!(world.tiles(), [64, 64]);
+        let corner = world.tile([63, 63]).unwrap();
+        assert!(!corner.is_empty());
+        let mut map = BrickMap::new(world.size()).unwrap();
+        for brick in &corner {
+            map.check_brick(brick).unwrap();
+            assert!(brick.cell[0] >= 63 * 32 && brick.cell[2] >= 63 * 32);
+        }
+        for brick in corner {
+            map.put_brick(&brick).unwrap();
+        }
+        assert!(map.brick_count() > 0);
     }
 }

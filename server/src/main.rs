@@ -46,6 +46,10 @@ enum Cmd {
         /// `bounded`, `bounded:N`) and report its memory and colour error.
         #[arg(long, default_value_t = brickcast_protocol::blocks::Quality::default())]
         colours: brickcast_protocol::blocks::Quality,
+        /// Also build the scene's levels of detail (`protocol/src/lod.rs`) and report each
+        /// level's bricks and memory and the build time.
+        #[arg(long)]
+        lod: bool,
     },
     /// Fold a scene's edit log into its snapshot (the server does this itself periodically).
     Snapshot {
@@ -143,9 +147,11 @@ fn main() -> anyhow::Result<()> {
             data,
             json,
             colours,
+            lod,
         } => {
             let store = open_store(&data)?;
             let loaded = store.load_scene(&scene)?;
+            let lod = lod.then(|| lod_stats(&loaded.map)).transpose()?;
             let m = loaded.map.memory();
             let coded = brickcast_protocol::palette::Mix::of(&loaded.map);
             let viewer = viewer_copy(&loaded.map, colours)?;
@@ -164,6 +170,9 @@ fn main() -> anyhow::Result<()> {
                     "memory": viewer_memory,
                     "coded_colours": viewer_coded,
                 });
+                if let Some(lod) = &lod {
+                    value["lod"] = serde_json::to_value(lod)?;
+                }
                 println!("{value}");
             } else {
                 println!(
@@ -175,6 +184,9 @@ fn main() -> anyhow::Result<()> {
                 println!("as a viewer holds it with --colours {colours}:");
                 print_memory(&viewer_memory);
                 print_coded(&viewer_coded);
+                if let Some(lod) = &lod {
+                    print_lod(lod);
+                }
             }
             Ok(())
         }
@@ -493,4 +505,42 @@ async fn shutdown_signal() {
         _ = term => {}
     }
     tracing::info!("shutdown requested");
+}
+
+/// A scene's levels of detail as `stats --lod` reports them.
+#[derive(serde::Serialize)]
+struct LodStats {
+    seconds: f64,
+    levels: Vec<brickcast_protocol::map::MemoryStats>,
+}
+
+fn lod_stats(map: &brickcast_protocol::BrickMap) -> anyhow::Result<LodStats> {
+    let started = std::time::Instant::now();
+    let pyramid = brickcast_protocol::lod::Pyramid::build(map)?;
+    let seconds = started.elapsed().as_secs_f64();
+    let levels = (1..=pyramid.level_count())
+        .filter_map(|k| pyramid.level(k).map(|l| l.memory()))
+        .collect();
+    Ok(LodStats { seconds, levels })
+}
+
+fn print_lod(lod: &LodStats) {
+    let total: u64 = lod.levels.iter().map(|l| l.total_bytes).sum();
+    println!(
+        "levels of detail: {} above level 0, {:.2} MiB in all, built in {:.2} s",
+        lod.levels.len(),
+        total as f64 / (1 << 20) as f64,
+        lod.seconds
+    );
+    for (k, level) in lod.levels.iter().enumerate() {
+        println!(
+            "  level {:>2} {:>5}x{}x{} {:>10} bricks {:>10.2} MiB",
+            k + 1,
+            level.size[0],
+            level.size[1],
+            level.size[2],
+            level.bricks,
+            level.total_bytes as f64 / (1 << 20) as f64
+        );
+    }
 }

@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use brickcast_protocol::BrickMap;
-use brickcast_protocol::map::{MAX_SCENE_EDGE, MapError};
+use brickcast_protocol::map::MapError;
 
 pub use mesh::Mesh;
 
@@ -46,7 +46,7 @@ pub enum ImportError {
     #[error("{path}: unknown model format (expected .obj or .vox)")]
     UnknownFormat { path: PathBuf },
     #[error(
-        "resolution {0} is invalid: use a power of two from 8 to {MAX_SCENE_EDGE} (voxels along the longest axis)"
+        "resolution {0} is invalid: use a power of two from 8 to {MAX_RESOLUTION} (voxels along the longest axis)"
     )]
     BadResolution(u32),
     #[error("the mesh has no triangles with area to voxelize")]
@@ -56,6 +56,10 @@ pub enum ImportError {
     #[error("the model does not fit a scene: {0}")]
     Map(#[from] MapError),
 }
+
+/// Largest mesh resolution: the voxelizer's precision is argued for an 8192³ grid (see
+/// `voxelize`), and a 16384³ cube would exceed the scene's region limit anyway.
+pub const MAX_RESOLUTION: u32 = 8192;
 
 /// What the import should do; `resolution` applies to meshes only (a `.vox` is already voxels).
 #[derive(Debug, Clone, Copy)]
@@ -82,7 +86,7 @@ impl Default for ImportOptions {
 impl ImportOptions {
     pub fn check(&self) -> Result<(), ImportError> {
         let r = self.resolution;
-        if !(8..=MAX_SCENE_EDGE).contains(&r) || !r.is_power_of_two() {
+        if !(8..=MAX_RESOLUTION).contains(&r) || !r.is_power_of_two() {
             return Err(ImportError::BadResolution(r));
         }
         Ok(())

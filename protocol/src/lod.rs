@@ -1,0 +1,442 @@
+//! Levels of detail: a mip pyramid of the brick map, for clients that hold a world far larger
+//! than their memory (issue #30).
+//!
+//! Level 0 is the scene itself. A level-k map is an ordinary [`BrickMap`] of `⌈size / 2^k⌉`
+//! voxels a side, so its bricks have the same layout, coding, versions and wire form as level
+//! 0's, and every tracer and sync path that reads a map reads a level; a level-k brick covers
+//! `8·2^k` scene voxels a side with voxels `2^k` wide.
+//!
+//! **The rule** (one home, [`coarsen`]): a level-k voxel is solid when any of the 2×2×2 level-(k−1)
+//! voxels it covers is solid, and its colour is the most frequent colour among those solid
+//! children, the smallest RGB565 value on a tie. A mode, not a mean: a coarse brick holds only
+//! colours of the scene (no new shades widen its palette, so coarse bricks code as small as
+//! the fine ones), and a level is a pure function of the level below, so updating the bricks
+//! an edit touched gives exactly what a rebuild gives (tested).
+//!
+//! **Incremental**: [`Pyramid::update`] takes the level-0 cells an edit batch touched, recomputes
+//! only their parents, and climbs only where a parent changed; a paint that does not change a
+//! mode stops at level 1. Bricks are stamped with the level-0 map's sequence, so a level's
+//! `changes_since` works as level 0's does.
+
+use crate::brick::{
+    BRICK_EDGE, BrickData, EMPTY_MASK, bit_voxel, for_each_bit, mask_set, voxel_bit,
+};
+use crate::colour::Colour;
+use crate::map::{BrickMap, MapError};
+
+/// Levels above 0 for a scene of `size` voxels: until every axis of the top level fits one
+/// brick (a 16384×512×16384 world has 11; a scene of at most 8 voxels a side has none).
+pub fn level_count(size: [u32; 3]) -> u32 {
+    let longest = size.into_iter().max().unwrap_or(1);
+    let mut levels = 0;
+    while longest.div_ceil(1 << levels) > BRICK_EDGE {
+        levels += 1;
+    }
+    levels
+}
+
+/// Voxels a side of level `k` of a scene of `size` voxels.
+pub fn level_size(size: [u32; 3], k: u32) -> [u32; 3] {
+    size.map(|s| s.div_ceil(1 << k))
+}
+
+/// The level-k brick at `cell`, made from `below` (level k−1) by the rule in the module doc;
+/// `None` where all eight child bricks are empty. `scratch` is reused between calls.
+pub fn coarsen(below: &BrickMap, cell: [u32; 3], scratch: &mut Vec<u32>) -> Option<BrickData> {
+    scratch.clear();
+    let mut colours = [Colour::BLACK; crate::brick::BRICK_VOXELS as usize];
+    for o in 0..8u32 {
+        let offset = [o & 1, (o >> 1) & 1, o >> 2];
+        let child = std::array::from_fn(|a| cell[a] * 2 + offset[a]);
+        let Some(slot) = below.slot_of_cell(child) else {
+            continue;
+        };
+        let mask = below.masks()[slot as usize];
+        let solid = below.slot_colours(slot, &mut colours);
+        let mut i = 0;
+        for_each_bit(&mask, |bit| {
+            let v = bit_voxel(bit);
+            let parent = voxel_bit(
+                offset[0] * 4 + v[0] / 2,
+                offset[1] * 4 + v[1] / 2,
+                offset[2] * 4 + v[2] / 2,
+            );
+            scratch.push(parent << 16 | u32::from(solid[i].0));
+            i += 1;
+        });
+    }
+    if scratch.is_empty() {
+        return None;
+    }
+    // Sorted, each parent voxel's children are one run, its colours in ascending runs: the
+    // first longest run is the mode with the smallest value.
+    scratch.sort_unstable();
+    let mut brick = BrickData {
+        cell,
+        mask: EMPTY_MASK,
+        colours: Vec::new(),
+    };
+    let mut at = 0;
+    while at < scratch.len() {
+        let voxel = scratch[at] >> 16;
+        let (mut best, mut best_count) = (scratch[at], 0);
+        while at < scratch.len() && scratch[at] >> 16 == voxel {
+            let value = scratch[at];
+            let run = scratch[at..].iter().take_while(|&&p| p == value).count();
+            if run > best_count {
+                (best, best_count) = (value, run);
+            }
+            at += run;
+        }
+        mask_set(&mut brick.mask, voxel, true);
+        brick.colours.push(Colour(best as u16));
+    }
+    Some(brick)
+}
+
+/// Levels 1 and up of a scene, kept current by [`Pyramid::update`].
+#[derive(Clone)]
+pub struct Pyramid {
+    /// `levels[k - 1]` is level k.
+    levels: Vec<BrickMap>,
+}
+
+/// What one [`Pyramid::update`] changed: per level (index 0 is level 1), the linear cell indices
+/// of that level's bricks that changed (written or removed), ascending. Empty levels above the
+/// last change are left out.
+pub type Changed = Vec<Vec<u32>>;
+
+impl Pyramid {
+    /// Every level of `base`, from scratch.
+    pub fn build(base: &BrickMap) -> Result<Pyramid, MapError> {
+        let mut pyramid = Pyramid::empty(base.size())?;
+        let cells: Vec<u32> = base
+            .brick_cells()
+            .map(|(cell, _)| base.cell_index(cell))
+            .collect();
+        pyramid.update(base, &cells)?;
+        Ok(pyramid)
+    }
+
+    /// A pyramid with empty levels for a scene of `size` voxels.
+    pub fn empty(size: [u32; 3]) -> Result<Pyramid, MapError> {
+        let levels = (1..=level_count(size))
+            .map(|k| BrickMap::new(level_size(size, k)))
+            .collect::<Result<_, _>>()?;
+        Ok(Pyramid { levels })
+    }
+
+    /// Levels above 0.
+    pub fn level_count(&self) -> u32 {
+        self.levels.len() as u32
+    }
+
+    /// Level `k` (1 ..= [`Pyramid::level_count`]).
+    pub fn level(&self, k: u32) -> Option<&BrickMap> {
+        self.levels.get((k as usize).checked_sub(1)?)
+    }
+
+    /// Brings every level up to date after the level-0 cells `touched` (linear indices in
+    /// `base`, as [`BrickMap::take_touched`] gives them, in any order, repeats allowed) changed.
+    /// Each level is stamped with `base`'s sequence. Returns what changed, level by level.
+    pub fn update(&mut self, base: &BrickMap, touched: &[u32]) -> Result<Changed, MapError> {
+        let mut changed = Changed::new();
+        let mut below_cells: Vec<[u32; 3]> = touched.iter().map(|&i| base.cell_coords(i)).collect();
+        for k in 0..self.levels.len() {
+            if below_cells.is_empty() {
+                break;
+            }
+            let (done, rest) = self.levels.split_at_mut(k);
+            let below = done.last().unwrap_or(base);
+            let level = &mut rest[0];
+            level.set_sequence(base.sequence().max(level.sequence()));
+            let mut parents: Vec<u32> = below_cells
+                .iter()
+                .map(|c| level.cell_index(c.map(|v| v / 2)))
+                .collect();
+            parents.sort_unstable();
+            parents.dedup();
+            let mut level_changed = Vec::new();
+            below_cells.clear();
+            // In windows, so a rebuild holds a window's new bricks at a time, not a level's.
+            for window in parents.chunks(WINDOW) {
+                let computed = recompute(below, level, window);
+                for (&index, new) in window.iter().zip(computed) {
+                    let Some(new) = new else {
+                        continue;
+                    };
+                    let cell = level.cell_coords(index);
+                    match new {
+                        Some(brick) => level.put_brick(&brick)?,
+                        None => {
+                            level.remove_brick(cell);
+                        }
+                    }
+                    level_changed.push(index);
+                    below_cells.push(cell);
+                }
+            }
+            changed.push(level_changed);
+        }
+        Ok(changed)
+    }
+
+    /// Bricks in all levels above 0.
+    pub fn brick_count(&self) -> u64 {
+        self.levels.iter().map(BrickMap::brick_count).sum()
+    }
+}
+
+/// Parents recomputed before their bricks are written.
+const WINDOW: usize = 1 << 16;
+
+/// Parents per thread below which [`recompute`] stays on the calling thread.
+const PARALLEL_PARENTS: usize = 4096;
+
+/// For each of `parents` (linear cells of `level`): `None` where [`coarsen`] gives what `level`
+/// holds, else `Some(the new brick or None for empty)`. Read-only, so large sets are cut into
+/// runs computed on one thread per core, results kept in order.
+fn recompute(
+    below: &BrickMap,
+    level: &BrickMap,
+    parents: &[u32],
+) -> Vec<Option<Option<BrickData>>> {
+    let run = |cells: &[u32]| {
+        let mut scratch = Vec::new();
+        cells
+            .iter()
+            .map(|&index| {
+                let cell = level.cell_coords(index);
+                let new = coarsen(below, cell, &mut scratch);
+                let same = match (&new, level.brick(cell)) {
+                    (Some(new), Some(old)) => new.mask == old.mask && new.colours == old.colours,
+                    (None, None) => true,
+                    _ => false,
+                };
+                (!same).then_some(new)
+            })
+            .collect::<Vec<_>>()
+    };
+    let threads = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(parents.len() / PARALLEL_PARENTS)
+        .max(1);
+    if threads == 1 {
+        return run(parents);
+    }
+    let run = &run;
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = parents
+            .chunks(parents.len().div_ceil(threads))
+            .map(|chunk| {
+                (
+                    chunk,
+                    std::thread::Builder::new()
+                        .spawn_scoped(scope, move || run(chunk))
+                        .ok(),
+                )
+            })
+            .collect();
+        let mut out = Vec::with_capacity(parents.len());
+        for (chunk, handle) in handles {
+            match handle.map(|h| h.join()) {
+                Some(Ok(part)) => out.extend(part),
+                Some(Err(panic)) => std::panic::resume_unwind(panic),
+                // A thread that could not start: its run is done here.
+                None => out.extend(run(chunk)),
+            }
+        }
+        out
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::brick::{mask_get, popcount};
+
+    #[test]
+    fn level_counts_reach_one_brick() {
+        assert_eq!(level_count([8, 8, 8]), 0);
+        assert_eq!(level_count([9, 1, 1]), 1);
+        assert_eq!(level_count([64, 64, 64]), 3);
+        assert_eq!(level_count([16384, 512, 16384]), 11);
+        assert_eq!(level_size([100, 3, 64], 2), [25, 1, 16]);
+    }
+
+    #[test]
+    fn a_coarse_voxel_is_solid_if_any_child_is_and_takes_the_mode() {
+        let mut map = BrickMap::new([32, 32, 32]).unwrap();
+        // Coarse voxel (0,0,0) of level 1 covers (0..2)³: three red, two blue, one green.
+        let (red, blue, green) = (Colour(0xF800), Colour(0x001F), Colour(0x07E0));
+        for (p, c) in [
+            ([0, 0, 0], blue),
+            ([1, 0, 0], red),
+            ([0, 1, 0], red),
+            ([1, 1, 0], blue),
+            ([0, 0, 1], green),
+            ([1, 1, 1], red),
+        ] {
+            map.set(p, c);
+        }
+        // A tie (one each) takes the smaller value; a lone voxel far away makes its own voxel.
+        map.set([16, 16, 16], red);
+        map.set([17, 16, 16], blue);
+        map.set([31, 31, 31], green);
+        let pyramid = Pyramid::build(&map).unwrap();
+        let one = pyramid.level(1).unwrap();
+        assert_eq!(one.size(), [16, 16, 16]);
+        assert_eq!(one.get([0, 0, 0]), Some(red));
+        assert_eq!(one.get([8, 8, 8]), Some(blue));
+        assert_eq!(one.get([15, 15, 15]), Some(green));
+        assert_eq!(one.solid_voxels(), 3);
+        let two = pyramid.level(2).unwrap();
+        assert_eq!(two.get([0, 0, 0]), Some(red));
+        assert_eq!(two.solid_voxels(), 3);
+        assert!(pyramid.level(3).is_none() && pyramid.level(0).is_none());
+        assert_eq!(pyramid.level_count(), 2);
+    }
+
+    #[test]
+    fn parents_computed_on_several_threads_come_back_in_order() {
+        // 65,536 bricks under 16,384 level-1 parents: enough for one run per core.
+        let mut map = BrickMap::new([2048, 8, 2048]).unwrap();
+        let mut rng = Lcg(9);
+        for z in 0..256 {
+            for x in 0..256 {
+                let mut mask = EMPTY_MASK;
+                for _ in 0..1 + rng.next(40) {
+                    mask_set(&mut mask, rng.next(512), true);
+                }
+                let colours = (0..popcount(&mask))
+                    .map(|_| Colour(rng.next(6) as u16 * 0x0841))
+                    .collect();
+                let brick = BrickData {
+                    cell: [x, 0, z],
+                    mask,
+                    colours,
+                };
+                map.put_brick(&brick).unwrap();
+            }
+        }
+        let level = BrickMap::new(level_size(map.size(), 1)).unwrap();
+        let parents: Vec<u32> = (0..128 * 128).collect();
+        let mut scratch = Vec::new();
+        let one_by_one: Vec<_> = parents
+            .iter()
+            .map(|&i| Some(coarsen(&map, level.cell_coords(i), &mut scratch)))
+            .collect();
+        assert!(one_by_one.iter().all(|b| matches!(b, Some(Some(_)))));
+        assert_eq!(recompute(&map, &level, &parents), one_by_one);
+    }
+
+    #[test]
+    fn odd_sizes_keep_every_coarse_voxel_inside_its_level() {
+        let mut map = BrickMap::new([37, 9, 21]).unwrap();
+        for p in [[36, 8, 20], [0, 0, 0], [35, 1, 19]] {
+            map.set(p, Colour::WHITE);
+        }
+        let pyramid = Pyramid::build(&map).unwrap();
+        for k in 1..=pyramid.level_count() {
+            let level = pyramid.level(k).unwrap();
+            level.check_invariants().unwrap();
+            let top = level_size([37, 9, 21], k).map(|s| s - 1);
+            assert!(level.is_solid(top), "level {k}: {top:?}");
+        }
+    }
+
+    /// A small deterministic generator: the property test below needs no crate.
+    struct Lcg(u64);
+    impl Lcg {
+        fn next(&mut self, n: u32) -> u32 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((self.0 >> 33) % u64::from(n)) as u32
+        }
+    }
+
+    fn same_bricks(a: &BrickMap, b: &BrickMap) -> Result<(), String> {
+        let sorted = |m: &BrickMap| {
+            let mut v: Vec<_> = m.bricks().map(|(b, _)| b).collect();
+            v.sort_by_key(|b| m.cell_index(b.cell));
+            v
+        };
+        let (x, y) = (sorted(a), sorted(b));
+        if x.len() != y.len() {
+            return Err(format!("{} bricks vs {}", x.len(), y.len()));
+        }
+        for (p, q) in x.iter().zip(&y) {
+            if p != q {
+                return Err(format!("brick {:?} differs from {:?}", p.cell, q.cell));
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn updating_after_random_edits_equals_a_rebuild() {
+        for seed in 0..24u64 {
+            let mut rng = Lcg(seed);
+            let size = [40 + rng.next(60), 8 + rng.next(40), 40 + rng.next(60)];
+            let mut map = BrickMap::new(size).unwrap();
+            map.record_touched(true);
+            let palette = [0xF800, 0x07E0, 0x001F, 0xFFFF, 0x1234].map(Colour);
+            let mut pyramid = Pyramid::empty(size).unwrap();
+            for round in 0..12u64 {
+                map.set_sequence(round + 1);
+                for _ in 0..1 + rng.next(6) {
+                    let centre = size.map(|s| rng.next(s) as f32);
+                    let radius = 1.0 + rng.next(6) as f32;
+                    let colour = palette[rng.next(5) as usize];
+                    match rng.next(4) {
+                        0 => {
+                            map.sphere(centre, radius, crate::map::BrushMode::Erase, colour);
+                        }
+                        1 => {
+                            map.sphere(centre, radius, crate::map::BrushMode::Paint, colour);
+                        }
+                        2 => {
+                            map.set(centre.map(|c| c as u32), colour);
+                        }
+                        _ => {
+                            map.sphere(centre, radius, crate::map::BrushMode::Fill, colour);
+                        }
+                    }
+                }
+                let touched = map.take_touched();
+                let changed = pyramid.update(&map, &touched).unwrap();
+                let fresh = Pyramid::build(&map).unwrap();
+                assert_eq!(pyramid.level_count(), fresh.level_count());
+                for k in 1..=fresh.level_count() {
+                    let (kept, built) = (pyramid.level(k).unwrap(), fresh.level(k).unwrap());
+                    if let Err(e) = same_bricks(kept, built) {
+                        panic!("seed {seed} round {round} level {k}: {e}");
+                    }
+                    kept.check_invariants().unwrap();
+                    // Whatever changed carries this round's stamp; nothing else does.
+                    for &index in changed.get(k as usize - 1).into_iter().flatten() {
+                        let cell = kept.cell_coords(index);
+                        if let Some(v) = kept.brick_version(cell) {
+                            assert_eq!(v, round + 1);
+                        }
+                    }
+                }
+                // Level 1's voxel count agrees with the rule applied voxel by voxel.
+                let one = pyramid.level(1).unwrap();
+                for (brick, _) in one.bricks() {
+                    for bit in 0..512 {
+                        let v = bit_voxel(bit);
+                        let p: [u32; 3] = std::array::from_fn(|a| (brick.cell[a] * 8 + v[a]) * 2);
+                        let any = (0..8u32).any(|o| {
+                            map.is_solid([p[0] + (o & 1), p[1] + ((o >> 1) & 1), p[2] + (o >> 2)])
+                        });
+                        assert_eq!(mask_get(&brick.mask, bit), any);
+                    }
+                    assert_eq!(brick.colours.len(), popcount(&brick.mask) as usize);
+                }
+            }
+        }
+    }
+}
