@@ -181,6 +181,13 @@ impl Pyramid {
         Ok(changed)
     }
 
+    /// Drops every level's tombstones at or below `sequence` ([`BrickMap::prune_tombstones`]).
+    pub fn prune_tombstones(&mut self, sequence: u64) {
+        for level in &mut self.levels {
+            level.prune_tombstones(sequence);
+        }
+    }
+
     /// Bricks in all levels above 0.
     pub fn brick_count(&self) -> u64 {
         self.levels.iter().map(BrickMap::brick_count).sum()

@@ -1014,6 +1014,22 @@ impl BrickMap {
             .map(|(&c, &v)| (self.cell_coords(c), v))
     }
 
+    /// Brick slots so far (some may be free): the end of the range [`BrickMap::slot_cells`] takes.
+    pub fn slot_count(&self) -> u32 {
+        self.slot_cell.len() as u32
+    }
+
+    /// Linear cell indices of the bricks in slots `slots` (free slots skipped), for walking a
+    /// large map a part at a time.
+    pub fn slot_cells(&self, slots: std::ops::Range<u32>) -> impl Iterator<Item = u32> + '_ {
+        let end = (slots.end as usize).min(self.slot_cell.len());
+        let start = (slots.start as usize).min(end);
+        self.slot_cell[start..end]
+            .iter()
+            .copied()
+            .filter(|&c| c != EMPTY)
+    }
+
     /// What a client that has seen everything up to `since` is missing: the cells of bricks
     /// changed after it and the cells whose bricks were removed after it. `None` when tombstones
     /// that old were already dropped: such a client needs a full resync.

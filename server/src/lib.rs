@@ -554,6 +554,20 @@ impl Server {
     }
 }
 
+/// A scene path `NAME` or `NAME@K` (level K ≥ 1 of its levels of detail) split into the
+/// scene's name and the level (0 for the scene itself); an error says what is wrong with `K`.
+pub fn split_level(path: &str) -> Result<(&str, u32), String> {
+    let Some((name, level)) = path.split_once('@') else {
+        return Ok((path, 0));
+    };
+    match level.parse::<u32>() {
+        Ok(k) if k >= 1 && level.bytes().all(|b| b.is_ascii_digit()) => Ok((name, k)),
+        _ => Err(format!(
+            "{path:?}: a level of detail is a whole number from 1 (NAME@1, NAME@2, ...)"
+        )),
+    }
+}
+
 /// The HTTP surface.
 pub fn router(app: Arc<App>) -> Router {
     Router::new()
@@ -652,11 +666,17 @@ async fn scene_list(State(app): State<Arc<App>>) -> Response {
 }
 
 async fn websocket(
-    Path(name): Path<String>,
+    Path(path_name): Path<String>,
     State(app): State<Arc<App>>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
     ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
 ) -> Response {
+    // `NAME@K` views level K of the scene's levels of detail (`scene::levels`).
+    let (name, level) = match split_level(&path_name) {
+        Ok(split) => split,
+        Err(why) => return (StatusCode::NOT_FOUND, format!("{why}\n")).into_response(),
+    };
+    let name = name.to_string();
     // Unknown scenes are a 404 whether or not the request is a websocket upgrade.
     if !app.has_scene(&name).await {
         return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
@@ -684,6 +704,17 @@ async fn websocket(
         }
         Err(e) => return (StatusCode::SERVICE_UNAVAILABLE, format!("{e}\n")).into_response(),
     };
+    let levels = scene::levels::levels_of(scene.size);
+    if level > levels {
+        return (
+            StatusCode::NOT_FOUND,
+            format!(
+                "scene {name:?} has levels of detail 1 to {levels} ({}x{}x{} voxels), not {level}\n",
+                scene.size[0], scene.size[1], scene.size[2]
+            ),
+        )
+            .into_response();
+    }
     // Accept frames a little over the limit so the session can answer them with a clean
     // FrameTooLarge error instead of a dropped connection.
     let max = scene.limits.max_frame_bytes as usize + (64 << 10);
@@ -694,7 +725,30 @@ async fn websocket(
         .read_buffer_size(16 << 10)
         .on_upgrade(move |socket| async move {
             let link = using.link.clone();
-            session::run(socket, scene, link, app, peer.ip()).await;
+            session::run(socket, scene, link, app, peer.ip(), level).await;
             drop((admitted, using));
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::split_level;
+
+    #[test]
+    fn scene_paths_name_a_level_of_detail_after_an_at() {
+        assert_eq!(split_level("demo"), Ok(("demo", 0)));
+        assert_eq!(split_level("w16@3"), Ok(("w16", 3)));
+        for bad in [
+            "demo@",
+            "demo@0",
+            "demo@-1",
+            "demo@+2",
+            "demo@x",
+            "demo@1@2",
+            "demo@99999999999",
+        ] {
+            let err = split_level(bad).unwrap_err();
+            assert!(err.contains("whole number from 1"), "{bad}: {err}");
+        }
+    }
 }

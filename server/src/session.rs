@@ -69,12 +69,16 @@ const RESUME_INTERVAL: Duration = Duration::from_secs(5);
 /// Serves one connection to `scene` until either side closes or the server shuts down.
 /// `link`: in a cluster, how the session's edits reach the scene's owner (see
 /// `crate::cluster::forward`); `None` on a single node, where they go to the owner thread.
+/// `level`: the level of detail it views (`/scenes/NAME@K`, see `scene::levels`): above 0 the
+/// session is a viewer of a coarser copy and takes no part in presence (its coordinates are not
+/// the scene's).
 pub async fn run(
     socket: WebSocket,
     scene: SceneHandle,
     link: Option<SceneLink<Cluster>>,
     app: Arc<App>,
     from: IpAddr,
+    level: u32,
 ) {
     let id = app.next_session_id();
     app.metrics.connected_clients.fetch_add(1, Relaxed);
@@ -90,6 +94,7 @@ pub async fn run(
 
     match handshake(&mut stream, &scene, &app, &out, id, from).await {
         Some((role, resume_from, who)) => {
+            let role = if level > 0 { Role::Viewer } else { role };
             let peer = Peer {
                 id,
                 user: who.user,
@@ -99,7 +104,11 @@ pub async fn run(
             };
             // Registered before the Welcome is built, so the roster it lists and the presence
             // frames after it leave nobody out.
-            let (peer, roster) = scene.presence.join(peer, out.clone());
+            let (peer, roster) = if level == 0 {
+                scene.presence.join(peer, out.clone())
+            } else {
+                (peer, Vec::new())
+            };
             let (joined, welcomed) = tokio::sync::oneshot::channel();
             let sent = scene
                 .send(Command::Join {
@@ -107,6 +116,7 @@ pub async fn run(
                     out: out.clone(),
                     role,
                     resume_from,
+                    level,
                     who: crate::scene::Joiner {
                         peer,
                         stable: who.stable,
@@ -128,6 +138,7 @@ pub async fn run(
                     role,
                     who: &who,
                     from,
+                    level,
                 };
                 read_loop(&mut stream, session).await;
                 let _ = scene.send(Command::Leave { session: id }).await;
@@ -272,6 +283,8 @@ struct Session<'a> {
     who: &'a Identity,
     /// The address the connection comes from: edit work is budgeted per address too.
     from: IpAddr,
+    /// The level of detail it views (0: the scene); above 0 it is not in presence.
+    level: u32,
 }
 
 /// Undo and redo messages one session may send per second, with this much burst: a guard
@@ -555,7 +568,9 @@ async fn read_loop(
                     session.refuse(reason);
                 } else {
                     Metrics::add(&app.metrics.presence_updates, 1);
-                    scene.presence.update(id, view, cursor);
+                    if session.level == 0 {
+                        scene.presence.update(id, view, cursor);
+                    }
                     if let Some(view) = view {
                         camera = Some(view.eye);
                     }

@@ -223,7 +223,9 @@ async fn index(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
 }
 
 async fn viewer(State(app): State<Arc<App>>, Path(name): Path<String>) -> Response {
-    if !app.has_scene(&name).await {
+    // `NAME@K` is level K of the scene (the websocket checks K against the scene's size).
+    let scene = crate::split_level(&name).map_or(name.as_str(), |(scene, _)| scene);
+    if !app.has_scene(scene).await {
         let page = format!(
             "<!doctype html><meta charset=\"utf-8\"><title>No such scene · brickcast</title>\
              <link rel=\"stylesheet\" href=\"/assets/style.css?v={}\"><body class=\"list\">\

@@ -716,3 +716,103 @@ async fn initial_sync_sends_nearest_bricks_first() {
     }
     server.shutdown().await.unwrap();
 }
+
+/// Level K of a scene (`/scenes/NAME@K`) is served as a read-only scene of its own: what a
+/// viewer of it holds is exactly level K of the pyramid of what an editor holds, after a sync,
+/// after edits (deltas of the coarse bricks they changed) and after a resume.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn levels_of_detail_are_served_read_only_and_follow_edits() {
+    use brickcast_protocol::lod::Pyramid;
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(dir.path(), |_| {}).await;
+    let mut editor = Client::connect(&server.url("demo"), None).await.unwrap();
+    editor.sync().await;
+    let mut one = Client::connect(&server.url("demo@1"), None).await.unwrap();
+    let mut three = Client::connect(&server.url("demo@3"), None).await.unwrap();
+    assert_eq!(one.role, Role::Viewer, "a level view is read-only");
+    assert_eq!(one.map.size(), [64, 32, 64]);
+    assert_eq!(three.map.size(), [16, 8, 16]);
+    one.sync().await;
+    three.sync().await;
+    let agree = |editor: &Client, views: &[(&Client, u32)]| {
+        let pyramid = Pyramid::build(&editor.map).unwrap();
+        for (view, k) in views {
+            let want = pyramid.level(*k).unwrap();
+            assert!(want.brick_count() > 0);
+            assert_eq!(view.map.brick_count(), want.brick_count(), "level {k}");
+            assert_eq!(view.map.content_hash(), want.content_hash(), "level {k}");
+        }
+    };
+    agree(&editor, &[(&one, 1), (&three, 3)]);
+
+    let mut rng = Rng(11);
+    let mut last = 0;
+    for _ in 0..6 {
+        let ops = (0..24)
+            .map(|_| random_op(&mut rng, common::TEST_SCENE))
+            .collect();
+        if let ServerMsg::Ack { seq: Some(seq), .. } = editor.edit(ops).await {
+            last = seq;
+        }
+    }
+    assert!(last > 0, "some edits applied");
+    editor.catch_up(last).await;
+    one.catch_up(last).await;
+    three.catch_up(last).await;
+    assert_eq!(one.resyncs + three.resyncs, 0, "deltas, not resyncs");
+    agree(&editor, &[(&one, 1), (&three, 3)]);
+
+    // A level view's edits are refused; it still follows the scene.
+    match one
+        .edit(vec![EditOp::Set {
+            pos: [1, 30, 1],
+            colour: colour(1),
+        }])
+        .await
+    {
+        ServerMsg::Ack {
+            seq: None,
+            rejected,
+            ..
+        } => assert_eq!(rejected[0].reason, Rejection::NotAllowed),
+        other => panic!("{other:?}"),
+    }
+
+    // A level view that resumes gets what changed at its level, not the whole level.
+    let (seen, copy) = (one.seq, one.map.clone());
+    let full = one.map.brick_count() as u32;
+    one.close().await;
+    let ServerMsg::Ack { seq: Some(seq), .. } = editor
+        .edit(vec![EditOp::Sphere {
+            centre: [30.0, 40.0, 30.0],
+            radius: 6.0,
+            mode: BrushMode::Fill,
+            colour: colour(3),
+        }])
+        .await
+    else {
+        panic!("the sphere applies")
+    };
+    let mut back = Client::resume(&server.url("demo@1"), None, Some(seen), Some(copy))
+        .await
+        .unwrap();
+    assert!(back.sync_total < full / 4, "{} of {full}", back.sync_total);
+    editor.catch_up(seq).await;
+    back.catch_up(seq).await;
+    three.catch_up(seq).await;
+    agree(&editor, &[(&back, 1), (&three, 3)]);
+
+    // Levels the scene does not have are refused before the upgrade, with the reason.
+    for (path, says) in [("demo@5", "levels of detail 1 to 4"), ("demo@0", "from 1")] {
+        match tokio_tungstenite::connect_async(server.url(path)).await {
+            Err(tokio_tungstenite::tungstenite::Error::Http(response)) => {
+                assert_eq!(response.status(), 404);
+                let body =
+                    String::from_utf8_lossy(response.body().as_deref().unwrap_or(&[])).to_string();
+                assert!(body.contains(says), "{path}: {body}");
+            }
+            other => panic!("{path}: {other:?}"),
+        }
+    }
+    server.shutdown().await.unwrap();
+}

@@ -245,6 +245,7 @@ pub(super) mod testing {
             out,
             role: Role::Editor,
             resume_from: None,
+            level: 0,
             who: Joiner::solo(session, user, Role::Editor),
             joined,
         };

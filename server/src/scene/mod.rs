@@ -33,6 +33,7 @@ mod cells;
 mod edit_job;
 pub mod history;
 mod jobs;
+pub mod levels;
 pub mod log;
 mod outbox;
 mod owner;
@@ -80,6 +81,9 @@ pub enum Command {
         out: Outbox,
         role: Role,
         resume_from: Option<u64>,
+        /// Which level of detail the session views: 0 is the scene, K > 0 its level K
+        /// (`levels.rs`; such a session is a viewer).
+        level: u32,
         /// Who joins, and who it saw present (for the Welcome).
         who: Joiner,
         /// Fired once the Welcome is queued: the session sends nothing before it.
@@ -339,6 +343,11 @@ pub(crate) struct Subscriber {
     /// Forget the user's history when this session leaves.
     stable: bool,
     camera: [f32; 3],
+    /// The level of detail it views (0: the scene itself), in whose coordinates `camera` is.
+    level: u32,
+    /// Waiting for the levels of detail to be built before its sync starts (`levels.rs`); true:
+    /// it holds a copy it must drop first (it resumed, or the levels were rebuilt).
+    awaits_levels: Option<bool>,
     /// Every change up to this sequence has been queued to the client.
     delivered: u64,
     /// Deltas stopped because the queue overflowed; resync from `delivered` once it drains.

@@ -115,6 +115,8 @@ pub struct Owner {
     pub(super) jobs: Jobs,
     /// Commands that waited behind a finished job: the next turn applies them first.
     pub(super) released: Vec<Command>,
+    /// The levels of detail, once a session views one (`levels.rs`).
+    pub(super) levels: super::levels::Levels,
 }
 
 /// A reply (`Ack` or `Undone`) waiting for the commit of what it reports.
@@ -306,6 +308,7 @@ impl Owner {
             broken: false,
             jobs: Jobs::new(),
             released: Vec::new(),
+            levels: super::levels::Levels::default(),
         };
         owner.publish_info();
         Ok(owner)
@@ -357,6 +360,7 @@ impl Owner {
             all
         };
         let stop = self.turn(commands, clock)? || self.broken;
+        self.advance_levels();
         self.pump_syncs();
         clock.mark(&self.metrics, OwnerPhase::Sync);
         self.maybe_snapshot(false)?;
@@ -475,11 +479,12 @@ impl Owner {
                     out,
                     role,
                     resume_from,
+                    level,
                     who,
                     joined,
                 } => {
                     self.publish(&mut log, &mut acks, clock)?;
-                    if self.join(session, out, role, resume_from, who) {
+                    if self.join(session, out, role, resume_from, level, who) {
                         let _ = joined.send(());
                     }
                 }
@@ -781,25 +786,65 @@ impl Owner {
         }
         self.broadcast_seq = to;
         self.unsnapshotted.insert_all(&touched);
+        // The levels of detail follow the map before anyone hears of the turn.
+        let changed = match self.levels.update(&self.map, &touched) {
+            Ok(changed) => changed,
+            Err(e) => {
+                tracing::error!(scene = %self.name, error = %e, "could not update the levels of detail; building them again");
+                self.restart_levels();
+                Default::default()
+            }
+        };
+        clock.mark(&self.metrics, OwnerPhase::Apply);
+        let mut viewed: Vec<u32> = self
+            .subs
+            .values()
+            .filter(|s| s.awaits_levels.is_none())
+            .map(|s| s.level)
+            .collect();
+        viewed.sort_unstable();
+        viewed.dedup();
+        if viewed.is_empty() {
+            viewed.push(0);
+        }
+        for level in viewed {
+            let cells = match level {
+                0 => &touched[..],
+                k => changed.get(k as usize - 1).map_or(&[][..], |c| &c[..]),
+            };
+            self.broadcast_level(level, cells, from, to, clock);
+        }
+    }
+
+    /// Sends the subscribers viewing `level` its cells that changed from sequence `from` to
+    /// `to` (an empty delta when none did).
+    fn broadcast_level(
+        &mut self,
+        level: u32,
+        cells: &[u32],
+        from: u64,
+        to: u64,
+        clock: &mut PhaseClock,
+    ) {
         let make = |bricks, removed| ServerMsg::Delta {
             from_seq: from,
             to_seq: to,
             bricks,
             removed,
         };
-        let encoded = if touched.is_empty() {
+        let encoded = if cells.is_empty() {
             encode_server(&make(BrickBlob::empty(), Vec::new())).map(|f| vec![Bytes::from(f)])
         } else {
-            self.encode_cells(&touched, make)
+            self.encode_cells(level, cells, make)
         };
         let frames = match encoded {
             Ok(frames) => frames,
             Err(e) => {
                 // Nobody can be sent this turn's changes: every subscriber resyncs from what it
                 // had, which re-encodes the bricks in smaller sync batches.
-                tracing::error!(scene = %self.name, error = %e, "could not encode a delta; resyncing every client");
+                tracing::error!(scene = %self.name, error = %e, level, "could not encode a delta; resyncing every client");
                 self.metrics.count_unencodable("Delta");
-                for sub in self.subs.values_mut() {
+                for sub in self.subs.values_mut().filter(|s| s.level == level) {
                     if !sub.lagging {
                         sub.lagging = true;
                         Metrics::add(&self.metrics.resyncs, 1);
@@ -809,10 +854,9 @@ impl Owner {
             }
         };
         clock.mark(&self.metrics, OwnerPhase::Encode);
-        let seq = self.seq;
         let bytes: usize = frames.iter().map(|f| f.len()).sum();
-        for sub in self.subs.values_mut() {
-            if sub.lagging {
+        for sub in self.subs.values_mut().filter(|s| s.level == level) {
+            if sub.lagging || sub.awaits_levels.is_some() {
                 continue;
             }
             // Over its own bound, or the server holds too much and this queue is not short.
@@ -828,10 +872,60 @@ impl Owner {
             for frame in &frames {
                 sub.out.push(frame.clone());
             }
-            sub.delivered = seq;
+            sub.delivered = to;
             Metrics::add(&self.metrics.deltas_sent, frames.len() as u64);
         }
         clock.mark(&self.metrics, OwnerPhase::Fanout);
+    }
+
+    /// One turn's part of building the levels of detail; once built, the sessions that waited
+    /// for them start their syncs.
+    fn advance_levels(&mut self) {
+        match self.levels.advance(&self.map, &self.name) {
+            Ok(false) => {}
+            Ok(true) => {
+                let waiting: Vec<SessionId> = self
+                    .subs
+                    .iter()
+                    .filter(|(_, s)| s.awaits_levels.is_some())
+                    .map(|(&id, _)| id)
+                    .collect();
+                for id in waiting {
+                    if let Some(mut sub) = self.subs.remove(&id) {
+                        self.start_level_sync(&mut sub);
+                        self.subs.insert(id, sub);
+                    }
+                }
+            }
+            Err(e) => {
+                tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
+                self.levels = super::levels::Levels::default();
+                for sub in self.subs.values().filter(|s| s.level > 0) {
+                    sub.out.close(
+                        brickcast_protocol::wire::ErrorCode::Internal,
+                        format!("the server could not build the scene's levels of detail: {e}"),
+                    );
+                }
+            }
+        }
+    }
+
+    /// Builds the levels of detail again from the map as it is now (after a reload, or an
+    /// update that failed): every session viewing a level drops its copy and is synced again
+    /// once they are built.
+    pub(super) fn restart_levels(&mut self) {
+        if let Err(e) = self.levels.reset(&self.map, self.seq) {
+            tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
+        }
+        for sub in self.subs.values_mut().filter(|s| s.level > 0) {
+            if sub.awaits_levels.is_none() {
+                sub.awaits_levels = Some(true);
+            }
+            sub.pending.clear();
+            sub.lagging = false;
+            sub.syncing = true;
+            sub.out.set_syncing(true);
+        }
     }
 
     /// Snapshots when forced or due. Due means: replaying the log would cost more than the
@@ -880,6 +974,7 @@ impl Owner {
         Metrics::add(&self.metrics.snapshots, 1);
         if self.seq > TOMBSTONE_WINDOW {
             self.map.prune_tombstones(self.seq - TOMBSTONE_WINDOW);
+            self.levels.prune_tombstones(self.seq - TOMBSTONE_WINDOW);
         }
         Ok(())
     }

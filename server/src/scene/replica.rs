@@ -375,5 +375,6 @@ impl Owner {
             sub.delivered = sub.delivered.min(seq);
             sub.lagging = true;
         }
+        self.restart_levels();
     }
 }

@@ -43,9 +43,30 @@ impl Owner {
         out: Outbox,
         role: Role,
         resume_from: Option<u64>,
+        level: u32,
         who: super::Joiner,
     ) -> bool {
-        let size = self.map.size();
+        if level > 0
+            && let Err(e) = self.levels.start(&self.map, self.seq)
+        {
+            tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
+            out.close(
+                brickcast_protocol::wire::ErrorCode::Internal,
+                format!("the server could not build the scene's levels of detail: {e}"),
+            );
+            return false;
+        }
+        if level > brickcast_protocol::lod::level_count(self.map.size()) {
+            // The session checked the level against the scene's size before it joined.
+            out.close(
+                brickcast_protocol::wire::ErrorCode::UnknownScene,
+                format!("the scene has no level of detail {level}"),
+            );
+            return false;
+        }
+        // While the levels are being built the session is welcomed now and synced later.
+        let view = self.levels.map_at(&self.map, level);
+        let size = brickcast_protocol::lod::level_size(self.map.size(), level);
         let camera = [size[0] as f32 * 0.5, size[1] as f32, size[2] as f32 * 0.5];
         out.wake_owner_with(self.wake.clone());
         let mut sub = Subscriber {
@@ -54,6 +75,8 @@ impl Owner {
             user: who.peer.user,
             stable: who.stable,
             camera,
+            level,
+            awaits_levels: None,
             delivered: self.seq,
             lagging: false,
             pending: Vec::new(),
@@ -63,12 +86,19 @@ impl Owner {
         };
         // A resume is served as a resync from the client's sequence; anything else (or a
         // sequence from the future, i.e. another store) is a full sync.
-        let (total, resume) = match resume_from {
-            Some(since) if since <= self.seq => match self.map.changes_since(since) {
-                Some(c) => (c.changed.len() as u32, Some(since)),
-                None => (self.map.brick_count() as u32, None),
-            },
-            _ => (self.map.brick_count() as u32, None),
+        let (total, resume, everything) = match view {
+            None => (0, None, None),
+            Some(map) => {
+                let (total, resume) = match resume_from {
+                    Some(since) if since <= self.seq => match map.changes_since(since) {
+                        Some(c) => (c.changed.len() as u32, Some(since)),
+                        None => (map.brick_count() as u32, None),
+                    },
+                    _ => (map.brick_count() as u32, None),
+                };
+                let everything = resume.is_none().then(|| all_cells(map, camera));
+                (total, resume, everything)
+            }
         };
         let welcome = ServerMsg::Welcome {
             protocol: PROTOCOL_VERSION,
@@ -86,6 +116,11 @@ impl Owner {
             return false;
         }
         match resume {
+            _ if everything.is_none() && resume.is_none() => {
+                sub.awaits_levels = Some(resume_from.is_some());
+                sub.syncing = true;
+                sub.out.set_syncing(true);
+            }
             Some(since) => {
                 sub.delivered = since;
                 self.start_resync(&mut sub, false);
@@ -95,12 +130,7 @@ impl Owner {
                 if resume_from.is_some() {
                     sub.out.send(&ServerMsg::Resync { since: 0 }, &self.metrics);
                 }
-                sub.pending = self
-                    .map
-                    .brick_cells()
-                    .map(|(c, _)| self.map.cell_index(c))
-                    .collect();
-                sort_far_to_near(&self.map, &mut sub.pending, sub.camera);
+                sub.pending = everything.unwrap_or_default();
                 sub.sync_total = sub.pending.len() as u32;
                 sub.syncing = true;
                 sub.out.set_syncing(true);
@@ -114,7 +144,11 @@ impl Owner {
     pub(super) fn camera(&mut self, session: SessionId, eye: [f32; 3]) {
         if let Some(sub) = self.subs.get_mut(&session) {
             sub.camera = eye;
-            sort_far_to_near(&self.map, &mut sub.pending, eye);
+            let map = self
+                .levels
+                .map_at(&self.map, sub.level)
+                .unwrap_or(&self.map);
+            sort_far_to_near(map, &mut sub.pending, eye);
         }
     }
 
@@ -128,10 +162,15 @@ impl Owner {
     /// asked to resume from 0), where "changed after 0" would miss every brick the scene was
     /// created with.
     pub(super) fn start_resync(&self, sub: &mut Subscriber, announce: bool) {
+        // Levels are built before a session viewing one joins, and never dropped.
+        let map = self
+            .levels
+            .map_at(&self.map, sub.level)
+            .unwrap_or(&self.map);
         let changes = if announce && sub.delivered == 0 {
             None
         } else {
-            self.map.changes_since(sub.delivered)
+            map.changes_since(sub.delivered)
         };
         let full = changes.is_none();
         let (since, changes) = match changes {
@@ -139,7 +178,7 @@ impl Owner {
             None => (
                 0,
                 brickcast_protocol::map::Changes {
-                    changed: self.map.brick_cells().map(|(c, _)| c).collect(),
+                    changed: map.brick_cells().map(|(c, _)| c).collect(),
                     removed: Vec::new(),
                 },
             ),
@@ -161,11 +200,30 @@ impl Owner {
         }
         // Keep what an interrupted sync had not sent yet: those bricks are still owed.
         let mut pending = std::mem::take(&mut sub.pending);
-        pending.extend(changes.changed.iter().map(|&c| self.map.cell_index(c)));
+        pending.extend(changes.changed.iter().map(|&c| map.cell_index(c)));
         pending.sort_unstable();
         pending.dedup();
-        sort_far_to_near(&self.map, &mut pending, sub.camera);
+        sort_far_to_near(map, &mut pending, sub.camera);
         sub.pending = pending;
+        sub.sync_total = sub.pending.len() as u32;
+        sub.sync_sent = 0;
+        sub.syncing = true;
+        sub.out.set_syncing(true);
+        sub.lagging = false;
+        sub.delivered = self.seq;
+    }
+
+    /// Starts the sync of a session that waited for the levels of detail to be built: every
+    /// brick of its level, nearest first, after `Resync { since: 0 }` if it holds a copy.
+    pub(super) fn start_level_sync(&self, sub: &mut Subscriber) {
+        let drop_copy = sub.awaits_levels.take().unwrap_or(false);
+        let Some(map) = self.levels.map_at(&self.map, sub.level) else {
+            return;
+        };
+        if drop_copy {
+            sub.out.send(&ServerMsg::Resync { since: 0 }, &self.metrics);
+        }
+        sub.pending = all_cells(map, sub.camera);
         sub.sync_total = sub.pending.len() as u32;
         sub.sync_sent = 0;
         sub.syncing = true;
@@ -181,6 +239,7 @@ impl Owner {
     /// has, the frames kept in cell order; each frame stands alone either way.
     pub(super) fn encode_cells(
         &mut self,
+        level: u32,
         cells: &[u32],
         make: impl Fn(BrickBlob, Vec<[u32; 3]>) -> ServerMsg + Sync,
     ) -> Result<Vec<Bytes>, WireError> {
@@ -197,7 +256,7 @@ impl Owner {
             self.spare_encoders.push(BlobEncoder::new(ZSTD_LEVEL)?);
         }
         let runs: Vec<&[u32]> = cells.chunks(cells.len().div_ceil(parts).max(1)).collect();
-        let map = &self.map;
+        let map = self.levels.map_at(&self.map, level).unwrap_or(&self.map);
         let make = &make;
         let (first, rest) = match runs.split_first() {
             Some(split) => split,
@@ -244,11 +303,12 @@ impl Owner {
             .values()
             .next()
             .is_some_and(|s| s.out.total_queued() > self.config.max_queued_total);
-        !over_total
-            && self.subs.values().any(|s| {
-                (s.syncing && s.out.queued() < half)
-                    || (s.lagging && s.out.queued() < self.config.max_queue_bytes / 4)
-            })
+        self.levels.building()
+            || !over_total
+                && self.subs.values().any(|s| {
+                    (s.syncing && s.out.queued() < half)
+                        || (s.lagging && s.out.queued() < self.config.max_queue_bytes / 4)
+                })
     }
 
     /// How far a sync is queued ahead of its writer: [`SYNC_AHEAD`], or half the queue bound
@@ -278,7 +338,7 @@ impl Owner {
             .subs
             .range(after.saturating_add(1)..)
             .chain(self.subs.range(..=after))
-            .filter(|(_, s)| s.syncing || s.lagging)
+            .filter(|(_, s)| (s.syncing || s.lagging) && s.awaits_levels.is_none())
             .map(|(&id, _)| id)
             .collect();
         let mut served = 0;
@@ -314,14 +374,18 @@ impl Owner {
                     .min(sub.pending.len());
                 let batch: Vec<u32> = sub.pending.split_off(sub.pending.len() - take);
                 // Cells emptied since the sync began were already announced by a delta.
+                let map = self
+                    .levels
+                    .map_at(&self.map, sub.level)
+                    .unwrap_or(&self.map);
                 let live: Vec<u32> = batch
                     .into_iter()
-                    .filter(|&c| self.map.slot_of_cell(self.map.cell_coords(c)).is_some())
+                    .filter(|&c| map.slot_of_cell(map.cell_coords(c)).is_some())
                     .collect();
                 let sent_before = sub.sync_sent;
                 let total = sub.sync_total;
                 let count = live.len() as u32;
-                match self.encode_cells(&live, |bricks, _| ServerMsg::SyncBatch {
+                match self.encode_cells(sub.level, &live, |bricks, _| ServerMsg::SyncBatch {
                     bricks,
                     sent: sent_before + count,
                     total,
@@ -364,6 +428,13 @@ impl Owner {
             self.subs.insert(id, sub);
         }
     }
+}
+
+/// Every brick's linear cell index in `map`, sorted to be sent nearest `eye` first.
+pub(super) fn all_cells(map: &BrickMap, eye: [f32; 3]) -> Vec<u32> {
+    let mut cells: Vec<u32> = map.brick_cells().map(|(c, _)| map.cell_index(c)).collect();
+    sort_far_to_near(map, &mut cells, eye);
+    cells
 }
 
 /// Sorts linear cell indices by distance to `eye`, farthest first, so `pop` yields the nearest.
@@ -482,7 +553,7 @@ mod tests {
             .collect();
         assert!(cells.len() > 3 * super::PARALLEL_CELLS);
         let frames = owner
-            .encode_cells(&cells, |bricks, removed| ServerMsg::Delta {
+            .encode_cells(0, &cells, |bricks, removed| ServerMsg::Delta {
                 from_seq: 0,
                 to_seq: 1,
                 bricks,
@@ -611,6 +682,7 @@ mod tests {
             out,
             role: Role::Editor,
             resume_from: None,
+            level: 0,
             who: guest,
             joined,
         };

@@ -266,6 +266,7 @@ impl Sim {
             out,
             role,
             resume_from,
+            level: 0,
             who: crate::scene::Joiner::solo(session, c as u64 + 1, role),
             joined,
         });

@@ -1,0 +1,172 @@
+//! The scene's levels of detail, for sessions that view a coarser level (`/scenes/NAME@K/ws`).
+//!
+//! A level-K view is an ordinary read-only scene of `⌈size / 2^K⌉` voxels a side, level K of the
+//! scene's mip pyramid (`protocol::lod`): its Welcome, sync, deltas, resume and resync are
+//! level 0's, made from the level's own `BrickMap`, so every client (native, browser,
+//! `render`) can open a world too large for it at a level it can hold.
+//!
+//! The pyramid is built when a session first asks for a level, **a part per turn**
+//! ([`BUILD_SLOTS_PER_TURN`] of the map's brick slots, ~0.1 s), so edits and other clients go
+//! on meanwhile: a 16384×512×16384 world takes a few hundred turns. Edits during the build
+//! update what is built so far like any other turn, and the parts not yet folded in are read
+//! as they are when their turn comes, so the finished pyramid is exactly the map's. Sessions
+//! that asked meanwhile are welcomed at once and get their level's sync when it is done. The
+//! pyramid is then kept for the scene's life, updated every turn from the cells the turn
+//! touched, only where a coarse brick changes, before the turn's deltas go out. Scenes nobody
+//! views coarsely pay nothing.
+
+use brickcast_protocol::BrickMap;
+use brickcast_protocol::lod::{Changed, Pyramid, level_count};
+use brickcast_protocol::map::MapError;
+
+/// Brick slots of level 0 folded into the pyramid per owner turn while it is being built.
+pub const BUILD_SLOTS_PER_TURN: u32 = 32_768;
+
+/// Levels a session may ask for in a scene of `size` voxels: 1 ..= this (0 when none).
+pub fn levels_of(size: [u32; 3]) -> u32 {
+    level_count(size)
+}
+
+/// The pyramid once someone asked for it.
+#[derive(Default)]
+pub(super) struct Levels {
+    pyramid: Option<Pyramid>,
+    /// While it is being built: the next level-0 slot to fold in, and when the build began.
+    building: Option<(u32, std::time::Instant)>,
+    /// Slots folded in per turn ([`BUILD_SLOTS_PER_TURN`]; tests take smaller steps).
+    step: Option<u32>,
+}
+
+impl Levels {
+    /// Starts building the pyramid of `map` unless it is built or being built. Its tombstone
+    /// horizon is `seq`, so a client resuming a level from before gets a full resync (the
+    /// fresh levels know no earlier removals).
+    pub(super) fn start(&mut self, map: &BrickMap, seq: u64) -> Result<(), MapError> {
+        if self.pyramid.is_none() {
+            let mut pyramid = Pyramid::empty(map.size())?;
+            pyramid.prune_tombstones(seq);
+            self.pyramid = Some(pyramid);
+            self.building = Some((0, std::time::Instant::now()));
+        }
+        Ok(())
+    }
+
+    /// Whether the levels are complete and current.
+    pub(super) fn ready(&self) -> bool {
+        self.pyramid.is_some() && self.building.is_none()
+    }
+
+    /// Whether a build is under way (the owner keeps turning until it is done).
+    pub(super) fn building(&self) -> bool {
+        self.building.is_some()
+    }
+
+    /// One turn's part of the build; true when this part finished it.
+    pub(super) fn advance(&mut self, map: &BrickMap, scene: &str) -> Result<bool, MapError> {
+        let (Some(pyramid), Some((next, started))) = (&mut self.pyramid, self.building) else {
+            return Ok(false);
+        };
+        let end = next.saturating_add(self.step.unwrap_or(BUILD_SLOTS_PER_TURN));
+        let cells: Vec<u32> = map.slot_cells(next..end).collect();
+        pyramid.update(map, &cells)?;
+        if end < map.slot_count() {
+            self.building = Some((end, started));
+            return Ok(false);
+        }
+        self.building = None;
+        tracing::info!(scene, levels = pyramid.level_count(), bricks = pyramid.brick_count(), took = ?started.elapsed(), "built the levels of detail");
+        Ok(true)
+    }
+
+    /// After the map was replaced whole (a reload from the log): built again from the start if
+    /// it was built or being built.
+    pub(super) fn reset(&mut self, map: &BrickMap, seq: u64) -> Result<(), MapError> {
+        if self.pyramid.take().is_some() {
+            self.start(map, seq)?;
+        }
+        Ok(())
+    }
+
+    /// Level `level` of the scene: `map` itself for 0; `None` for a level that is not complete.
+    pub(super) fn map_at<'a>(&'a self, map: &'a BrickMap, level: u32) -> Option<&'a BrickMap> {
+        match level {
+            0 => Some(map),
+            k if self.ready() => self.pyramid.as_ref()?.level(k),
+            _ => None,
+        }
+    }
+
+    /// Brings the levels (as far as they are built) up to date with the level-0 cells a turn
+    /// touched; what changed per level (empty when there are no levels).
+    pub(super) fn update(&mut self, map: &BrickMap, touched: &[u32]) -> Result<Changed, MapError> {
+        match &mut self.pyramid {
+            Some(pyramid) if !touched.is_empty() => pyramid.update(map, touched),
+            _ => Ok(Changed::new()),
+        }
+    }
+
+    /// Forgets removals at or before `seq` in every level, as level 0 does.
+    pub(super) fn prune_tombstones(&mut self, seq: u64) {
+        if let Some(pyramid) = &mut self.pyramid {
+            pyramid.prune_tombstones(seq);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use brickcast_protocol::map::BrushMode;
+    use brickcast_protocol::{BrickMap, Colour};
+
+    /// Edits that land between the parts of a build (touching parts built and parts not yet
+    /// built) leave the finished levels equal to a pyramid built at once from the final map.
+    #[test]
+    fn a_build_spread_over_turns_with_edits_between_equals_one_built_at_once() {
+        let mut map = BrickMap::new([96, 48, 96]).unwrap();
+        map.record_touched(true);
+        for i in 0..40u32 {
+            let c = [(i * 37) % 96, (i * 11) % 40, (i * 53) % 96].map(|v| v as f32);
+            map.sphere(
+                c,
+                3.0 + (i % 4) as f32,
+                BrushMode::Fill,
+                Colour(0x1111 * (i % 9) as u16),
+            );
+        }
+        map.take_touched();
+        let mut levels = Levels {
+            step: Some(7),
+            ..Levels::default()
+        };
+        levels.start(&map, 0).unwrap();
+        assert!(levels.building() && !levels.ready());
+        assert!(
+            levels.map_at(&map, 1).is_none(),
+            "no level before it is built"
+        );
+        let mut turn = 0u32;
+        loop {
+            turn += 1;
+            map.set_sequence(u64::from(turn));
+            let at = [(turn * 29) % 96, (turn * 7) % 48, (turn * 61) % 96].map(|v| v as f32);
+            let mode = [BrushMode::Erase, BrushMode::Fill, BrushMode::Paint][turn as usize % 3];
+            map.sphere(at, 4.0, mode, Colour(0xF800));
+            let touched = map.take_touched();
+            levels.update(&map, &touched).unwrap();
+            if levels.advance(&map, "test").unwrap() {
+                break;
+            }
+            assert!(turn < 10_000);
+        }
+        assert!(turn > 3, "the build took several turns ({turn})");
+        assert!(levels.ready());
+        let fresh = Pyramid::build(&map).unwrap();
+        for k in 1..=fresh.level_count() {
+            let want = fresh.level(k).unwrap();
+            let got = levels.map_at(&map, k).unwrap();
+            assert_eq!(got.content_hash(), want.content_hash(), "level {k}");
+            assert_eq!(got.brick_count(), want.brick_count(), "level {k}");
+        }
+    }
+}
