@@ -61,8 +61,16 @@ impl Levels {
         self.building.is_some()
     }
 
-    /// One turn's part of the build; true when this part finished it.
-    pub(super) fn advance(&mut self, map: &BrickMap, scene: &str) -> Result<bool, MapError> {
+    /// One turn's part of the build (the scene at sequence `seq`); true when this part finished
+    /// it. A finished pyramid's tombstone horizon is `seq`: a coarse brick emptied during the
+    /// build before it was folded in left no tombstone, so a client resuming a level from
+    /// before the build finished must get a full resync.
+    pub(super) fn advance(
+        &mut self,
+        map: &BrickMap,
+        seq: u64,
+        scene: &str,
+    ) -> Result<bool, MapError> {
         let (Some(pyramid), Some((next, started))) = (&mut self.pyramid, self.building) else {
             return Ok(false);
         };
@@ -74,6 +82,7 @@ impl Levels {
             return Ok(false);
         }
         self.building = None;
+        pyramid.prune_tombstones(seq);
         tracing::info!(scene, levels = pyramid.level_count(), bricks = pyramid.brick_count(), took = ?started.elapsed(), "built the levels of detail");
         Ok(true)
     }
@@ -154,7 +163,7 @@ mod tests {
             map.sphere(at, 4.0, mode, Colour(0xF800));
             let touched = map.take_touched();
             levels.update(&map, &touched).unwrap();
-            if levels.advance(&map, "test").unwrap() {
+            if levels.advance(&map, u64::from(turn), "test").unwrap() {
                 break;
             }
             assert!(turn < 10_000);
@@ -168,5 +177,35 @@ mod tests {
             assert_eq!(got.content_hash(), want.content_hash(), "level {k}");
             assert_eq!(got.brick_count(), want.brick_count(), "level {k}");
         }
+    }
+
+    /// A coarse brick that an edit empties before the build folds it in leaves no tombstone, so
+    /// a client holding the level from before the build (a restart, a reload) must not be
+    /// patched from it: resumes from before the build finished get a full resync.
+    #[test]
+    fn resumes_from_before_a_build_finished_are_full_resyncs() {
+        let mut map = BrickMap::new([64, 16, 64]).unwrap();
+        map.record_touched(true);
+        map.set_sequence(5);
+        map.fill_box([0, 0, 0], [63, 3, 63], BrushMode::Fill, Colour(0x07E0));
+        map.take_touched();
+        let mut levels = Levels {
+            step: Some(4),
+            ..Levels::default()
+        };
+        levels.start(&map, 5).unwrap();
+        assert!(!levels.advance(&map, 5, "test").unwrap());
+        // Erase the far half, which the build has not reached yet.
+        map.set_sequence(6);
+        map.fill_box([0, 0, 32], [63, 3, 63], BrushMode::Erase, Colour(0));
+        let touched = map.take_touched();
+        levels.update(&map, &touched).unwrap();
+        while !levels.advance(&map, 6, "test").unwrap() {}
+        let one = levels.map_at(&map, 1).unwrap();
+        assert!(
+            one.changes_since(5).is_none(),
+            "a copy from 5 would keep erased bricks"
+        );
+        assert!(one.changes_since(6).is_some());
     }
 }

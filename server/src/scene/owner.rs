@@ -881,7 +881,7 @@ impl Owner {
     /// One turn's part of building the levels of detail; once built, the sessions that waited
     /// for them start their syncs.
     fn advance_levels(&mut self) {
-        match self.levels.advance(&self.map, &self.name) {
+        match self.levels.advance(&self.map, self.seq, &self.name) {
             Ok(false) => {}
             Ok(true) => {
                 let waiting: Vec<SessionId> = self
@@ -916,6 +916,14 @@ impl Owner {
     pub(super) fn restart_levels(&mut self) {
         if let Err(e) = self.levels.reset(&self.map, self.seq) {
             tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
+            self.levels = super::levels::Levels::default();
+            for sub in self.subs.values().filter(|s| s.level > 0) {
+                sub.out.close(
+                    brickcast_protocol::wire::ErrorCode::Internal,
+                    format!("the server could not build the scene's levels of detail: {e}"),
+                );
+            }
+            return;
         }
         for sub in self.subs.values_mut().filter(|s| s.level > 0) {
             if sub.awaits_levels.is_none() {

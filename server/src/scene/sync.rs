@@ -46,6 +46,14 @@ impl Owner {
         level: u32,
         who: super::Joiner,
     ) -> bool {
+        if level > brickcast_protocol::lod::level_count(self.map.size()) {
+            // The session checked the level against the scene's size before it joined.
+            out.close(
+                brickcast_protocol::wire::ErrorCode::UnknownScene,
+                format!("the scene has no level of detail {level}"),
+            );
+            return false;
+        }
         if level > 0
             && let Err(e) = self.levels.start(&self.map, self.seq)
         {
@@ -53,14 +61,6 @@ impl Owner {
             out.close(
                 brickcast_protocol::wire::ErrorCode::Internal,
                 format!("the server could not build the scene's levels of detail: {e}"),
-            );
-            return false;
-        }
-        if level > brickcast_protocol::lod::level_count(self.map.size()) {
-            // The session checked the level against the scene's size before it joined.
-            out.close(
-                brickcast_protocol::wire::ErrorCode::UnknownScene,
-                format!("the scene has no level of detail {level}"),
             );
             return false;
         }
@@ -144,11 +144,10 @@ impl Owner {
     pub(super) fn camera(&mut self, session: SessionId, eye: [f32; 3]) {
         if let Some(sub) = self.subs.get_mut(&session) {
             sub.camera = eye;
-            let map = self
-                .levels
-                .map_at(&self.map, sub.level)
-                .unwrap_or(&self.map);
-            sort_far_to_near(map, &mut sub.pending, eye);
+            // A session waiting for its level has nothing pending to sort.
+            if let Some(map) = self.levels.map_at(&self.map, sub.level) {
+                sort_far_to_near(map, &mut sub.pending, eye);
+            }
         }
     }
 
@@ -162,11 +161,13 @@ impl Owner {
     /// asked to resume from 0), where "changed after 0" would miss every brick the scene was
     /// created with.
     pub(super) fn start_resync(&self, sub: &mut Subscriber, announce: bool) {
-        // Levels are built before a session viewing one joins, and never dropped.
-        let map = self
-            .levels
-            .map_at(&self.map, sub.level)
-            .unwrap_or(&self.map);
+        // A level being built again: the session waits for it, then drops its copy.
+        let Some(map) = self.levels.map_at(&self.map, sub.level) else {
+            sub.awaits_levels = Some(true);
+            sub.pending.clear();
+            sub.lagging = false;
+            return;
+        };
         let changes = if announce && sub.delivered == 0 {
             None
         } else {
@@ -204,13 +205,7 @@ impl Owner {
         pending.sort_unstable();
         pending.dedup();
         sort_far_to_near(map, &mut pending, sub.camera);
-        sub.pending = pending;
-        sub.sync_total = sub.pending.len() as u32;
-        sub.sync_sent = 0;
-        sub.syncing = true;
-        sub.out.set_syncing(true);
-        sub.lagging = false;
-        sub.delivered = self.seq;
+        sub.begin_sync(pending, self.seq);
     }
 
     /// Starts the sync of a session that waited for the levels of detail to be built: every
@@ -223,13 +218,7 @@ impl Owner {
         if drop_copy {
             sub.out.send(&ServerMsg::Resync { since: 0 }, &self.metrics);
         }
-        sub.pending = all_cells(map, sub.camera);
-        sub.sync_total = sub.pending.len() as u32;
-        sub.sync_sent = 0;
-        sub.syncing = true;
-        sub.out.set_syncing(true);
-        sub.lagging = false;
-        sub.delivered = self.seq;
+        sub.begin_sync(all_cells(map, sub.camera), self.seq);
     }
 
     /// Encodes the current state of `cells` as frames: bricks that exist go in blobs cut to
@@ -256,7 +245,11 @@ impl Owner {
             self.spare_encoders.push(BlobEncoder::new(ZSTD_LEVEL)?);
         }
         let runs: Vec<&[u32]> = cells.chunks(cells.len().div_ceil(parts).max(1)).collect();
-        let map = self.levels.map_at(&self.map, level).unwrap_or(&self.map);
+        let Some(map) = self.levels.map_at(&self.map, level) else {
+            // Callers encode only levels that are built (sessions waiting for one are skipped).
+            tracing::error!(scene = %self.name, level, "asked to encode a level that is not built");
+            return Ok(Vec::new());
+        };
         let make = &make;
         let (first, rest) = match runs.split_first() {
             Some(split) => split,
@@ -306,7 +299,7 @@ impl Owner {
         self.levels.building()
             || !over_total
                 && self.subs.values().any(|s| {
-                    (s.syncing && s.out.queued() < half)
+                    (s.syncing && s.awaits_levels.is_none() && s.out.queued() < half)
                         || (s.lagging && s.out.queued() < self.config.max_queue_bytes / 4)
                 })
     }
@@ -374,10 +367,12 @@ impl Owner {
                     .min(sub.pending.len());
                 let batch: Vec<u32> = sub.pending.split_off(sub.pending.len() - take);
                 // Cells emptied since the sync began were already announced by a delta.
-                let map = self
-                    .levels
-                    .map_at(&self.map, sub.level)
-                    .unwrap_or(&self.map);
+                let Some(map) = self.levels.map_at(&self.map, sub.level) else {
+                    // Its level is being built again: it waits, then starts over.
+                    sub.awaits_levels = Some(true);
+                    sub.pending.clear();
+                    break;
+                };
                 let live: Vec<u32> = batch
                     .into_iter()
                     .filter(|&c| map.slot_of_cell(map.cell_coords(c)).is_some())
@@ -427,6 +422,19 @@ impl Owner {
             }
             self.subs.insert(id, sub);
         }
+    }
+}
+
+impl Subscriber {
+    /// Starts streaming `pending` (sorted farthest first) as the state at `seq`.
+    fn begin_sync(&mut self, pending: Vec<u32>, seq: u64) {
+        self.pending = pending;
+        self.sync_total = self.pending.len() as u32;
+        self.sync_sent = 0;
+        self.syncing = true;
+        self.out.set_syncing(true);
+        self.lagging = false;
+        self.delivered = seq;
     }
 }
 
