@@ -529,7 +529,7 @@ mod tests {
             assert!(sealed(&map, from).0, "{size:?}");
         }
         assert!(
-            room_scene([9000, 64, 64]).is_err(),
+            room_scene([crate::map::MAX_SCENE_EDGE + 1, 64, 64]).is_err(),
             "too large is the map's error"
         );
     }
