@@ -898,15 +898,21 @@ impl Owner {
                 }
             }
             Err(e) => {
-                tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
-                self.levels = super::levels::Levels::default();
-                for sub in self.subs.values().filter(|s| s.level > 0) {
-                    sub.out.close(
-                        brickcast_protocol::wire::ErrorCode::Internal,
-                        format!("the server could not build the scene's levels of detail: {e}"),
-                    );
-                }
+                self.drop_levels(&e);
             }
+        }
+    }
+
+    /// The levels of detail could not be built: they are dropped and every session viewing one
+    /// is told why and closed.
+    fn drop_levels(&mut self, e: &brickcast_protocol::map::MapError) {
+        tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
+        self.levels = super::levels::Levels::default();
+        for sub in self.subs.values().filter(|s| s.level > 0) {
+            sub.out.close(
+                brickcast_protocol::wire::ErrorCode::Internal,
+                format!("the server could not build the scene's levels of detail: {e}"),
+            );
         }
     }
 
@@ -915,14 +921,7 @@ impl Owner {
     /// once they are built.
     pub(super) fn restart_levels(&mut self) {
         if let Err(e) = self.levels.reset(&self.map, self.seq) {
-            tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
-            self.levels = super::levels::Levels::default();
-            for sub in self.subs.values().filter(|s| s.level > 0) {
-                sub.out.close(
-                    brickcast_protocol::wire::ErrorCode::Internal,
-                    format!("the server could not build the scene's levels of detail: {e}"),
-                );
-            }
+            self.drop_levels(&e);
             return;
         }
         for sub in self.subs.values_mut().filter(|s| s.level > 0) {
