@@ -10,7 +10,7 @@
 //! which the next writer of that name clears first.
 
 use brickcast_protocol::BrickMap;
-use brickcast_protocol::brick::{BRICK_EDGE, BrickData, for_each_bit, popcount};
+use brickcast_protocol::brick::BrickData;
 use redb::{Durability, ReadableTable, TableDefinition, WriteTransaction};
 
 use super::{
@@ -26,8 +26,9 @@ pub const ROWS_PER_COMMIT: usize = 1 << 16;
 pub struct SceneWriter<'a> {
     store: &'a Store,
     name: String,
-    size: [u32; 3],
-    cells: [u32; 3],
+    /// An empty map of the scene's size: it checks bricks and numbers cells as the scene will
+    /// (its region array is all it holds: 16 MiB for a 16384×512×16384 world).
+    shape: BrickMap,
     txn: Option<WriteTransaction>,
     uncommitted: usize,
     written: u64,
@@ -42,13 +43,11 @@ impl Store {
         if !valid_scene_name(name) {
             return Err(StoreError::BadName(name.into()));
         }
-        let cells = BrickMap::new(size)
-            .map_err(|e| StoreError::BadBrick {
-                scene: name.into(),
-                cell: [0; 3],
-                detail: e.to_string(),
-            })?
-            .cell_dims();
+        let shape = BrickMap::new(size).map_err(|e| StoreError::BadBrick {
+            scene: name.into(),
+            cell: [0; 3],
+            detail: e.to_string(),
+        })?;
         let mut txn = self.db.begin_write()?;
         txn.set_durability(Durability::Immediate)?;
         let exists = txn.open_table(SCENES)?.get(name)?.is_some();
@@ -63,8 +62,7 @@ impl Store {
         Ok(SceneWriter {
             store: self,
             name: name.into(),
-            size,
-            cells,
+            shape,
             txn: None,
             uncommitted: 0,
             written: 0,
@@ -93,8 +91,7 @@ impl SceneWriter<'_> {
                 &self.name,
             )))?;
             for brick in bricks {
-                let [x, y, z] = brick.cell;
-                let index = x + self.cells[0] * (y + self.cells[1] * z);
+                let index = self.shape.cell_index(brick.cell);
                 encode_row(&brick.mask, &brick.colours, &mut self.row);
                 table.insert(index, self.row.as_slice())?;
             }
@@ -129,7 +126,7 @@ impl SceneWriter<'_> {
                 return Err(StoreError::SceneExists(self.name.clone()));
             }
             let meta = SceneMeta {
-                size: self.size,
+                size: self.shape.size(),
                 snapshot_seq: 0,
             };
             scenes.insert(self.name.as_str(), meta.bytes(&self.name)?.as_slice())?;
@@ -143,33 +140,13 @@ impl SceneWriter<'_> {
     }
 
     fn check(&self, brick: &BrickData) -> Result<(), StoreError> {
-        let bad = |detail: String| StoreError::BadBrick {
-            scene: self.name.clone(),
-            cell: brick.cell,
-            detail,
-        };
-        if (0..3).any(|i| brick.cell[i] >= self.cells[i]) {
-            return Err(bad(format!("outside the scene's {:?} cells", self.cells)));
-        }
-        let voxels = popcount(&brick.mask) as usize;
-        if voxels == 0 || voxels != brick.colours.len() {
-            return Err(bad(format!(
-                "{voxels} solid voxels but {} colours",
-                brick.colours.len()
-            )));
-        }
-        // A brick at the scene's far edge may not reach past it.
-        if (0..3).any(|i| (brick.cell[i] + 1) * BRICK_EDGE > self.size[i]) {
-            let mut outside = false;
-            for_each_bit(&brick.mask, |bit| {
-                let local = [bit & 7, (bit >> 3) & 7, (bit >> 6) & 7];
-                outside |= (0..3).any(|i| brick.cell[i] * BRICK_EDGE + local[i] >= self.size[i]);
-            });
-            if outside {
-                return Err(bad("a voxel lies outside the scene".into()));
-            }
-        }
-        Ok(())
+        self.shape
+            .check_brick(brick)
+            .map_err(|e| StoreError::BadBrick {
+                scene: self.name.clone(),
+                cell: brick.cell,
+                detail: e.to_string(),
+            })
     }
 }
 
