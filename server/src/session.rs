@@ -92,7 +92,10 @@ pub async fn run(
         app.stall_timeout,
     ));
 
-    match handshake(&mut stream, &scene, &app, &out, id, from).await {
+    // Set when the peer's input could not be read (a frame over the limit, a protocol error):
+    // bytes it sent may still be unread when the connection closes.
+    let unread = std::sync::atomic::AtomicBool::new(false);
+    match handshake(&mut stream, &scene, &app, &out, id, from, &unread).await {
         Some((role, resume_from, who)) => {
             let role = if level > 0 { Role::Viewer } else { role };
             let peer = Peer {
@@ -139,6 +142,7 @@ pub async fn run(
                     who: &who,
                     from,
                     level,
+                    unread: &unread,
                 };
                 read_loop(&mut stream, session).await;
                 let _ = scene.send(Command::Leave { session: id }).await;
@@ -162,8 +166,14 @@ pub async fn run(
     let drain = async {
         while let Some(Ok(msg)) = stream.next().await {
             if matches!(msg, Message::Close(_)) {
-                break;
+                return;
             }
+        }
+        // Input that could not be read cannot be drained either: closing now would reset the
+        // connection, and a peer still reading the error frame would lose it. Linger for the
+        // rest of the grace instead.
+        if unread.load(Relaxed) {
+            std::future::pending::<()>().await;
         }
     };
     let (_, _) = tokio::join!(writer, tokio::time::timeout(CLOSE_GRACE, drain));
@@ -178,6 +188,7 @@ async fn handshake(
     out: &Outbox,
     id: SessionId,
     from: IpAddr,
+    unread: &std::sync::atomic::AtomicBool,
 ) -> Option<(Role, Option<u64>, Identity)> {
     let fail = |code: ErrorCode, text: String| {
         app.metrics.rejected_frames.fetch_add(1, Relaxed);
@@ -194,6 +205,7 @@ async fn handshake(
         }
         Ok(Some(Err(e))) => {
             let (code, text) = read_error(e, &app.metrics)?;
+            unread.store(true, Relaxed);
             return fail(code, text);
         }
         Ok(None) => return None,
@@ -285,6 +297,8 @@ struct Session<'a> {
     from: IpAddr,
     /// The level of detail it views (0: the scene); above 0 it is not in presence.
     level: u32,
+    /// Set when its input could not be read (see `run`).
+    unread: &'a std::sync::atomic::AtomicBool,
 }
 
 /// Undo and redo messages one session may send per second, with this much burst: a guard
@@ -405,6 +419,7 @@ async fn read_loop(
             }
             Some(Err(e)) => {
                 if let Some((code, text)) = read_error(e, &app.metrics) {
+                    session.unread.store(true, Relaxed);
                     reject(code, text);
                 }
                 return;
