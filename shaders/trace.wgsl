@@ -22,6 +22,7 @@
 
 const BIG: f32 = 3.0e38;
 const EMPTY_REGION: u32 = 0xFFFFFF00u;
+const STAND_IN: u32 = 0x80000000u;
 const REGION_EDGE: i32 = 32;
 const BRICK_EDGE: i32 = 8;
 const MIN_DIRECTION: f32 = 1e-30;
@@ -167,6 +168,25 @@ fn region_clearance(entry: u32) -> i32 {
     return i32(entry & 0xFFu);
 }
 // Empty cells are coded like empty regions: `0xFFFFFF00 | clearance` (in cells).
+// Stand-in region entries (`map/stand_in.rs`): `STAND_IN | level << 27 | slot`.
+fn is_stand_in(entry: u32) -> bool {
+    return (entry & STAND_IN) != 0u && !region_is_empty(entry);
+}
+
+fn stand_in_level(entry: u32) -> u32 {
+    return (entry >> 27u) & 15u;
+}
+
+fn stand_in_slot(entry: u32) -> u32 {
+    return entry & 0x7FFFFFFu;
+}
+
+// `map::coarse_bit`: the mask bit of the level-`level` voxel covering level-0 voxel `p`.
+fn coarse_bit(p: vec3<i32>, level: u32) -> u32 {
+    let g = (p >> vec3<u32>(level)) & vec3<i32>(7);
+    return u32(g.x | (g.y << 3u) | (g.z << 6u));
+}
+
 fn cell_is_empty(entry: u32) -> bool {
     return entry >= EMPTY_REGION;
 }
@@ -430,6 +450,48 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> Hit {
             enter_block(lo, min(lo + vec3<i32>(REGION_EDGE - 1), n - vec3<i32>(1)));
             v_valid = true;
         }
+        if is_stand_in(block) {
+            // A coarse brick stands in for this region: blocks of 2^level voxels (the whole
+            // region from level 5 on), stepped like cells; a solid one is hit where entered.
+            let level = stand_in_level(block);
+            let slot = stand_in_slot(block);
+            let scale = 1 << min(level, 5u);
+            let lo = r * REGION_EDGE;
+            let hi = min(lo + vec3<i32>(REGION_EDGE), n) - vec3<i32>(1);
+            let blo = lo / scale;
+            let bhi = hi / scale;
+            var b = v / scale;
+            var bnext = block_exit(b, scale);
+            loop {
+                if budget == 0u {
+                    return miss();
+                }
+                budget -= 1u;
+                let bit = coarse_bit(b * scale, level);
+                if ((mask_word(slot * 16u + (bit >> 5u)) >> (bit & 31u)) & 1u) != 0u {
+                    if !v_valid {
+                        let at = b * scale;
+                        enter_block(at, min(at + vec3<i32>(scale - 1), hi));
+                    }
+                    return make_hit(brick_colour(colour_bases[slot], rank(slot, bit)));
+                }
+                v_valid = false;
+                let k = earliest(bnext);
+                t = bnext[k];
+                axis = k;
+                b[k] += stp[k];
+                if b[k] < blo[k] || b[k] > bhi[k] {
+                    r[k] += stp[k];
+                    if r[k] < rlo[k] || r[k] > rhi[k] {
+                        return miss();
+                    }
+                    rnext[k] = block_exit_t(k, r[k], REGION_EDGE);
+                    break;
+                }
+                bnext[k] = block_exit_t(k, b[k], scale);
+            }
+            continue;
+        }
         // Cell level, inside this region: cells `clo..=chi`.
         let clo = r * 4;
         let chi = min(clo + vec3<i32>(3), cdims - vec3<i32>(1));
@@ -566,6 +628,11 @@ fn solid(p: vec3<i32>) -> bool {
     let entry = regions[u32(r.x + rdims.x * (r.y + rdims.y * r.z))];
     if region_is_empty(entry) {
         return false;
+    }
+    if is_stand_in(entry) {
+        let bit = coarse_bit(p, stand_in_level(entry));
+        let slot = stand_in_slot(entry);
+        return ((mask_word(slot * 16u + (bit >> 5u)) >> (bit & 31u)) & 1u) != 0u;
     }
     let c = p / BRICK_EDGE;
     let local = u32((c.x & 3) | ((c.y & 3) << 2u) | ((c.z & 3) << 4u));

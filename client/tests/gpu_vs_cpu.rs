@@ -439,6 +439,77 @@ fn bounded_colour_blocks_match_the_cpu_tracer() {
     assert_eq!(widths, [true, true], "both weight widths traced");
 }
 
+/// A working set of mixed levels (`map::stand_in`): level 0 around one place, coarse bricks of
+/// levels 2 to 6 standing in elsewhere. The shader descends to whatever each region holds, its
+/// ambient occlusion and shadows read coarse voxels as the CPU's do; then regions change level
+/// (level 0 gives way to a stand-in and back) through the incremental upload alone.
+#[test]
+fn mixed_levels_match_the_cpu_tracer() {
+    let ctx = gpu();
+    let size = [300u32, 70, 141];
+    let mut base = scattered_scene(size, 11);
+    // Ground everywhere, so every region of the bottom row shows something at every level.
+    base.fill_box(
+        [0, 0, 0],
+        [299, 2, 140],
+        BrushMode::Fill,
+        Colour::from_rgb8(90, 140, 60),
+    );
+    let pyramid = brickcast_protocol::lod::Pyramid::build(&base).expect("pyramid");
+    assert!(pyramid.level_count() >= 6);
+    let levels = [0u32, 2, 3, 4, 5, 6];
+    let pick = |r: [u32; 3]| {
+        if r[0].abs_diff(3) <= 1 && r[2].abs_diff(2) <= 1 {
+            0
+        } else {
+            levels[((r[0] * 7 + r[1] * 3 + r[2] * 5) % 6) as usize]
+        }
+    };
+    let mut map = pyramid.mixed(&base, pick).expect("mixed map");
+    assert!(map.stand_in_count() > 20 && map.brick_count() > 0);
+    let mut scene = GpuScene::new(&ctx, &mut map, None).expect("upload");
+    let mut tracer = Tracer::new(&ctx).expect("tracer");
+    let mut hits = 0;
+    let check = |label: &str, scene: &GpuScene, tracer: &mut Tracer, map: &BrickMap| {
+        let mut hits = 0;
+        for (name, camera) in cameras(size) {
+            let projection = camera.project(128, 80).expect("camera");
+            hits += assert_twins(
+                &format!("{label}, {name}"),
+                &ctx,
+                scene,
+                tracer,
+                map,
+                &projection,
+            );
+        }
+        hits
+    };
+    hits += check("mixed", &scene, &mut tracer, &map);
+    // Region (3, 0, 2) from level 0 to its level-3 brick, and (8, 1, 3) from its level to 0.
+    let coarse = pyramid.level(3).expect("level 3");
+    let cell = [3u32 >> 1, 0, 2 >> 1];
+    for c in 0..64u32 {
+        let cell0 = [12 + (c & 3), c >> 2 & 3, 8 + (c >> 4)];
+        map.remove_brick(cell0);
+    }
+    let brick = coarse.brick(cell).expect("a level-3 brick there");
+    let slot = map.add_coarse(brick.mask, &brick.colours).expect("coarse");
+    map.set_stand_in([3, 0, 2], Some((3, slot)))
+        .expect("stand in");
+    map.set_stand_in([8, 1, 3], None).expect("clear");
+    for c in 0..64u32 {
+        let cell0 = [32 + (c & 3), 4 + (c >> 2 & 3), 12 + (c >> 4)];
+        if let Some(b) = base.brick(cell0) {
+            map.put_brick(&b).expect("level 0");
+        }
+    }
+    map.check_invariants().expect("invariants");
+    scene.update(&ctx, &mut map).expect("update");
+    hits += check("levels changed", &scene, &mut tracer, &map);
+    assert!(hits > 2000, "the cameras saw almost nothing: {hits}");
+}
+
 /// Scattered single voxels: one brick each, so masks and the coarse grid dominate.
 fn dust_scene(size: [u32; 3], voxels: u32) -> BrickMap {
     let mut map = BrickMap::new(size).expect("scene size");

@@ -20,7 +20,7 @@
 use crate::brick::{BRICK_EDGE, Mask};
 use crate::map::{
     BrickMap, CELLS_PER_BLOCK, REGION_EDGE, cell_clearance, cell_is_empty, region_clearance,
-    region_is_empty,
+    region_is_empty, region_stand_in,
 };
 use crate::render::Projection;
 use crate::trace::floor_i32;
@@ -125,6 +125,9 @@ impl Beam {
                 // of empty cells that cell's clearance vouches for.
                 let (unit, at, clear) = if region_is_empty(entry) {
                     (r, cell, region_clearance(entry) as f32)
+                } else if region_stand_in(entry).is_some() {
+                    // A coarse brick stands in for the region: not empty at this grain.
+                    return t;
                 } else {
                     let c: [u32; 3] = std::array::from_fn(|i| {
                         let v = p[i].clamp(box_lo[i], box_hi[i] - 0.5);
@@ -354,6 +357,10 @@ fn voxels_empty(map: &BrickMap, lo: [i32; 3], hi: [i32; 3]) -> bool {
                 let entry = regions[(rx + dims[0] * (ry + dims[1] * rz)) as usize];
                 if region_is_empty(entry) {
                     continue;
+                }
+                if region_stand_in(entry).is_some() {
+                    // A coarse brick's voxels: not looked into, so not known to be empty.
+                    return false;
                 }
                 let reg = [rx, ry, rz];
                 // The box's cells inside this region, in the region's local cell coordinates.

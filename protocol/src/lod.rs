@@ -22,7 +22,9 @@ use crate::brick::{
     BRICK_EDGE, BrickData, EMPTY_MASK, bit_voxel, for_each_bit, mask_set, voxel_bit,
 };
 use crate::colour::Colour;
-use crate::map::{BrickMap, MapError};
+use std::collections::HashMap;
+
+use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS};
 
 /// Levels above 0 for a scene of `size` voxels: until every axis of the top level fits one
 /// brick (a 16384×512×16384 world has 11; a scene of at most 8 voxels a side has none).
@@ -134,6 +136,64 @@ impl Pyramid {
     /// Level `k` (1 ..= [`Pyramid::level_count`]).
     pub fn level(&self, k: u32) -> Option<&BrickMap> {
         self.levels.get((k as usize).checked_sub(1)?)
+    }
+
+    /// A map showing each region of `base` (32³ voxels) at the level `level_of(region)` picks:
+    /// 0 holds the region's level-0 bricks, `2..=`[`Pyramid::level_count`] shows the part of
+    /// that level's brick covering it as a stand-in ([`crate::map::stand_in`]); one coarse brick
+    /// serves every region it covers. What a client holding a working set of mixed levels holds.
+    /// `self` must be `base`'s pyramid, current. Level 1 and levels past the top are refused.
+    pub fn mixed(
+        &self,
+        base: &BrickMap,
+        mut level_of: impl FnMut([u32; 3]) -> u32,
+    ) -> Result<BrickMap, MapError> {
+        let mut map = BrickMap::new(base.size())?;
+        let (rd, cd) = (base.region_dims(), base.cell_dims());
+        let mut coarse: HashMap<(u32, [u32; 3]), Option<u32>> = HashMap::new();
+        for z in 0..rd[2] {
+            for y in 0..rd[1] {
+                for x in 0..rd[0] {
+                    let r = [x, y, z];
+                    let k = level_of(r);
+                    if k == 0 {
+                        let lo = r.map(|c| c * REGION_CELLS);
+                        for cz in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
+                            for cy in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
+                                for cx in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
+                                    if let Some(brick) = base.brick([cx, cy, cz]) {
+                                        map.put_brick(&brick)?;
+                                    }
+                                }
+                            }
+                        }
+                        continue;
+                    }
+                    let level = self
+                        .level(k)
+                        .filter(|_| k >= MIN_STAND_IN_LEVEL)
+                        .ok_or(MapError::BadCoarseBrick("no such level for a stand-in"))?;
+                    // A level-k brick spans 2^(k-2) regions a side.
+                    let cell = r.map(|c| c >> (k - MIN_STAND_IN_LEVEL));
+                    let slot = match coarse.get(&(k, cell)) {
+                        Some(&slot) => slot,
+                        None => {
+                            let slot = match level.brick(cell) {
+                                Some(b) => Some(map.add_coarse(b.mask, &b.colours)?),
+                                None => None,
+                            };
+                            coarse.insert((k, cell), slot);
+                            slot
+                        }
+                    };
+                    if let Some(slot) = slot {
+                        map.set_stand_in(r, Some((k, slot)))?;
+                    }
+                }
+            }
+        }
+        map.rebuild_clearance();
+        Ok(map)
     }
 
     /// Brings every level up to date after the level-0 cells `touched` (linear indices in

@@ -29,6 +29,13 @@ use crate::brick::{
 };
 use crate::colour::Colour;
 
+mod stand_in;
+use stand_in::COARSE;
+pub use stand_in::{
+    MAX_STAND_IN_LEVEL, MAX_STAND_IN_SLOTS, MIN_STAND_IN_LEVEL, STAND_IN, coarse_bit, region_block,
+    region_stand_in, stand_in_entry,
+};
+
 /// Coarse cells along one edge of a region.
 pub const REGION_CELLS: u32 = 4;
 /// Voxels along one edge of a region.
@@ -107,6 +114,10 @@ pub enum MapError {
         "brick at cell {0:?} is inconsistent: empty mask or colour count differs from its solid voxels"
     )]
     InconsistentBrick([u32; 3]),
+    #[error("coarse brick refused: {0}")]
+    BadCoarseBrick(&'static str),
+    #[error("region {0:?} holds level-0 bricks: a coarse brick cannot stand in for it")]
+    RegionHoldsBricks([u32; 3]),
 }
 
 /// What a brush does to the voxels it covers.
@@ -236,6 +247,8 @@ pub struct BrickMap {
     /// (0–255 scale) where that is smaller; `None`: every brick exact.
     colour_bound: Option<u32>,
     bricks: u64,
+    /// Regions shown by a coarse brick ([`stand_in`]).
+    stand_ins: u64,
     touched: Vec<u32>,
     track_touched: bool,
     gpu: Option<GpuChanges>,
@@ -307,6 +320,7 @@ impl BrickMap {
             coded_words: 0,
             colour_bound: None,
             bricks: 0,
+            stand_ins: 0,
             touched: Vec::new(),
             track_touched: false,
             gpu: None,
@@ -521,10 +535,7 @@ impl BrickMap {
         {
             return None;
         }
-        let block = self.regions[self.region_index(cell.map(|c| c / REGION_CELLS))];
-        if region_is_empty(block) {
-            return None;
-        }
+        let block = region_block(self.regions[self.region_index(cell.map(|c| c / REGION_CELLS))])?;
         let slot = self.cells[(block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize];
         (!cell_is_empty(slot)).then_some(slot)
     }
@@ -1001,7 +1012,7 @@ impl BrickMap {
     /// Every brick, in slot order, with its version.
     pub fn bricks(&self) -> impl Iterator<Item = (BrickData, u64)> + '_ {
         (0..self.slot_cell.len() as u32)
-            .filter(|&s| self.slot_cell[s as usize] != EMPTY)
+            .filter(|&s| self.slot_cell[s as usize] < COARSE)
             .map(|s| (self.slot_brick(s), self.slot_version[s as usize]))
     }
 
@@ -1010,7 +1021,7 @@ impl BrickMap {
         self.slot_cell
             .iter()
             .zip(&self.slot_version)
-            .filter(|(c, _)| **c != EMPTY)
+            .filter(|(c, _)| **c < COARSE)
             .map(|(&c, &v)| (self.cell_coords(c), v))
     }
 
@@ -1027,7 +1038,7 @@ impl BrickMap {
         self.slot_cell[start..end]
             .iter()
             .copied()
-            .filter(|&c| c != EMPTY)
+            .filter(|&c| c < COARSE)
     }
 
     /// What a client that has seen everything up to `since` is missing: the cells of bricks
@@ -1070,7 +1081,7 @@ impl BrickMap {
             | u64::from(self.size[2]) << 42);
         for slot in 0..self.slot_cell.len() as u32 {
             let cell = self.slot_cell[slot as usize];
-            if cell != EMPTY {
+            if cell < COARSE {
                 let mut scratch = [Colour::BLACK; VOXELS];
                 total = total.wrapping_add(brick_hash(
                     cell,
@@ -1127,23 +1138,25 @@ impl BrickMap {
     fn insert_brick_as(&mut self, cell: [u32; 3], mask: Mask, colours: &[Colour], how: Exact) {
         debug_assert_eq!(popcount(&mask) as usize, colours.len());
         let region = self.region_index(cell.map(|c| c / REGION_CELLS));
-        let mut block = self.regions[region];
-        if region_is_empty(block) {
-            block = self.alloc_block();
-            self.regions[region] = block;
-            if let Some(g) = &mut self.gpu {
-                g.regions.push(region as u32);
+        let entry = self.regions[region];
+        let block = match region_block(entry) {
+            Some(block) => block,
+            None => {
+                // An empty region, or a stand-in: level 0 takes its place.
+                if region_stand_in(entry).is_some() {
+                    self.stand_ins -= 1;
+                }
+                let block = self.alloc_block();
+                self.regions[region] = block;
+                if let Some(g) = &mut self.gpu {
+                    g.regions.push(region as u32);
+                }
+                let r = cell.map(|c| c / REGION_CELLS);
+                self.occupy_region(r);
+                self.lower_clearance_around(r);
+                block
             }
-            let r = cell.map(|c| c / REGION_CELLS);
-            self.occupied = Some(match self.occupied {
-                None => (r, r),
-                Some((lo, hi)) => (
-                    std::array::from_fn(|i| lo[i].min(r[i])),
-                    std::array::from_fn(|i| hi[i].max(r[i])),
-                ),
-            });
-            self.lower_clearance_around(r);
-        }
+        };
         let slot = match self.free_slots.pop() {
             Some(s) => s,
             None => {
@@ -1212,7 +1225,7 @@ impl BrickMap {
     /// Each brick's coding in the colour pool and its number of voxels, in slot order.
     pub fn codings(&self) -> impl Iterator<Item = (crate::palette::Coding, usize)> + '_ {
         (0..self.slot_cell.len() as u32)
-            .filter(|&s| self.slot_cell[s as usize] != EMPTY)
+            .filter(|&s| self.slot_cell[s as usize] < COARSE)
             .filter_map(|s| {
                 let n = popcount(&self.masks[s as usize]) as usize;
                 crate::palette::coding_of_words(self.block(s))
@@ -1346,10 +1359,7 @@ impl BrickMap {
             return None;
         }
         let cell = cell.map(|c| c as u32);
-        let block = self.regions[self.region_index(cell.map(|c| c / REGION_CELLS))];
-        if region_is_empty(block) {
-            return None;
-        }
+        let block = region_block(self.regions[self.region_index(cell.map(|c| c / REGION_CELLS))])?;
         let at = (block * CELLS_PER_BLOCK + Self::cell_in_block(cell)) as usize;
         Some((at, self.cells[at]))
     }
@@ -1392,10 +1402,9 @@ impl BrickMap {
         const _: () = assert!(CELL_CLEARANCE_CAP == 2 && REGION_CELLS == 4);
         let rd = self.region_dims.map(i64::from);
         for index in regions {
-            let block = self.regions[index];
-            if region_is_empty(block) {
+            let Some(block) = region_block(self.regions[index]) else {
                 continue;
-            }
+            };
             let r = self.region_coords(index).map(i64::from);
             // Window cell (x, y, z) is cell r·4 − 2 + (x, y, z): bit x + 8y of word z.
             let mut window = [0u64; 8];
@@ -1407,10 +1416,12 @@ impl BrickMap {
                             continue;
                         }
                         let neighbour = self.regions[self.region_index(n.map(|c| c as u32))];
-                        if region_is_empty(neighbour) {
-                            continue;
-                        }
-                        let mut bits = self.block_cells[neighbour as usize];
+                        let mut bits = match region_block(neighbour) {
+                            Some(b) => self.block_cells[b as usize],
+                            // A stand-in's cells all count as occupied.
+                            None if !region_is_empty(neighbour) => u64::MAX,
+                            None => continue,
+                        };
                         while bits != 0 {
                             let l = i64::from(bits.trailing_zeros());
                             bits &= bits - 1;
@@ -1588,6 +1599,22 @@ impl BrickMap {
                 }
                 continue;
             }
+            if cell == COARSE {
+                let n = popcount(&self.masks[s]) as usize;
+                let mut scratch = [Colour::BLACK; VOXELS];
+                if n == 0
+                    || crate::palette::decode_words(self.block(s as u32), &mut scratch[..n])
+                        .is_err()
+                {
+                    return Err(format!("coarse slot {s} holds no brick or a bad block"));
+                }
+                let words = self.block_words(s as u32);
+                if words > usize::from(self.slot_capacity[s]) {
+                    return Err(format!("coarse slot {s} overflows its colour chunk"));
+                }
+                coded += words as u64;
+                continue;
+            }
             let coords = self.cell_coords(cell);
             if self.slot_of_cell(coords) != Some(s as u32) {
                 return Err(format!("slot {s} not reachable from its cell {coords:?}"));
@@ -1634,6 +1661,26 @@ impl BrickMap {
                 ));
             }
         }
+        // Stand-ins point at coarse bricks and are counted.
+        let mut stand_ins = 0u64;
+        for (i, &entry) in self.regions.iter().enumerate() {
+            if let Some((level, slot)) = region_stand_in(entry) {
+                stand_ins += 1;
+                if !(MIN_STAND_IN_LEVEL..=MAX_STAND_IN_LEVEL).contains(&level)
+                    || self.slot_cell.get(slot as usize) != Some(&COARSE)
+                {
+                    return Err(format!(
+                        "region {i} stands in with level {level}, slot {slot}"
+                    ));
+                }
+            }
+        }
+        if stand_ins != self.stand_ins {
+            return Err(format!(
+                "counter {} stand-ins, regions {stand_ins}",
+                self.stand_ins
+            ));
+        }
         // The occupied box holds every allocated region.
         for (i, &entry) in self.regions.iter().enumerate() {
             if region_is_empty(entry) {
@@ -1675,8 +1722,14 @@ impl BrickMap {
             for z in c[2] - k..=c[2] + k {
                 for y in c[1] - k..=c[1] + k {
                     for x in c[0] - k..=c[0] + k {
-                        if let Some((_, e)) = self.cell_entry([x, y, z])
-                            && !cell_is_empty(e)
+                        let stand_in = (x >= 0 && y >= 0 && z >= 0)
+                            && self
+                                .stand_in([x, y, z].map(|c| c as u32 / REGION_CELLS))
+                                .is_some();
+                        if stand_in
+                            || self
+                                .cell_entry([x, y, z])
+                                .is_some_and(|(_, e)| !cell_is_empty(e))
                         {
                             return Err(format!(
                                 "cell {c:?} claims clearance {k} past occupied cell {:?}",

@@ -286,32 +286,46 @@ pub fn ambient_occlusion(map: &BrickMap, hit: &Hit, ray: &Ray) -> f32 {
     let (b0, b1) = ((fb - 1).div_euclid(E), (fb + 1).div_euclid(E));
     let base_bit = (front[k] & (E - 1)) * STRIDE[k];
     let mut bits = 0u32;
-    for ca in a0..=a1 {
-        // The `da` whose voxel is in brick column `ca` and in the grid.
-        let da_lo = (ca * E - fa).max(-1).max(-fa);
-        let da_hi = (ca * E + E - 1 - fa).min(1).min(size[a] - 1 - fa);
-        for cb in b0..=b1 {
-            let db_lo = (cb * E - fb).max(-1).max(-fb);
-            let db_hi = (cb * E + E - 1 - fb).min(1).min(size[b] - 1 - fb);
-            if da_lo > da_hi || db_lo > db_hi {
-                continue;
+    if map.stand_in_count() > 0 {
+        // Coarse bricks stand in for some regions: ask voxel by voxel what the map shows.
+        for db in -1..=1 {
+            for da in -1..=1 {
+                let mut p = front;
+                p[a] += da;
+                p[b] += db;
+                if map.looks_solid(p) {
+                    bits |= 1 << ((da + 1) + 3 * (db + 1));
+                }
             }
-            let mut cell = [0u32; 3];
-            cell[k] = (front[k] / E) as u32;
-            cell[a] = ca as u32;
-            cell[b] = cb as u32;
-            let Some(mask) = map
-                .slot_of_cell(cell)
-                .and_then(|slot| map.masks().get(slot as usize))
-            else {
-                continue;
-            };
-            for db in db_lo..=db_hi {
-                let row = base_bit + ((fb + db) & (E - 1)) * STRIDE[b];
-                for da in da_lo..=da_hi {
-                    let bit = row + ((fa + da) & (E - 1)) * STRIDE[a];
-                    if mask_get(mask, bit as u32) {
-                        bits |= 1 << ((da + 1) + 3 * (db + 1));
+        }
+    } else {
+        for ca in a0..=a1 {
+            // The `da` whose voxel is in brick column `ca` and in the grid.
+            let da_lo = (ca * E - fa).max(-1).max(-fa);
+            let da_hi = (ca * E + E - 1 - fa).min(1).min(size[a] - 1 - fa);
+            for cb in b0..=b1 {
+                let db_lo = (cb * E - fb).max(-1).max(-fb);
+                let db_hi = (cb * E + E - 1 - fb).min(1).min(size[b] - 1 - fb);
+                if da_lo > da_hi || db_lo > db_hi {
+                    continue;
+                }
+                let mut cell = [0u32; 3];
+                cell[k] = (front[k] / E) as u32;
+                cell[a] = ca as u32;
+                cell[b] = cb as u32;
+                let Some(mask) = map
+                    .slot_of_cell(cell)
+                    .and_then(|slot| map.masks().get(slot as usize))
+                else {
+                    continue;
+                };
+                for db in db_lo..=db_hi {
+                    let row = base_bit + ((fb + db) & (E - 1)) * STRIDE[b];
+                    for da in da_lo..=da_hi {
+                        let bit = row + ((fa + da) & (E - 1)) * STRIDE[a];
+                        if mask_get(mask, bit as u32) {
+                            bits |= 1 << ((da + 1) + 3 * (db + 1));
+                        }
                     }
                 }
             }

@@ -107,7 +107,9 @@ impl SunPaths {
         };
         let size = map.size();
         let inside = (0..3).all(|i| from[i] >= 0 && (from[i] as u32) < size[i]);
-        if !inside {
+        // The table reads level-0 bricks only: where coarse bricks stand in for regions, the
+        // plain trace answers (the same answer).
+        if !inside || map.stand_in_count() > 0 {
             // A start outside the grid (a hit on the grid's face): the plain trace.
             return crate::trace::blocked(map, &ray);
         }

@@ -19,7 +19,7 @@ use crate::brick::{BRICK_EDGE, mask_get, rank, voxel_bit};
 use crate::colour::Colour;
 use crate::map::{
     BrickMap, CELLS_PER_BLOCK, REGION_CELLS, REGION_EDGE, cell_clearance, cell_is_empty,
-    region_clearance, region_is_empty,
+    region_clearance, region_is_empty, region_stand_in,
 };
 
 /// Direction components smaller than this are treated as zero, so `1/d` stays finite (GPUs flush
@@ -543,6 +543,52 @@ pub fn trace_pending(
             let lo = r.map(|c| c * R);
             dda.enter_block(lo, std::array::from_fn(|i| (lo[i] + R - 1).min(n[i] - 1)));
             v_valid = true;
+        }
+        if let Some((level, slot)) = region_stand_in(block) {
+            // A coarse brick stands in for this region (`map::stand_in`): its voxels are blocks
+            // of 2^level voxels (the whole region from level 5 on), stepped like cells. A solid
+            // block is hit where the ray enters it, the voxel the flat DDA over the block's
+            // voxels would stop at; leaving the last block is a region crossing.
+            let scale = 1i32 << level.min(5);
+            let lo = r.map(|c| c * R);
+            let hi: [i32; 3] = std::array::from_fn(|i| (lo[i] + R).min(n[i]) - 1);
+            let (blo, bhi) = (lo.map(|c| c / scale), hi.map(|c| c / scale));
+            let mask = &map.masks[slot as usize];
+            let mut b = dda.v.map(|c| c / scale);
+            let mut bnext: [f32; 3] = std::array::from_fn(|i| dda.block_exit_t(i, b[i], scale));
+            loop {
+                let bit = crate::map::coarse_bit(b.map(|c| (c * scale) as u32), level);
+                if mask_get(mask, bit) {
+                    if !v_valid {
+                        let at = b.map(|c| c * scale);
+                        dda.enter_block(
+                            at,
+                            std::array::from_fn(|i| (at[i] + scale - 1).min(hi[i])),
+                        );
+                    }
+                    return Some(PendingHit {
+                        hit: dda.hit(Colour(0)),
+                        slot,
+                        bit,
+                    });
+                }
+                stats.cell_skips += 1;
+                v_valid = false;
+                let k = earliest(&bnext);
+                dda.t = bnext[k];
+                dda.axis = Some(k);
+                b[k] += step[k];
+                if b[k] < blo[k] || b[k] > bhi[k] {
+                    r[k] += step[k];
+                    if r[k] < rlo[k] || r[k] > rhi[k] {
+                        return None;
+                    }
+                    rnext[k] = dda.moving_exit_t(k, r[k], R);
+                    break;
+                }
+                bnext[k] = dda.moving_exit_t(k, b[k], scale);
+            }
+            continue;
         }
         // Cell level, inside this region: cells `clo..=chi` (the grid ends inside the box's
         // last regions, so leaving the region covers leaving the grid).

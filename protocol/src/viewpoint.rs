@@ -256,7 +256,8 @@ fn region_bricks(map: &BrickMap, r: [u32; 3]) -> impl Iterator<Item = ([u32; 3],
         .regions()
         .get(index)
         .copied()
-        .filter(|&b| inside && !region_is_empty(b));
+        .filter(|_| inside)
+        .and_then(crate::map::region_block);
     block.into_iter().flat_map(move |block| {
         (0..CELLS_PER_BLOCK).filter_map(move |local| {
             let slot = *map
