@@ -36,6 +36,7 @@ pub mod shadow;
 pub mod trace;
 pub mod viewpoint;
 pub mod wire;
+pub mod working_set;
 pub mod world;
 
 pub use brick::{BrickData, EMPTY, Mask};

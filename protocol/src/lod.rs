@@ -161,8 +161,12 @@ impl Pyramid {
                         for cz in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
                             for cy in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
                                 for cx in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
-                                    if let Some(brick) = base.brick([cx, cy, cz]) {
-                                        map.put_brick(&brick)?;
+                                    let cell = [cx, cy, cz];
+                                    if let (Some(slot), Some(b)) =
+                                        (base.slot_of_cell(cell), base.brick(cell))
+                                    {
+                                        // Coded as the base has it, as the wire carries it.
+                                        map.put_coded(cell, b.mask, &b.colours, base.block(slot))?;
                                     }
                                 }
                             }

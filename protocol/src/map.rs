@@ -1234,6 +1234,13 @@ impl BrickMap {
             })
     }
 
+    /// Words of the colour chunk the brick in `slot` takes once written into a fresh map as it
+    /// is coded here ([`BrickMap::put_coded`] with [`BrickMap::block`]): its block's length
+    /// rounded to the size class.
+    pub fn fresh_chunk_words(&self, slot: u32) -> u32 {
+        colour_capacity(self.block_words(slot) as u32)
+    }
+
     /// Words the block of the brick in `slot` takes (its header says how it is coded).
     fn block_words(&self, slot: u32) -> usize {
         let n = popcount(&self.masks[slot as usize]) as usize;

@@ -1,0 +1,259 @@
+//! Which level a client holds each region of a world at, within a budget in bytes (issue #30):
+//! the rule the server and the client both run, so the server knows exactly what a client holds.
+//!
+//! **The rule** ([`Rule::level_of`]): with `d` the Chebyshev distance in regions (32 voxels)
+//! between a region and the region the eye is in, a region is held at full resolution (level
+//! 0) when `d <= near`, and otherwise at the finest level `k >= 2` with `d <= near · 2^k`,
+//! capped at the pyramid's top. A level-k voxel is 2^k voxels wide, so at 2^k times the distance
+//! it covers about as much of the screen as a level-0 voxel at the edge of the full-resolution
+//! zone: detail falls off evenly with distance. Level 1 is skipped because a stand-in covers
+//! whole regions (`map::stand_in`); the jump from 1 to 4 voxels happens at `4·near`.
+//!
+//! **The budget** ([`fit`]): the largest `near` whose working set fits the client's byte budget
+//! (the map's arrays as the GPU holds them: regions, cell blocks, masks, colour bases and the
+//! colour chunks), found by measuring candidates against the scene and its pyramid. The region
+//! array is a fixed cost (4 bytes a region: 16 MiB for a 16384×512×16384 world).
+
+use std::collections::HashSet;
+
+use crate::lod::Pyramid;
+use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS};
+
+/// Bytes a brick slot takes besides its colours: a 64-byte mask and a 4-byte colour base.
+const SLOT_BYTES: u64 = 64 + 4;
+/// Bytes of a cell block (64 cells of 4 bytes).
+const BLOCK_BYTES: u64 = 64 * 4;
+
+/// The distance rule, for an eye in region `eye`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Rule {
+    /// The region the eye is in (clamped into the grid).
+    pub eye: [u32; 3],
+    /// Regions within this Chebyshev distance of `eye` are held at level 0.
+    pub near: u32,
+    /// The coarsest level held (the pyramid's top).
+    pub top: u32,
+}
+
+impl Rule {
+    /// The rule for an eye at voxel position `eye` (anywhere; clamped into `map`'s grid).
+    pub fn new(map: &BrickMap, pyramid: &Pyramid, eye: [f32; 3], near: u32) -> Rule {
+        let rd = map.region_dims();
+        let eye = std::array::from_fn(|i| {
+            let r = (eye[i].max(0.0) / crate::map::REGION_EDGE as f32) as u32;
+            r.min(rd[i] - 1)
+        });
+        Rule {
+            eye,
+            near,
+            top: pyramid.level_count().max(MIN_STAND_IN_LEVEL),
+        }
+    }
+
+    /// The level region `r` is held at.
+    pub fn level_of(&self, r: [u32; 3]) -> u32 {
+        let d = (0..3)
+            .map(|i| r[i].abs_diff(self.eye[i]))
+            .max()
+            .unwrap_or(0);
+        if d <= self.near {
+            return 0;
+        }
+        let near = u64::from(self.near.max(1));
+        let mut k = MIN_STAND_IN_LEVEL;
+        while k < self.top && u64::from(d) > near << k {
+            k += 1;
+        }
+        k
+    }
+}
+
+/// What a working set holds and what it costs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Cost {
+    /// Bytes of the map's arrays as laid out for the GPU (colour chunks at their capacity).
+    pub bytes: u64,
+    /// Regions held at level 0, and their bricks.
+    pub full_regions: u64,
+    pub full_bricks: u64,
+    /// Distinct coarse bricks standing in, and the regions they stand in for.
+    pub coarse_bricks: u64,
+    pub stand_ins: u64,
+}
+
+/// The cost of holding `base` (with its current `pyramid`) as `rule` says.
+pub fn cost(base: &BrickMap, pyramid: &Pyramid, rule: &Rule) -> Cost {
+    let (rd, cd) = (base.region_dims(), base.cell_dims());
+    let mut c = Cost {
+        bytes: rd.iter().map(|&d| u64::from(d)).product::<u64>() * 4,
+        ..Cost::default()
+    };
+    let mut coarse: HashSet<(u32, [u32; 3])> = HashSet::new();
+    for z in 0..rd[2] {
+        for y in 0..rd[1] {
+            for x in 0..rd[0] {
+                let r = [x, y, z];
+                let k = rule.level_of(r);
+                if k == 0 {
+                    let mut bricks = 0;
+                    let lo = r.map(|c| c * REGION_CELLS);
+                    for cz in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
+                        for cy in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
+                            for cx in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
+                                if let Some(slot) = base.slot_of_cell([cx, cy, cz]) {
+                                    bricks += 1;
+                                    c.bytes +=
+                                        SLOT_BYTES + 2 * u64::from(base.fresh_chunk_words(slot));
+                                }
+                            }
+                        }
+                    }
+                    if bricks > 0 {
+                        c.full_regions += 1;
+                        c.full_bricks += bricks;
+                        c.bytes += BLOCK_BYTES;
+                    }
+                    continue;
+                }
+                let cell = r.map(|c| c >> (k - MIN_STAND_IN_LEVEL));
+                let Some(slot) = pyramid.level(k).and_then(|l| l.slot_of_cell(cell)) else {
+                    continue;
+                };
+                c.stand_ins += 1;
+                if coarse.insert((k, cell)) {
+                    c.coarse_bricks += 1;
+                    let level = pyramid.level(k).expect("level exists: its slot was found");
+                    c.bytes += SLOT_BYTES + 2 * u64::from(level.fresh_chunk_words(slot));
+                }
+            }
+        }
+    }
+    c
+}
+
+/// Why no working set fits.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BudgetError {
+    #[error(
+        "a budget of {budget} bytes is too small for this scene: the coarsest working set (level 0 only in the eye's region) takes {needed} bytes"
+    )]
+    TooSmall { budget: u64, needed: u64 },
+    #[error(transparent)]
+    Map(#[from] MapError),
+}
+
+/// The rule with the largest `near` (at most `max_near`) whose working set fits `budget` bytes,
+/// and its cost. A binary search: cost grows with `near`.
+pub fn fit(
+    base: &BrickMap,
+    pyramid: &Pyramid,
+    eye: [f32; 3],
+    budget: u64,
+    max_near: u32,
+) -> Result<(Rule, Cost), BudgetError> {
+    let at = |near| {
+        let rule = Rule::new(base, pyramid, eye, near);
+        (rule, cost(base, pyramid, &rule))
+    };
+    let (rule, c) = at(0);
+    if c.bytes > budget {
+        return Err(BudgetError::TooSmall {
+            budget,
+            needed: c.bytes,
+        });
+    }
+    let (mut lo, mut best) = (0, (rule, c));
+    let mut hi = max_near;
+    while lo < hi {
+        let mid = lo + (hi - lo).div_ceil(2);
+        let (rule, c) = at(mid);
+        if c.bytes <= budget {
+            (lo, best) = (mid, (rule, c));
+        } else {
+            hi = mid - 1;
+        }
+    }
+    Ok(best)
+}
+
+/// The map a client holding `rule`'s working set holds.
+pub fn build(base: &BrickMap, pyramid: &Pyramid, rule: &Rule) -> Result<BrickMap, MapError> {
+    pyramid.mixed(base, |r| rule.level_of(r))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::colour::Colour;
+    use crate::map::BrushMode;
+
+    fn scene() -> BrickMap {
+        let mut map = BrickMap::new([400, 64, 300]).unwrap();
+        map.fill_box([0, 0, 0], [399, 5, 299], BrushMode::Fill, Colour(0x4A69));
+        for i in 0..30u32 {
+            let c = [(i * 97) % 400, 6 + (i * 13) % 50, (i * 61) % 300];
+            map.sphere(
+                c.map(|v| v as f32),
+                4.0 + (i % 7) as f32,
+                BrushMode::Fill,
+                Colour(i as u16 * 999),
+            );
+        }
+        map
+    }
+
+    #[test]
+    fn levels_grow_with_distance_and_stop_at_the_top() {
+        let rule = Rule {
+            eye: [10, 0, 10],
+            near: 2,
+            top: 6,
+        };
+        assert_eq!(rule.level_of([10, 0, 10]), 0);
+        assert_eq!(rule.level_of([12, 1, 8]), 0);
+        assert_eq!(rule.level_of([13, 0, 10]), 2);
+        assert_eq!(rule.level_of([18, 0, 10]), 2); // 8 = 2·4
+        assert_eq!(rule.level_of([19, 0, 10]), 3);
+        assert_eq!(rule.level_of([10, 0, 42]), 4); // 32 = 2·16
+        assert_eq!(rule.level_of([10, 0, 43]), 5);
+        assert_eq!(rule.level_of([1000, 0, 10]), 6);
+        let none = Rule { near: 0, ..rule };
+        assert_eq!(none.level_of([11, 0, 10]), 2);
+        assert_eq!(none.level_of([10, 0, 10]), 0);
+    }
+
+    /// The cost is what the built map takes (colour chunks as the map sizes them), and the fitted
+    /// working set is the largest within the budget.
+    #[test]
+    fn cost_is_the_built_maps_size_and_fit_keeps_within_the_budget() {
+        let base = scene();
+        let pyramid = Pyramid::build(&base).unwrap();
+        for near in [0, 1, 3, 20] {
+            let rule = Rule::new(&base, &pyramid, [100.0, 30.0, 80.0], near);
+            let c = cost(&base, &pyramid, &rule);
+            let map = build(&base, &pyramid, &rule).unwrap();
+            map.check_invariants().unwrap();
+            assert_eq!(c.bytes, map.memory().total_bytes, "near {near}: {c:?}");
+            assert_eq!(c.full_bricks, map.brick_count());
+            assert_eq!(c.stand_ins, map.stand_in_count());
+        }
+        let whole = cost(&base, &pyramid, &Rule::new(&base, &pyramid, [0.0; 3], 100));
+        let budget = whole.bytes / 3;
+        let (rule, c) = fit(&base, &pyramid, [200.0, 10.0, 150.0], budget, 100).unwrap();
+        assert!(c.bytes <= budget && rule.near < 100, "{rule:?} {c:?}");
+        let next = cost(
+            &base,
+            &pyramid,
+            &Rule {
+                near: rule.near + 1,
+                ..rule
+            },
+        );
+        assert!(next.bytes > budget, "near {} would fit too", rule.near + 1);
+        let small = fit(&base, &pyramid, [200.0, 10.0, 150.0], 1000, 100);
+        assert!(matches!(
+            small,
+            Err(BudgetError::TooSmall { budget: 1000, .. })
+        ));
+    }
+}
