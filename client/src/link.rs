@@ -49,17 +49,20 @@ impl LinkError {
 
 /// Turns what a user types into the websocket address: `ws://HOST:PORT/scenes/NAME`, with or
 /// without the trailing `/ws` the server routes on, or a bare `HOST:PORT/scenes/NAME`.
+/// A browser link (`http://HOST:PORT/scenes/NAME#token=T`, the page's `?scale=…`) works too:
+/// the query and fragment are not part of the address ([`link_token`] reads the token).
 pub fn websocket_url(input: &str) -> Result<String, LinkError> {
     let bad = || LinkError::BadUrl(input.to_string());
-    let rest = if let Some(r) = input.strip_prefix("ws://") {
+    let address = input.split(['#', '?']).next().unwrap_or(input);
+    let rest = if let Some(r) = address.strip_prefix("ws://") {
         r
-    } else if let Some(r) = input.strip_prefix("http://") {
+    } else if let Some(r) = address.strip_prefix("http://") {
         r
-    } else if input.contains("://") {
+    } else if address.contains("://") {
         // No TLS support is compiled in; say so rather than fail obscurely.
         return Err(bad());
     } else {
-        input
+        address
     };
     let (host, path) = rest.split_once('/').ok_or_else(bad)?;
     let path = path.trim_end_matches('/');
@@ -69,6 +72,43 @@ pub fn websocket_url(input: &str) -> Result<String, LinkError> {
         return Err(bad());
     }
     Ok(format!("ws://{host}/scenes/{name}/ws"))
+}
+
+/// The access token a browser link carries in its fragment (`…/scenes/NAME#token=T`), if any:
+/// what the page would use, so pasting the page's link into `render` or `view` just works.
+pub fn link_token(input: &str) -> Option<String> {
+    let (_, fragment) = input.split_once('#')?;
+    fragment
+        .split('&')
+        .find_map(|pair| pair.strip_prefix("token="))
+        .filter(|t| !t.is_empty())
+        .map(str::to_string)
+}
+
+/// The reason to show for a failed websocket handshake: an HTTP answer says what the server
+/// meant (no such scene, too many connections) instead of tungstenite's bare status line.
+fn connect_reason(e: &tokio_tungstenite::tungstenite::Error) -> String {
+    use tokio_tungstenite::tungstenite::Error;
+    match e {
+        Error::Http(response) => {
+            let status = response.status();
+            let body = response
+                .body()
+                .as_deref()
+                .map(|b| String::from_utf8_lossy(b).trim().to_string())
+                .filter(|b| !b.is_empty() && b.len() < 500 && !b.starts_with('<'));
+            let meaning = match status.as_u16() {
+                404 => "no such scene on this server (is the name right? `brickcast-server scenes` lists them)".to_string(),
+                200 => "the server answered with a page, not a websocket: is this a scene address?".to_string(),
+                _ => format!("the server answered HTTP {status}"),
+            };
+            match body {
+                Some(body) => format!("{meaning}: {body}"),
+                None => meaning,
+            }
+        }
+        other => other.to_string(),
+    }
 }
 
 pub use brickcast_client_core::session::Welcome;
@@ -103,7 +143,7 @@ impl Link {
             .await
             .map_err(|e| LinkError::Connect {
                 url: url.to_string(),
-                reason: e.to_string(),
+                reason: connect_reason(&e),
             })?;
         let hello = hello(name, user, token, resume_from);
         let hello = encode_client(&hello)?;
@@ -210,9 +250,18 @@ mod tests {
             "ws://127.0.0.1:7878/scenes/demo/ws",
             "http://127.0.0.1:7878/scenes/demo",
             "127.0.0.1:7878/scenes/demo",
+            // The browser page's link, as copied from the address bar.
+            "http://127.0.0.1:7878/scenes/demo#token=secret",
+            "http://127.0.0.1:7878/scenes/demo?scale=2#token=secret",
         ] {
             assert_eq!(websocket_url(input).unwrap(), want, "{input}");
         }
+        assert_eq!(
+            link_token("http://h:1/scenes/demo?scale=2#user=ann&token=secret").as_deref(),
+            Some("secret")
+        );
+        assert_eq!(link_token("http://h:1/scenes/demo#token="), None);
+        assert_eq!(link_token("ws://h:1/scenes/demo"), None);
         for bad in [
             "wss://host/scenes/demo",
             "ws://host",

@@ -41,18 +41,18 @@ enum Command {
         urls: Vec<String>,
         #[arg(long)]
         token: Option<String>,
-        /// Where to write the PNG.
-        #[arg(long)]
+        /// Where to write the PNG (the name must end in .png).
+        #[arg(long, value_parser = png_path)]
         out: PathBuf,
         #[arg(long, default_value_t = 640)]
         width: u32,
         #[arg(long, default_value_t = 360)]
         height: u32,
         /// Camera position in voxels, "x,y,z" (default: the scene's first camera, see README).
-        #[arg(long, value_parser = brickcast_client::light::parse_vec3)]
+        #[arg(long, value_parser = brickcast_client::light::parse_vec3, allow_hyphen_values = true)]
         eye: Option<[f32; 3]>,
         /// Point the camera looks at, "x,y,z".
-        #[arg(long, value_parser = brickcast_client::light::parse_vec3)]
+        #[arg(long, value_parser = brickcast_client::light::parse_vec3, allow_hyphen_values = true)]
         target: Option<[f32; 3]>,
         /// Vertical field of view in degrees.
         #[arg(long, default_value_t = 60.0)]
@@ -87,13 +87,34 @@ enum Command {
     },
 }
 
+/// `--out`: only PNG is written, so a name that promises another format is refused up front
+/// (before a long sync), not silently written as PNG.
+fn png_path(s: &str) -> Result<PathBuf, String> {
+    let path = PathBuf::from(s);
+    match path.extension().and_then(|e| e.to_str()) {
+        Some(e) if e.eq_ignore_ascii_case("png") => Ok(path),
+        _ => Err(format!(
+            "{s:?}: only PNG images are written; give a name ending in .png"
+        )),
+    }
+}
+
+/// The token a pasted browser link carries (`#token=…`), when no `--token` is given.
+fn token_of_links(urls: &[String]) -> Option<String> {
+    urls.iter()
+        .find_map(|u| brickcast_client::link::link_token(u))
+}
+
 fn main() -> Result<()> {
+    use std::io::IsTerminal;
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| "info,wgpu_core=warn,wgpu_hal=warn,naga=warn".into()),
         )
         .with_writer(std::io::stderr)
+        // Colour codes only for a person at a terminal, not in a log file or a pipe.
+        .with_ansi(std::io::stderr().is_terminal())
         .init();
     match Cli::parse().command {
         Command::Load { urls, args } => {
@@ -116,7 +137,10 @@ fn main() -> Result<()> {
             }
             Ok(())
         }
-        Command::View { urls, token, view } => brickcast_client::viewer::run(&urls, token, view),
+        Command::View { urls, token, view } => {
+            let token = token.or_else(|| token_of_links(&urls));
+            brickcast_client::viewer::run(&urls, token, view)
+        }
         Command::Render {
             urls,
             token,
@@ -136,6 +160,7 @@ fn main() -> Result<()> {
             if width == 0 || height == 0 || width > 16384 || height > 16384 {
                 bail!("image size {width}×{height} is out of range (1..=16384 per side)");
             }
+            let token = token.or_else(|| token_of_links(&urls));
             let report = headless::run(&RenderJob {
                 urls: &urls,
                 token: token.as_deref(),
@@ -176,5 +201,46 @@ fn main() -> Result<()> {
             }
             Ok(())
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(args: &[&str]) -> Result<Cli, clap::Error> {
+        Cli::try_parse_from(std::iter::once("brickcast").chain(args.iter().copied()))
+    }
+
+    #[test]
+    fn render_takes_negative_coordinates_and_only_png_names() {
+        let cli = parse(&[
+            "render",
+            "ws://127.0.0.1:7878/scenes/demo",
+            "--out",
+            "a.PNG",
+            "--eye",
+            "-100,180,-100",
+            "--target",
+            "-1.5,0,-2",
+        ])
+        .expect("negative coordinates parse");
+        let Command::Render { eye, target, .. } = cli.command else {
+            panic!("not a render command");
+        };
+        assert_eq!(eye, Some([-100.0, 180.0, -100.0]));
+        assert_eq!(target, Some([-1.5, 0.0, -2.0]));
+        for bad in ["x.jpg", "x", "x.png.tmp"] {
+            let e = parse(&["render", "ws://h:1/scenes/demo", "--out", bad]).err();
+            let e = e.map(|e| e.to_string()).unwrap_or_default();
+            assert!(e.contains("only PNG"), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn a_pasted_browser_link_brings_its_token() {
+        let links = ["http://127.0.0.1:7878/scenes/demo#token=t0k".to_string()];
+        assert_eq!(token_of_links(&links).as_deref(), Some("t0k"));
+        assert_eq!(token_of_links(&["ws://h:1/scenes/demo".to_string()]), None);
     }
 }

@@ -343,13 +343,23 @@ pub struct Server {
 }
 
 impl Server {
-    /// Opens the store (creating the demo scene if it holds none), recovers every scene, starts
-    /// their owners and binds the listener. With `config.cluster`, joins the cluster instead:
+    /// Binds the listener, opens the store (creating the demo scene if it holds none), recovers
+    /// every scene and starts their owners. With `config.cluster`, joins the cluster instead:
     /// scenes open when someone asks for them (see `served`).
     pub async fn bind(config: ServerConfig) -> anyhow::Result<Server> {
         if config.cluster.is_some() {
             return Server::bind_cluster(config).await;
         }
+        // The port first: a port in use must fail before anything is written to the store
+        // (an empty folder would otherwise get a demo scene nobody asked for).
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .with_context(|| {
+                format!(
+                    "cannot listen on {} (is another server running there? choose another address with --listen)",
+                    config.listen
+                )
+            })?;
         let store = Arc::new(Store::open(&config.data)?);
         let demo_size = config.demo_size;
         let store2 = store.clone();
@@ -368,9 +378,6 @@ impl Server {
             Ok(loaded)
         })
         .await??;
-        let listener = tokio::net::TcpListener::bind(config.listen)
-            .await
-            .with_context(|| format!("listening on {}", config.listen))?;
         let server = Server::new(listener, config, Some(store), None);
         for (name, scene) in loaded {
             server.app.add_scene(name, scene)?;

@@ -122,6 +122,8 @@ fn main() -> anyhow::Result<()> {
     // Logs go to stderr: stdout carries what a command prints (`--json` output included).
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
+        // Colour codes only for a person at a terminal, not in a log file or a pipe.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
         )
@@ -267,7 +269,15 @@ where
 }
 
 /// Opens the store for an offline command, explaining the usual failure.
+/// Opens an existing store for the offline commands (`scenes`, `stats`, `export`): a folder
+/// without one is an error, not a new empty store.
 fn open_store(data: &std::path::Path) -> anyhow::Result<Store> {
+    if !data.join("brickcast.redb").is_file() {
+        anyhow::bail!(
+            "no store in {}: `serve`, `import` or `generate` create one (or give --data)",
+            data.display()
+        );
+    }
     Store::open(data).map_err(|e| {
         if e.is_locked() {
             anyhow::anyhow!(
@@ -362,8 +372,8 @@ fn viewer_copy(
 /// server more than its share (README, "Running in public").
 #[derive(clap::Args)]
 struct ServeArgs {
-    /// Address to listen on.
-    #[arg(long, default_value = "127.0.0.1:7878")]
+    /// Address to listen on, HOST:PORT (a name such as localhost:7878 is looked up).
+    #[arg(long, default_value = "127.0.0.1:7878", value_parser = listen_addr)]
     listen: SocketAddr,
     /// Folder holding the store (created if missing).
     #[arg(long, default_value = "./brickcast-data")]
@@ -437,6 +447,21 @@ fn positive_seconds(text: &str) -> Result<f64, String> {
         Ok(s) if s.is_finite() && s > 0.0 && s <= 1e9 => Ok(s),
         _ => Err(format!("{text:?} is not a positive number of seconds")),
     }
+}
+
+/// `--listen`: an address, or a host name and port (`localhost:7878`), looked up; the first
+/// address it names is the one bound.
+fn listen_addr(text: &str) -> Result<SocketAddr, String> {
+    use std::net::ToSocketAddrs;
+    let why = |e: &dyn std::fmt::Display| {
+        format!(
+            "{text:?} is not an address to listen on (HOST:PORT, e.g. 127.0.0.1:7878 or localhost:7878): {e}"
+        )
+    };
+    text.to_socket_addrs()
+        .map_err(|e| why(&e))?
+        .next()
+        .ok_or_else(|| why(&"it names no address"))
 }
 
 fn serve(args: ServeArgs) -> anyhow::Result<()> {
@@ -542,5 +567,36 @@ fn print_lod(lod: &LodStats) {
             level.bricks,
             level.total_bytes as f64 / (1 << 20) as f64
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn offline_commands_do_not_create_a_store() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("nothing-here");
+        let e = open_store(&missing)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(e.contains("no store in"), "{e}");
+        assert!(!missing.exists(), "the folder was created");
+    }
+
+    #[test]
+    fn listen_takes_addresses_and_host_names() {
+        assert_eq!(
+            listen_addr("127.0.0.1:7878"),
+            Ok("127.0.0.1:7878".parse().unwrap())
+        );
+        let local = listen_addr("localhost:7878").expect("localhost resolves");
+        assert!(local.ip().is_loopback() && local.port() == 7878, "{local}");
+        for bad in ["localhost", "127.0.0.1:99999", ""] {
+            let e = listen_addr(bad).unwrap_err();
+            assert!(e.contains("HOST:PORT"), "{bad}: {e}");
+        }
     }
 }

@@ -816,3 +816,23 @@ async fn levels_of_detail_are_served_read_only_and_follow_edits() {
     }
     server.shutdown().await.unwrap();
 }
+
+/// A port already in use fails the start before the store is touched: no folder, no demo scene
+/// left behind by a server that never ran, and the error says what to do.
+#[tokio::test]
+async fn a_port_in_use_fails_before_the_store_is_created() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("store");
+    let config = brickcast_server::ServerConfig::new(taken.local_addr().unwrap(), data.clone());
+    let e = brickcast_server::Server::bind(config)
+        .await
+        .err()
+        .map(|e| format!("{e:#}"))
+        .unwrap_or_default();
+    assert!(
+        e.contains("cannot listen on") && e.contains("--listen"),
+        "{e}"
+    );
+    assert!(!data.exists(), "the store folder was created");
+}

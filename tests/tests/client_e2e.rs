@@ -119,11 +119,13 @@ fn render_explains_bad_input_and_unreachable_servers() {
     let png = out.path().join("x.png");
     let png = png.to_str().expect("utf-8 path");
     let no_scene = server.url("nosuchscene");
+    let demo = server.url("demo");
     let cases: Vec<(Vec<&str>, &str)> = vec![
         (
             vec!["render", &no_scene, "--out", png, "--cpu"],
-            "nosuchscene",
+            "no such scene on this server",
         ),
+        (vec!["render", &demo, "--out", "x.jpg", "--cpu"], "only PNG"),
         (
             vec![
                 "render",
