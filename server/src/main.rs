@@ -268,9 +268,9 @@ where
     Ok(out?)
 }
 
-/// Opens the store for an offline command, explaining the usual failure.
-/// Opens an existing store for the offline commands (`scenes`, `stats`, `export`): a folder
-/// without one is an error, not a new empty store.
+/// Opens an existing store for the offline commands (`scenes`, `stats`, `snapshot`), explaining
+/// the usual failure (a running server holds it); a folder without a store is an error, not a
+/// new empty store.
 fn open_store(data: &std::path::Path) -> anyhow::Result<Store> {
     if !data.join("brickcast.redb").is_file() {
         anyhow::bail!(
