@@ -14,6 +14,7 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::time::Instant;
 
+use brickcast_protocol::held;
 use brickcast_protocol::lod::Pyramid;
 use brickcast_protocol::render::{Camera, Frame, Lighting, MISS, render};
 use brickcast_protocol::working_set;
@@ -111,6 +112,33 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     assert!(
         memory.total_bytes <= budget,
         "the working set exceeds its budget"
+    );
+
+    // The eye moves one region (32 voxels) along x: what the server sends, and what deciding it
+    // costs (`held::plan`, run by both sides once per region crossed).
+    let mut moved_eye = eye;
+    moved_eye[0] += 32.0;
+    let moved = working_set::Rule::new(&base, &pyramid, moved_eye, rule.near);
+    let started = Instant::now();
+    let step = held::plan(base.region_dims(), Some(&rule), &moved);
+    let planned = started.elapsed();
+    let region_bricks: usize = step
+        .regions
+        .iter()
+        .map(|r| {
+            let lo = r.map(|c| c * 4);
+            (0..64u32)
+                .filter(|c| {
+                    let cell = [lo[0] + (c & 3), lo[1] + ((c >> 2) & 3), lo[2] + (c >> 4)];
+                    base.slot_of_cell(cell).is_some()
+                })
+                .count()
+        })
+        .sum();
+    println!(
+        "one region along x: {} regions at level 0 to send ({region_bricks} bricks), {} coarse bricks to send; planned in {planned:.1?}",
+        step.regions.len(),
+        step.coarse.len(),
     );
 
     let camera = Camera {

@@ -24,6 +24,7 @@ pub mod blocks;
 pub mod brick;
 pub mod colour;
 pub mod demo;
+pub mod held;
 pub mod journal;
 pub mod lod;
 pub mod map;

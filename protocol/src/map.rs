@@ -114,6 +114,8 @@ pub enum MapError {
         "brick at cell {0:?} is inconsistent: empty mask or colour count differs from its solid voxels"
     )]
     InconsistentBrick([u32; 3]),
+    #[error("brick at cell {cell:?} lies outside region {region:?}, whose bricks were expected")]
+    OutsideRegion { cell: [u32; 3], region: [u32; 3] },
     #[error("coarse brick refused: {0}")]
     BadCoarseBrick(&'static str),
     #[error("region {0:?} holds level-0 bricks: a coarse brick cannot stand in for it")]

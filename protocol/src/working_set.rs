@@ -56,6 +56,11 @@ impl Rule {
             .map(|i| r[i].abs_diff(self.eye[i]))
             .max()
             .unwrap_or(0);
+        self.level_at(d)
+    }
+
+    /// The level of a region `d` regions (Chebyshev) from the eye's.
+    fn level_at(&self, d: u32) -> u32 {
         if d <= self.near {
             return 0;
         }
@@ -66,6 +71,38 @@ impl Rule {
         }
         k
     }
+
+    /// Whether the coarse brick `(level, cell)` is wanted: some region under it (inside a grid of
+    /// `region_dims`) is held at `level`. Constant time: the distances of a box's regions take
+    /// every value from the nearest to the farthest, and past level 0 the level grows with
+    /// distance one level at a time, so the levels held under the box are exactly those from
+    /// the nearest region's to the farthest's.
+    pub fn holds(&self, region_dims: [u32; 3], level: u32, cell: [u32; 3]) -> bool {
+        if !(MIN_STAND_IN_LEVEL..=self.top).contains(&level) {
+            return false;
+        }
+        let span = 1u64 << (level - MIN_STAND_IN_LEVEL);
+        let (mut dmin, mut dmax) = (0u64, 0u64);
+        for i in 0..3 {
+            let lo = u64::from(cell[i]) * span;
+            let dim = u64::from(region_dims[i]);
+            if lo >= dim {
+                return false;
+            }
+            let hi = (lo + span).min(dim) - 1;
+            let e = u64::from(self.eye[i]);
+            let nearest = if e < lo { lo - e } else { e.saturating_sub(hi) };
+            dmin = dmin.max(nearest);
+            dmax = dmax.max(e.abs_diff(lo).max(e.abs_diff(hi)));
+        }
+        let at = |d: u64| self.level_at(u32::try_from(d).unwrap_or(u32::MAX));
+        at(dmin) <= level && level <= at(dmax)
+    }
+}
+
+/// The level-`level` coarse cell over region `r` (`level >= 2`).
+pub fn coarse_cell(r: [u32; 3], level: u32) -> [u32; 3] {
+    r.map(|c| c >> (level - MIN_STAND_IN_LEVEL))
 }
 
 /// What a working set holds and what it costs.
@@ -115,7 +152,7 @@ pub fn cost(base: &BrickMap, pyramid: &Pyramid, rule: &Rule) -> Cost {
                     }
                     continue;
                 }
-                let cell = r.map(|c| c >> (k - MIN_STAND_IN_LEVEL));
+                let cell = coarse_cell(r, k);
                 let Some(slot) = pyramid.level(k).and_then(|l| l.slot_of_cell(cell)) else {
                     continue;
                 };

@@ -1,0 +1,731 @@
+//! What a client holds of a world, and how it follows the eye (issue #30).
+//!
+//! [`Rule`] says at which level each region is *wanted*. [`Held`] is the client's side: its mixed
+//! map (what both tracers read and the GPU mirrors), the level each region *shows*, and the
+//! coarse bricks it holds. When the rule changes (the eye crossed into another region, or the
+//! budget changed), [`Held::retarget`] at once switches every region whose wanted data is
+//! already held and returns the [`Plan`]: what the server must send. [`plan`] gives the same
+//! answer from the two rules alone, and [`Rule::holds`] says in constant time whether a coarse
+//! brick is wanted, so the server knows what each client holds without a copy of it, and sends
+//! a delta for a brick exactly when the client holds it.
+//!
+//! **Eviction is implied, and never leaves a hole**: a region keeps showing what it shows until
+//! the data it now wants is in place; then its level-0 bricks are dropped (or it stops pointing
+//! at a coarse brick), and a coarse brick no region shows or wants is freed. Data that arrives
+//! for something no longer wanted is ignored.
+//!
+//! Messages are handled in the order the server sent them: region data is a region's whole
+//! level 0 as it stands when sent; a coarse brick or a level-0 brick is the brick as it stands.
+//! So a delta sent after the data it changes applies to it, and data sent after a delta already
+//! includes it.
+
+use std::collections::{BTreeSet, HashMap};
+
+use crate::brick::BrickData;
+use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS};
+use crate::working_set::{Rule, coarse_cell};
+
+/// What the server must send when the rule changes: everything wanted that is not held.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Plan {
+    /// Regions wanted at level 0 that were not: each region's level-0 bricks, all of them.
+    pub regions: Vec<[u32; 3]>,
+    /// Coarse bricks `(level, cell)` wanted that were not (each may turn out empty).
+    pub coarse: Vec<(u32, [u32; 3])>,
+}
+
+impl Plan {
+    pub fn is_empty(&self) -> bool {
+        self.regions.is_empty() && self.coarse.is_empty()
+    }
+}
+
+/// What a client must be sent when its rule changes from `old` (`None`: it holds nothing) to
+/// `new`, for a grid of `region_dims` regions: the regions whose level changed to 0, nearest
+/// first, and the coarse bricks regions changed to that the old rule did not hold. When the eye
+/// moved a region or two under the same `near`, only the shells of regions around each level's
+/// boundary distance are visited ([`each_candidate`]); otherwise every region.
+pub fn plan(region_dims: [u32; 3], old: Option<&Rule>, new: &Rule) -> Plan {
+    let mut regions = Vec::new();
+    let mut coarse = BTreeSet::new();
+    each_candidate(region_dims, old, new, |r| {
+        let k = new.level_of(r);
+        if old.is_some_and(|o| o.level_of(r) == k) {
+            // Same level: held already (the old rule wanted this very region there).
+            return;
+        }
+        if k == 0 {
+            regions.push(r);
+        } else if !old.is_some_and(|o| o.holds(region_dims, k, coarse_cell(r, k))) {
+            coarse.insert((k, coarse_cell(r, k)));
+        }
+    });
+    regions.sort_unstable_by_key(|&r| (chebyshev(r, new.eye), r[2], r[1], r[0]));
+    Plan {
+        regions,
+        coarse: coarse.into_iter().collect(),
+    }
+}
+
+/// Chebyshev distance between two regions.
+fn chebyshev(a: [u32; 3], b: [u32; 3]) -> u32 {
+    (0..3).map(|i| a[i].abs_diff(b[i])).max().unwrap_or(0)
+}
+
+/// Eye moves of at most this many regions (Chebyshev) under the same `near` visit only shells.
+const SHELL_MOVE: u32 = 2;
+
+/// Calls `f` once for each region whose level may differ between `old` and `new` (a superset of
+/// those whose level does). A region's distance to the eye changes by at most the eye's move
+/// `m`, so under the same `near` its level can change only if its new distance lies within `m`
+/// of a level's boundary distance: those shells are visited. Anything else visits every region.
+fn each_candidate(dims: [u32; 3], old: Option<&Rule>, new: &Rule, mut f: impl FnMut([u32; 3])) {
+    let m = old.map(|o| chebyshev(o.eye, new.eye));
+    let shells = old.is_some_and(|o| o.near == new.near && o.top == new.top)
+        && m.is_some_and(|m| m <= SHELL_MOVE);
+    if !shells {
+        for z in 0..dims[2] {
+            for y in 0..dims[1] {
+                for x in 0..dims[0] {
+                    f([x, y, z]);
+                }
+            }
+        }
+        return;
+    }
+    let m = m.unwrap_or(0);
+    if m == 0 {
+        return;
+    }
+    // Boundary distances: level 0 up to `near`, level k up to near·2^k below the top.
+    let n = new.near.max(1);
+    let mut bounds = vec![new.near];
+    bounds.extend((MIN_STAND_IN_LEVEL..new.top).map(|k| n.saturating_mul(1 << k)));
+    let reach = dims.iter().max().copied().unwrap_or(0);
+    let mut ranges: Vec<(u32, u32)> = bounds
+        .into_iter()
+        .map(|t| ((t + 1).saturating_sub(m), t.saturating_add(m)))
+        .filter(|&(a, _)| a <= reach)
+        .collect();
+    ranges.sort_unstable();
+    // Merge overlapping ranges so no region is visited twice.
+    let mut merged: Vec<(u32, u32)> = Vec::new();
+    for (a, b) in ranges {
+        match merged.last_mut() {
+            Some(last) if a <= last.1.saturating_add(1) => last.1 = last.1.max(b),
+            _ => merged.push((a, b)),
+        }
+    }
+    for (a, b) in merged {
+        each_in_shell(dims, new.eye, a, b, &mut f);
+    }
+}
+
+/// Calls `f` for each region of the grid whose Chebyshev distance from `e` is in `a..=b`.
+fn each_in_shell(dims: [u32; 3], e: [u32; 3], a: u32, b: u32, f: &mut impl FnMut([u32; 3])) {
+    let lo = |i: usize| e[i].saturating_sub(b);
+    let hi = |i: usize| e[i].saturating_add(b).min(dims[i] - 1);
+    for z in lo(2)..=hi(2) {
+        for y in lo(1)..=hi(1) {
+            if z.abs_diff(e[2]).max(y.abs_diff(e[1])) >= a {
+                for x in lo(0)..=hi(0) {
+                    f([x, y, z]);
+                }
+            } else {
+                // Only |dx| in a..=b: a segment on each side.
+                if e[0] >= a {
+                    for x in lo(0)..=e[0] - a {
+                        f([x, y, z]);
+                    }
+                }
+                let start = e[0].saturating_add(a);
+                if start <= hi(0) {
+                    for x in start..=hi(0) {
+                        f([x, y, z]);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A region that shows nothing yet.
+const NOTHING: u8 = u8::MAX;
+
+/// A coarse brick the client holds: its slot (`None`: the brick is empty) and how many regions
+/// show it.
+#[derive(Debug, Clone, Copy)]
+struct Coarse {
+    slot: Option<u32>,
+    shown_by: u32,
+}
+
+/// The client's working set.
+pub struct Held {
+    map: BrickMap,
+    rule: Option<Rule>,
+    region_dims: [u32; 3],
+    /// Per region (linear index): the level it shows, or [`NOTHING`].
+    shown: Vec<u8>,
+    coarse: HashMap<(u32, [u32; 3]), Coarse>,
+}
+
+impl Held {
+    /// Nothing held yet, of a scene of `size` voxels.
+    pub fn new(size: [u32; 3]) -> Result<Held, MapError> {
+        let map = BrickMap::new(size)?;
+        let region_dims = map.region_dims();
+        let regions = region_dims.iter().map(|&d| d as usize).product();
+        Ok(Held {
+            map,
+            rule: None,
+            region_dims,
+            shown: vec![NOTHING; regions],
+            coarse: HashMap::new(),
+        })
+    }
+
+    /// The map both tracers read.
+    pub fn map(&self) -> &BrickMap {
+        &self.map
+    }
+
+    /// The map, to let the GPU copy take its changes (`GpuScene::update`).
+    pub fn map_mut(&mut self) -> &mut BrickMap {
+        &mut self.map
+    }
+
+    pub fn rule(&self) -> Option<&Rule> {
+        self.rule.as_ref()
+    }
+
+    /// The level region `r` shows; `None` while it shows nothing yet (or outside the grid).
+    pub fn shown_level(&self, r: [u32; 3]) -> Option<u32> {
+        let i = self.index(r)?;
+        (self.shown[i] != NOTHING).then(|| u32::from(self.shown[i]))
+    }
+
+    /// Coarse bricks held (empty ones included).
+    pub fn coarse_count(&self) -> usize {
+        self.coarse.len()
+    }
+
+    fn index(&self, r: [u32; 3]) -> Option<usize> {
+        let d = self.region_dims;
+        (0..3)
+            .all(|i| r[i] < d[i])
+            .then(|| (r[0] + d[0] * (r[1] + d[1] * r[2])) as usize)
+    }
+
+    /// Adopts `rule`: regions whose wanted data is held switch now (a coarse brick they let go
+    /// of is freed once nothing shows or wants it). Returns what the server must send
+    /// ([`plan`]).
+    pub fn retarget(&mut self, rule: Rule) -> Result<Plan, MapError> {
+        let plan = plan(self.region_dims, self.rule.as_ref(), &rule);
+        let old = self.rule.replace(rule);
+        // Only regions whose level changed can switch now; the others wait for their data.
+        let mut switch = Vec::new();
+        each_candidate(self.region_dims, old.as_ref(), &rule, |r| {
+            let k = rule.level_of(r);
+            if k != 0
+                && self.shown_level(r) != Some(k)
+                && self.coarse.contains_key(&(k, coarse_cell(r, k)))
+            {
+                switch.push((r, k));
+            }
+        });
+        for (r, k) in switch {
+            self.show_coarse(r, k)?;
+        }
+        self.map.prune_tombstones(u64::MAX);
+        Ok(plan)
+    }
+
+    /// Region `r`'s level-0 bricks, all of them (none: the region is empty at level 0). Ignored
+    /// unless the rule wants `r` at level 0. Bricks outside `r` are refused.
+    pub fn receive_region(&mut self, r: [u32; 3], bricks: &[BrickData]) -> Result<(), MapError> {
+        let Some(rule) = self.rule else { return Ok(()) };
+        if self.index(r).is_none() || rule.level_of(r) != 0 {
+            return Ok(());
+        }
+        if let Some(b) = bricks
+            .iter()
+            .find(|b| (0..3).any(|i| b.cell[i] / REGION_CELLS != r[i]))
+        {
+            return Err(MapError::OutsideRegion {
+                cell: b.cell,
+                region: r,
+            });
+        }
+        for b in bricks {
+            self.map.check_brick(b)?;
+        }
+        self.detach(r)?;
+        for b in bricks {
+            self.map.put_brick(b)?;
+        }
+        let i = self.index(r).unwrap_or(0);
+        self.shown[i] = 0;
+        Ok(())
+    }
+
+    /// A coarse brick, as it stands (`None`: empty). Stored when the rule wants it or regions
+    /// still show an older copy of it; the regions that want it switch to it.
+    pub fn receive_coarse(
+        &mut self,
+        level: u32,
+        cell: [u32; 3],
+        brick: Option<&BrickData>,
+    ) -> Result<(), MapError> {
+        let Some(rule) = self.rule else { return Ok(()) };
+        let key = (level, cell);
+        let wanted = rule.holds(self.region_dims, level, cell);
+        if !wanted && !self.coarse.contains_key(&key) {
+            return Ok(());
+        }
+        let slot = match brick {
+            Some(b) => Some(self.map.add_coarse(b.mask, &b.colours)?),
+            None => None,
+        };
+        let regions = self.regions_under(level, cell);
+        match self.coarse.get_mut(&key) {
+            Some(entry) => {
+                // A newer copy: the regions showing the old one show the new one.
+                let old = std::mem::replace(&mut entry.slot, slot);
+                for &r in &regions {
+                    if self.shown_level(r) == Some(level) {
+                        self.map.set_stand_in(r, slot.map(|s| (level, s)))?;
+                    }
+                }
+                if let Some(old) = old {
+                    self.map.remove_coarse(old)?;
+                }
+            }
+            None => {
+                self.coarse.insert(key, Coarse { slot, shown_by: 0 });
+            }
+        }
+        for r in regions {
+            if rule.level_of(r) == level && self.shown_level(r) != Some(level) {
+                self.show_coarse(r, level)?;
+            }
+        }
+        if !wanted && self.coarse.get(&key).is_some_and(|c| c.shown_by == 0) {
+            self.free_coarse(key)?;
+        }
+        Ok(())
+    }
+
+    /// A level-0 brick as it stands, or `None` for a cell whose brick went: applied where the
+    /// client shows and wants the cell's region at level 0, ignored elsewhere.
+    pub fn receive_brick(
+        &mut self,
+        cell: [u32; 3],
+        brick: Option<&BrickData>,
+    ) -> Result<(), MapError> {
+        let Some(rule) = self.rule else { return Ok(()) };
+        let r = cell.map(|c| c / REGION_CELLS);
+        if self.shown_level(r) != Some(0) || rule.level_of(r) != 0 {
+            return Ok(());
+        }
+        match brick {
+            Some(b) if b.cell == cell => self.map.put_brick(b),
+            Some(b) => Err(MapError::OutsideRegion {
+                cell: b.cell,
+                region: r,
+            }),
+            None => {
+                self.map.remove_brick(cell);
+                Ok(())
+            }
+        }
+    }
+
+    /// Regions under a level-`level` coarse cell, inside the grid.
+    fn regions_under(&self, level: u32, cell: [u32; 3]) -> Vec<[u32; 3]> {
+        let span = 1u32 << (level - MIN_STAND_IN_LEVEL);
+        let d = self.region_dims;
+        let lo = cell.map(|c| c.saturating_mul(span));
+        let hi: [u32; 3] = std::array::from_fn(|i| lo[i].saturating_add(span).min(d[i]));
+        let mut out = Vec::new();
+        for z in lo[2]..hi[2] {
+            for y in lo[1]..hi[1] {
+                for x in lo[0]..hi[0] {
+                    out.push([x, y, z]);
+                }
+            }
+        }
+        out
+    }
+
+    /// Region `r` shows the held coarse brick of level `level` over it.
+    fn show_coarse(&mut self, r: [u32; 3], level: u32) -> Result<(), MapError> {
+        let key = (level, coarse_cell(r, level));
+        let Some(slot) = self.coarse.get(&key).map(|c| c.slot) else {
+            return Ok(());
+        };
+        self.detach(r)?;
+        if let Some(slot) = slot {
+            self.map.set_stand_in(r, Some((level, slot)))?;
+        }
+        if let Some(c) = self.coarse.get_mut(&key) {
+            c.shown_by += 1;
+        }
+        let i = self.index(r).unwrap_or(0);
+        self.shown[i] = level as u8;
+        Ok(())
+    }
+
+    /// Region `r` stops showing what it shows: its level-0 bricks go, or it lets go of its
+    /// coarse brick (freed when nothing shows or wants it).
+    fn detach(&mut self, r: [u32; 3]) -> Result<(), MapError> {
+        let Some(i) = self.index(r) else {
+            return Ok(());
+        };
+        match self.shown[i] {
+            NOTHING => {}
+            0 => {
+                let cd = self.map.cell_dims();
+                let lo = r.map(|c| c * REGION_CELLS);
+                for z in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
+                    for y in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
+                        for x in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
+                            self.map.remove_brick([x, y, z]);
+                        }
+                    }
+                }
+            }
+            level => {
+                let level = u32::from(level);
+                self.map.set_stand_in(r, None)?;
+                let key = (level, coarse_cell(r, level));
+                let mut unused = false;
+                if let Some(c) = self.coarse.get_mut(&key) {
+                    c.shown_by = c.shown_by.saturating_sub(1);
+                    unused = c.shown_by == 0;
+                }
+                let wanted = self
+                    .rule
+                    .is_some_and(|rule| rule.holds(self.region_dims, key.0, key.1));
+                if unused && !wanted {
+                    self.free_coarse(key)?;
+                }
+            }
+        }
+        self.shown[i] = NOTHING;
+        Ok(())
+    }
+
+    fn free_coarse(&mut self, key: (u32, [u32; 3])) -> Result<(), MapError> {
+        if let Some(Coarse {
+            slot: Some(slot), ..
+        }) = self.coarse.remove(&key)
+        {
+            self.map.remove_coarse(slot)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::colour::Colour;
+    use crate::lod::Pyramid;
+    use crate::map::BrushMode;
+    use crate::working_set;
+
+    fn scene() -> BrickMap {
+        let mut map = BrickMap::new([400, 64, 300]).unwrap();
+        map.fill_box([0, 0, 0], [399, 4, 299], BrushMode::Fill, Colour(0x4A69));
+        for i in 0..40u32 {
+            let c = [(i * 97) % 400, 5 + (i * 13) % 50, (i * 61) % 300];
+            map.sphere(
+                c.map(|v| v as f32),
+                3.0 + (i % 7) as f32,
+                BrushMode::Fill,
+                Colour(i as u16 * 977),
+            );
+        }
+        map
+    }
+
+    struct Rng(u64);
+    impl Rng {
+        fn below(&mut self, n: u32) -> u32 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((self.0 >> 33) % u64::from(n)) as u32
+        }
+    }
+
+    /// Sends what `plan` asks for, from the server's map and pyramid.
+    fn fulfil(held: &mut Held, plan: &Plan, base: &BrickMap, pyramid: &Pyramid) {
+        let cd = base.cell_dims();
+        for &r in &plan.regions {
+            let lo = r.map(|c| c * REGION_CELLS);
+            let mut bricks = Vec::new();
+            for z in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
+                for y in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
+                    for x in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
+                        bricks.extend(base.brick([x, y, z]));
+                    }
+                }
+            }
+            held.receive_region(r, &bricks).unwrap();
+        }
+        for &(k, cell) in &plan.coarse {
+            let brick = pyramid.level(k).unwrap().brick(cell);
+            held.receive_coarse(k, cell, brick.as_ref()).unwrap();
+        }
+    }
+
+    /// The held map shows what a map built afresh for the rule shows, region by region.
+    fn assert_same(held: &Held, built: &BrickMap, step: usize) {
+        let map = held.map();
+        map.check_invariants().unwrap();
+        assert_eq!(map.brick_count(), built.brick_count(), "step {step}");
+        assert_eq!(map.stand_in_count(), built.stand_in_count(), "step {step}");
+        for (brick, _) in built.bricks() {
+            assert_eq!(map.brick(brick.cell), Some(brick.clone()), "step {step}");
+        }
+        let rd = built.region_dims();
+        let mut scratch_a = [Colour::BLACK; 512];
+        let mut scratch_b = [Colour::BLACK; 512];
+        for z in 0..rd[2] {
+            for y in 0..rd[1] {
+                for x in 0..rd[0] {
+                    let r = [x, y, z];
+                    match (map.stand_in(r), built.stand_in(r)) {
+                        (None, None) => {}
+                        (Some((ka, sa)), Some((kb, sb))) => {
+                            assert_eq!(ka, kb, "step {step}, region {r:?}");
+                            assert_eq!(map.masks()[sa as usize], built.masks()[sb as usize]);
+                            assert_eq!(
+                                map.slot_colours(sa, &mut scratch_a),
+                                built.slot_colours(sb, &mut scratch_b),
+                                "step {step}, region {r:?}"
+                            );
+                        }
+                        other => panic!("step {step}, region {r:?}: {other:?}"),
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn holds_is_whether_a_region_under_the_cell_wants_that_level() {
+        let base = scene();
+        let pyramid = Pyramid::build(&base).unwrap();
+        let rd = base.region_dims();
+        let mut rng = Rng(5);
+        for _ in 0..30 {
+            let eye = [
+                rng.below(500) as f32 - 50.0,
+                30.0,
+                rng.below(400) as f32 - 50.0,
+            ];
+            let rule = Rule::new(&base, &pyramid, eye, rng.below(4));
+            for k in 2..=rule.top {
+                let cells = crate::lod::level_size(base.size(), k).map(|s| s.div_ceil(8));
+                for cz in 0..cells[2] {
+                    for cy in 0..cells[1] {
+                        for cx in 0..cells[0] {
+                            let cell = [cx, cy, cz];
+                            let span = 1 << (k - 2);
+                            let mut any = false;
+                            for z in cz * span..((cz + 1) * span).min(rd[2]) {
+                                for y in cy * span..((cy + 1) * span).min(rd[1]) {
+                                    for x in cx * span..((cx + 1) * span).min(rd[0]) {
+                                        any |= rule.level_of([x, y, z]) == k;
+                                    }
+                                }
+                            }
+                            assert_eq!(rule.holds(rd, k, cell), any, "{rule:?} {k} {cell:?}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// A client following a wandering eye while people edit: after each move (and the data its
+    /// plan asked for) and after each edit (and the deltas for what it holds), its map is the
+    /// map built afresh for its rule; while data is in flight no region goes blank; a repeated
+    /// rule asks for nothing; coarse bricks nothing wants are freed.
+    #[test]
+    fn following_the_eye_and_the_edits_keeps_the_map_equal_to_a_fresh_build() {
+        let mut base = scene();
+        base.record_touched(true);
+        base.take_touched();
+        let mut pyramid = Pyramid::build(&base).unwrap();
+        let mut held = Held::new(base.size()).unwrap();
+        let rd = base.region_dims();
+        let mut rng = Rng(11);
+        let mut eye = [200.0f32, 40.0, 150.0];
+        for step in 0..16 {
+            // Move: mostly a region or two, sometimes a jump; the budget changes now and then.
+            if step % 5 == 4 {
+                eye = [rng.below(400) as f32, 40.0, rng.below(300) as f32];
+            } else {
+                eye[0] = (eye[0] + rng.below(90) as f32 - 45.0).clamp(0.0, 399.0);
+                eye[2] = (eye[2] + rng.below(90) as f32 - 45.0).clamp(0.0, 299.0);
+            }
+            let near = if step % 3 == 0 {
+                rng.below(4)
+            } else {
+                held.rule().map_or(1, |r| r.near)
+            };
+            let rule = Rule::new(&base, &pyramid, eye, near);
+            let showing = |held: &Held| {
+                (0..rd[0] * rd[1] * rd[2])
+                    .filter(|&i| {
+                        let r = [i % rd[0], i / rd[0] % rd[1], i / rd[0] / rd[1]];
+                        held.shown_level(r).is_some()
+                    })
+                    .count()
+            };
+            let before = showing(&held);
+            let plan = held.retarget(rule).unwrap();
+            assert!(showing(&held) >= before, "step {step}: a region went blank");
+            fulfil(&mut held, &plan, &base, &pyramid);
+            assert!(held.retarget(rule).unwrap().is_empty(), "step {step}");
+            let built = working_set::build(&base, &pyramid, &rule).unwrap();
+            assert_same(&held, &built, step);
+            // Every coarse brick held is wanted, and the solid ones are those a build holds.
+            let cost = working_set::cost(&base, &pyramid, &rule);
+            assert!(
+                held.coarse.keys().all(|&(k, cell)| rule.holds(rd, k, cell)),
+                "step {step}: coarse bricks held that nothing wants"
+            );
+            let solid = held.coarse.values().filter(|c| c.slot.is_some()).count();
+            assert_eq!(solid as u64, cost.coarse_bricks, "step {step}");
+
+            // Someone edits: a sphere anywhere; deltas for what the client holds.
+            let c = [rng.below(400), rng.below(60), rng.below(300)];
+            let mode = if rng.below(2) == 0 {
+                BrushMode::Fill
+            } else {
+                BrushMode::Erase
+            };
+            base.sphere(
+                c.map(|v| v as f32),
+                2.0 + rng.below(10) as f32,
+                mode,
+                Colour(rng.below(60000) as u16),
+            );
+            let touched = base.take_touched();
+            let changed = pyramid.update(&base, &touched).unwrap();
+            for &i in &touched {
+                let cell = base.cell_coords(i);
+                held.receive_brick(cell, base.brick(cell).as_ref()).unwrap();
+            }
+            for (k0, cells) in changed.iter().enumerate() {
+                let k = k0 as u32 + 1;
+                let Some(level) = pyramid.level(k) else {
+                    continue;
+                };
+                for &i in cells {
+                    let cell = level.cell_coords(i);
+                    if k >= 2 && rule.holds(rd, k, cell) {
+                        held.receive_coarse(k, cell, level.brick(cell).as_ref())
+                            .unwrap();
+                    }
+                }
+            }
+            let built = working_set::build(&base, &pyramid, &rule).unwrap();
+            assert_same(&held, &built, step);
+        }
+    }
+
+    /// The plan from a full pass over every region, the reference for the shells.
+    fn plan_everywhere(dims: [u32; 3], old: Option<&Rule>, new: &Rule) -> Plan {
+        let mut regions = Vec::new();
+        let mut coarse = BTreeSet::new();
+        for z in 0..dims[2] {
+            for y in 0..dims[1] {
+                for x in 0..dims[0] {
+                    let r = [x, y, z];
+                    let k = new.level_of(r);
+                    if k == 0 {
+                        if old.is_none_or(|o| o.level_of(r) != 0) {
+                            regions.push(r);
+                        }
+                    } else if !old.is_some_and(|o| o.holds(dims, k, coarse_cell(r, k))) {
+                        coarse.insert((k, coarse_cell(r, k)));
+                    }
+                }
+            }
+        }
+        regions.sort_unstable_by_key(|&r| (chebyshev(r, new.eye), r[2], r[1], r[0]));
+        Plan {
+            regions,
+            coarse: coarse.into_iter().collect(),
+        }
+    }
+
+    #[test]
+    fn plans_from_shells_equal_plans_from_every_region() {
+        let mut rng = Rng(3);
+        for case in 0..400 {
+            let dims = [1 + rng.below(40), 1 + rng.below(6), 1 + rng.below(40)];
+            let top = 2 + rng.below(6);
+            let near = rng.below(6);
+            let old = Rule {
+                eye: [rng.below(dims[0]), rng.below(dims[1]), rng.below(dims[2])],
+                near,
+                top,
+            };
+            let step = |rng: &mut Rng, c: u32, d: u32| {
+                (c + rng.below(2 * SHELL_MOVE + 1))
+                    .saturating_sub(SHELL_MOVE)
+                    .min(d - 1)
+            };
+            let new = Rule {
+                eye: [
+                    step(&mut rng, old.eye[0], dims[0]),
+                    step(&mut rng, old.eye[1], dims[1]),
+                    step(&mut rng, old.eye[2], dims[2]),
+                ],
+                near: if case % 7 == 0 { rng.below(6) } else { near },
+                top,
+            };
+            assert_eq!(
+                plan(dims, Some(&old), &new),
+                plan_everywhere(dims, Some(&old), &new),
+                "case {case}: {old:?} → {new:?} in {dims:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn data_for_what_is_not_wanted_is_ignored_and_bad_data_refused() {
+        let base = scene();
+        let pyramid = Pyramid::build(&base).unwrap();
+        let mut held = Held::new(base.size()).unwrap();
+        let brick = base.bricks().next().unwrap().0;
+        // Before any rule: nothing is wanted.
+        held.receive_brick(brick.cell, Some(&brick)).unwrap();
+        assert_eq!(held.map().brick_count(), 0);
+        let rule = Rule::new(&base, &pyramid, [10.0, 10.0, 10.0], 0);
+        held.retarget(rule).unwrap();
+        // A region far away is not wanted at level 0.
+        let far = [12, 0, 9];
+        assert_ne!(rule.level_of(far), 0);
+        held.receive_region(far, &[]).unwrap();
+        assert_eq!(held.shown_level(far), None);
+        // Bricks of another region are refused.
+        let r = [0, 0, 0];
+        assert_eq!(rule.level_of(r), 0);
+        let stranger = BrickData {
+            cell: [5, 0, 0],
+            ..brick.clone()
+        };
+        assert!(held.receive_region(r, &[stranger]).is_err());
+        assert_eq!(held.shown_level(r), None);
+        held.map().check_invariants().unwrap();
+    }
+}
