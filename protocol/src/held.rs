@@ -435,20 +435,7 @@ mod tests {
     use crate::map::BrushMode;
     use crate::working_set;
 
-    fn scene() -> BrickMap {
-        let mut map = BrickMap::new([400, 64, 300]).unwrap();
-        map.fill_box([0, 0, 0], [399, 4, 299], BrushMode::Fill, Colour(0x4A69));
-        for i in 0..40u32 {
-            let c = [(i * 97) % 400, 5 + (i * 13) % 50, (i * 61) % 300];
-            map.sphere(
-                c.map(|v| v as f32),
-                3.0 + (i % 7) as f32,
-                BrushMode::Fill,
-                Colour(i as u16 * 977),
-            );
-        }
-        map
-    }
+    use crate::working_set::tests::scene;
 
     struct Rng(u64);
     impl Rng {

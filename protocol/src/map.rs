@@ -1159,17 +1159,7 @@ impl BrickMap {
                 block
             }
         };
-        let slot = match self.free_slots.pop() {
-            Some(s) => s,
-            None => {
-                self.masks.push(EMPTY_MASK);
-                self.colour_base.push(0);
-                self.slot_cell.push(EMPTY);
-                self.slot_version.push(0);
-                self.slot_capacity.push(0);
-                self.masks.len() as u32 - 1
-            }
-        };
+        let slot = self.alloc_slot();
         let s = slot as usize;
         self.masks[s] = mask;
         self.slot_capacity[s] = 0;
@@ -1533,6 +1523,21 @@ impl BrickMap {
                         g.regions.push(i as u32);
                     }
                 }
+            }
+        }
+    }
+
+    /// A free brick slot: a freed one first, else a new one at the end of the arrays.
+    fn alloc_slot(&mut self) -> u32 {
+        match self.free_slots.pop() {
+            Some(s) => s,
+            None => {
+                self.masks.push(EMPTY_MASK);
+                self.colour_base.push(0);
+                self.slot_cell.push(EMPTY);
+                self.slot_version.push(0);
+                self.slot_capacity.push(0);
+                self.masks.len() as u32 - 1
             }
         }
     }

@@ -219,12 +219,13 @@ pub fn build(base: &BrickMap, pyramid: &Pyramid, rule: &Rule) -> Result<BrickMap
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::colour::Colour;
     use crate::map::BrushMode;
 
-    fn scene() -> BrickMap {
+    /// Ground and spheres of many colours in 13×2×10 regions (also `held`'s tests).
+    pub(crate) fn scene() -> BrickMap {
         let mut map = BrickMap::new([400, 64, 300]).unwrap();
         map.fill_box([0, 0, 0], [399, 5, 299], BrushMode::Fill, Colour(0x4A69));
         for i in 0..30u32 {

@@ -82,22 +82,12 @@ impl BrickMap {
                 "a coarse brick needs a solid voxel and one colour per solid voxel",
             ));
         }
-        let slot = match self.free_slots.pop() {
-            Some(s) => s,
-            None => {
-                if self.masks.len() as u64 >= u64::from(MAX_STAND_IN_SLOTS) {
-                    return Err(MapError::BadCoarseBrick(
-                        "the map has as many brick slots as a stand-in can name",
-                    ));
-                }
-                self.masks.push(crate::brick::EMPTY_MASK);
-                self.colour_base.push(0);
-                self.slot_cell.push(crate::brick::EMPTY);
-                self.slot_version.push(0);
-                self.slot_capacity.push(0);
-                self.masks.len() as u32 - 1
-            }
-        };
+        if self.free_slots.is_empty() && self.masks.len() as u64 >= u64::from(MAX_STAND_IN_SLOTS) {
+            return Err(MapError::BadCoarseBrick(
+                "the map has as many brick slots as a stand-in can name",
+            ));
+        }
+        let slot = self.alloc_slot();
         let s = slot as usize;
         self.masks[s] = mask;
         self.slot_capacity[s] = 0;
