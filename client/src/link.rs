@@ -24,6 +24,8 @@ pub enum LinkError {
     BadUrl(String),
     #[error("could not connect to {url}: {reason}")]
     Connect { url: String, reason: String },
+    #[error("could not open {url}: {reason}")]
+    NoScene { url: String, reason: String },
     #[error("the server refused the connection ({code:?}): {message}")]
     Refused { code: ErrorCode, message: String },
     #[error("the server closed the connection")]
@@ -43,7 +45,10 @@ pub enum LinkError {
 impl LinkError {
     /// Whether trying again later can help (a refused token or version cannot).
     pub fn is_retryable(&self) -> bool {
-        !matches!(self, LinkError::BadUrl(_) | LinkError::Refused { .. })
+        !matches!(
+            self,
+            LinkError::BadUrl(_) | LinkError::Refused { .. } | LinkError::NoScene { .. }
+        )
     }
 }
 
@@ -83,6 +88,19 @@ pub fn link_token(input: &str) -> Option<String> {
         .find_map(|pair| pair.strip_prefix("token="))
         .filter(|t| !t.is_empty())
         .map(str::to_string)
+}
+
+/// A failed websocket handshake as a [`LinkError`]: a 404 (no such scene) is final, so a viewer
+/// shows it instead of retrying it forever; anything else may pass.
+fn connect_error(url: &str, e: &tokio_tungstenite::tungstenite::Error) -> LinkError {
+    let reason = connect_reason(e);
+    let url = url.to_string();
+    match e {
+        tokio_tungstenite::tungstenite::Error::Http(r) if r.status().as_u16() == 404 => {
+            LinkError::NoScene { url, reason }
+        }
+        _ => LinkError::Connect { url, reason },
+    }
 }
 
 /// The reason to show for a failed websocket handshake: an HTTP answer says what the server
@@ -141,10 +159,7 @@ impl Link {
         // edit would wait for the one after it.
         let (mut ws, _) = tokio_tungstenite::connect_async_with_config(url, None, true)
             .await
-            .map_err(|e| LinkError::Connect {
-                url: url.to_string(),
-                reason: connect_reason(&e),
-            })?;
+            .map_err(|e| connect_error(url, &e))?;
         let hello = hello(name, user, token, resume_from);
         let hello = encode_client(&hello)?;
         let bytes_out = hello.len() as u64;
@@ -262,6 +277,31 @@ mod tests {
         );
         assert_eq!(link_token("http://h:1/scenes/demo#token="), None);
         assert_eq!(link_token("ws://h:1/scenes/demo"), None);
+    }
+
+    #[test]
+    fn a_missing_scene_is_final_and_said_plainly() {
+        use tokio_tungstenite::tungstenite::{Error, http};
+        let answer = |status: u16, body: &str| {
+            let mut r = http::Response::new(Some(body.as_bytes().to_vec()));
+            *r.status_mut() = http::StatusCode::from_u16(status).unwrap();
+            Error::Http(Box::new(r))
+        };
+        let e = connect_error("ws://h:1/scenes/nope/ws", &answer(404, ""));
+        assert!(!e.is_retryable(), "{e}");
+        assert!(
+            e.to_string().contains("no such scene on this server"),
+            "{e}"
+        );
+        let busy = connect_error(
+            "ws://h:1/scenes/demo/ws",
+            &answer(503, "too many connections from 127.0.0.1 (limit 64)\n"),
+        );
+        assert!(busy.is_retryable());
+        assert!(
+            busy.to_string().contains("503") && busy.to_string().contains("limit 64"),
+            "{busy}"
+        );
         for bad in [
             "wss://host/scenes/demo",
             "ws://host",
