@@ -125,13 +125,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let region_bricks: usize = step
         .regions
         .iter()
-        .map(|r| {
-            let lo = r.map(|c| c * 4);
-            (0..64u32)
-                .filter(|c| {
-                    let cell = [lo[0] + (c & 3), lo[1] + ((c >> 2) & 3), lo[2] + (c >> 4)];
-                    base.slot_of_cell(cell).is_some()
-                })
+        .map(|&r| {
+            base.region_cells(r)
+                .filter(|&c| base.slot_of_cell(c).is_some())
                 .count()
         })
         .sum();

@@ -22,8 +22,8 @@
 use std::collections::{BTreeSet, HashMap};
 
 use crate::brick::BrickData;
-use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS};
-use crate::working_set::{Rule, coarse_cell};
+use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS, box_points, coarse_cell};
+use crate::working_set::Rule;
 
 /// What the server must send when the rule changes: everything wanted that is not held.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -84,13 +84,7 @@ fn each_candidate(dims: [u32; 3], old: Option<&Rule>, new: &Rule, mut f: impl Fn
     let shells = old.is_some_and(|o| o.near == new.near && o.top == new.top)
         && m.is_some_and(|m| m <= SHELL_MOVE);
     if !shells {
-        for z in 0..dims[2] {
-            for y in 0..dims[1] {
-                for x in 0..dims[0] {
-                    f([x, y, z]);
-                }
-            }
-        }
+        box_points([0; 3], dims).for_each(f);
         return;
     }
     let m = m.unwrap_or(0);
@@ -347,15 +341,7 @@ impl Held {
         let d = self.region_dims;
         let lo = cell.map(|c| c.saturating_mul(span));
         let hi: [u32; 3] = std::array::from_fn(|i| lo[i].saturating_add(span).min(d[i]));
-        let mut out = Vec::new();
-        for z in lo[2]..hi[2] {
-            for y in lo[1]..hi[1] {
-                for x in lo[0]..hi[0] {
-                    out.push([x, y, z]);
-                }
-            }
-        }
-        out
+        box_points(lo, hi).collect()
     }
 
     /// Region `r` shows the held coarse brick of level `level` over it.
@@ -385,14 +371,8 @@ impl Held {
         match self.shown[i] {
             NOTHING => {}
             0 => {
-                let cd = self.map.cell_dims();
-                let lo = r.map(|c| c * REGION_CELLS);
-                for z in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
-                    for y in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
-                        for x in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
-                            self.map.remove_brick([x, y, z]);
-                        }
-                    }
+                for cell in self.map.region_cells(r) {
+                    self.map.remove_brick(cell);
                 }
             }
             level => {
@@ -450,17 +430,8 @@ mod tests {
 
     /// Sends what `plan` asks for, from the server's map and pyramid.
     fn fulfil(held: &mut Held, plan: &Plan, base: &BrickMap, pyramid: &Pyramid) {
-        let cd = base.cell_dims();
         for &r in &plan.regions {
-            let lo = r.map(|c| c * REGION_CELLS);
-            let mut bricks = Vec::new();
-            for z in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
-                for y in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
-                    for x in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
-                        bricks.extend(base.brick([x, y, z]));
-                    }
-                }
-            }
+            let bricks: Vec<_> = base.region_cells(r).filter_map(|c| base.brick(c)).collect();
             held.receive_region(r, &bricks).unwrap();
         }
         for &(k, cell) in &plan.coarse {

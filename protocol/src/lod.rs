@@ -24,7 +24,7 @@ use crate::brick::{
 use crate::colour::Colour;
 use std::collections::HashMap;
 
-use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS};
+use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, box_points, coarse_cell};
 
 /// Levels above 0 for a scene of `size` voxels: until every axis of the top level fits one
 /// brick (a 16384×512×16384 world has 11; a scene of at most 8 voxels a side has none).
@@ -149,51 +149,36 @@ impl Pyramid {
         mut level_of: impl FnMut([u32; 3]) -> u32,
     ) -> Result<BrickMap, MapError> {
         let mut map = BrickMap::new(base.size())?;
-        let (rd, cd) = (base.region_dims(), base.cell_dims());
         let mut coarse: HashMap<(u32, [u32; 3]), Option<u32>> = HashMap::new();
-        for z in 0..rd[2] {
-            for y in 0..rd[1] {
-                for x in 0..rd[0] {
-                    let r = [x, y, z];
-                    let k = level_of(r);
-                    if k == 0 {
-                        let lo = r.map(|c| c * REGION_CELLS);
-                        for cz in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
-                            for cy in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
-                                for cx in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
-                                    let cell = [cx, cy, cz];
-                                    if let (Some(slot), Some(b)) =
-                                        (base.slot_of_cell(cell), base.brick(cell))
-                                    {
-                                        // Coded as the base has it, as the wire carries it.
-                                        map.put_coded(cell, b.mask, &b.colours, base.block(slot))?;
-                                    }
-                                }
-                            }
-                        }
-                        continue;
-                    }
-                    let level = self
-                        .level(k)
-                        .filter(|_| k >= MIN_STAND_IN_LEVEL)
-                        .ok_or(MapError::BadCoarseBrick("no such level for a stand-in"))?;
-                    // A level-k brick spans 2^(k-2) regions a side.
-                    let cell = r.map(|c| c >> (k - MIN_STAND_IN_LEVEL));
-                    let slot = match coarse.get(&(k, cell)) {
-                        Some(&slot) => slot,
-                        None => {
-                            let slot = match level.brick(cell) {
-                                Some(b) => Some(map.add_coarse(b.mask, &b.colours)?),
-                                None => None,
-                            };
-                            coarse.insert((k, cell), slot);
-                            slot
-                        }
-                    };
-                    if let Some(slot) = slot {
-                        map.set_stand_in(r, Some((k, slot)))?;
+        for r in box_points([0; 3], base.region_dims()) {
+            let k = level_of(r);
+            if k == 0 {
+                for cell in base.region_cells(r) {
+                    if let (Some(slot), Some(b)) = (base.slot_of_cell(cell), base.brick(cell)) {
+                        // Coded as the base has it, as the wire carries it.
+                        map.put_coded(cell, b.mask, &b.colours, base.block(slot))?;
                     }
                 }
+                continue;
+            }
+            let level = self
+                .level(k)
+                .filter(|_| k >= MIN_STAND_IN_LEVEL)
+                .ok_or(MapError::BadCoarseBrick("no such level for a stand-in"))?;
+            let cell = coarse_cell(r, k);
+            let slot = match coarse.get(&(k, cell)) {
+                Some(&slot) => slot,
+                None => {
+                    let slot = match level.brick(cell) {
+                        Some(b) => Some(map.add_coarse(b.mask, &b.colours)?),
+                        None => None,
+                    };
+                    coarse.insert((k, cell), slot);
+                    slot
+                }
+            };
+            if let Some(slot) = slot {
+                map.set_stand_in(r, Some((k, slot)))?;
             }
         }
         map.rebuild_clearance();

@@ -32,8 +32,8 @@ use crate::colour::Colour;
 mod stand_in;
 use stand_in::COARSE;
 pub use stand_in::{
-    MAX_STAND_IN_LEVEL, MAX_STAND_IN_SLOTS, MIN_STAND_IN_LEVEL, STAND_IN, coarse_bit, region_block,
-    region_stand_in, stand_in_entry,
+    MAX_STAND_IN_LEVEL, MAX_STAND_IN_SLOTS, MIN_STAND_IN_LEVEL, STAND_IN, coarse_bit, coarse_cell,
+    region_block, region_stand_in, stand_in_entry,
 };
 
 /// Coarse cells along one edge of a region.
@@ -95,6 +95,13 @@ pub const fn cell_clearance(entry: u32) -> u32 {
 #[inline(always)]
 pub const fn region_clearance(entry: u32) -> u32 {
     entry & 0xFF
+}
+
+/// Every point of the box `lo..hi` (exclusive), x fastest then y then z: the order of every
+/// linear index in this crate, so walking regions or cells this way walks memory in order.
+pub fn box_points(lo: [u32; 3], hi: [u32; 3]) -> impl Iterator<Item = [u32; 3]> {
+    (lo[2]..hi[2])
+        .flat_map(move |z| (lo[1]..hi[1]).flat_map(move |y| (lo[0]..hi[0]).map(move |x| [x, y, z])))
 }
 
 /// Why a map could not be built or a brick not stored.
@@ -520,6 +527,14 @@ impl BrickMap {
     /// bounding box (edits that free regions leave it larger until then, which is still safe).
     pub fn occupied_regions(&self) -> Option<([u32; 3], [u32; 3])> {
         self.occupied
+    }
+
+    /// The coarse cells of region `r` that lie inside the grid, x fastest.
+    pub fn region_cells(&self, r: [u32; 3]) -> impl Iterator<Item = [u32; 3]> + use<> {
+        let lo = r.map(|c| c.saturating_mul(REGION_CELLS));
+        let hi: [u32; 3] =
+            std::array::from_fn(|i| lo[i].saturating_add(REGION_CELLS).min(self.cell_dims[i]));
+        box_points(lo, hi)
     }
 
     /// Index of a cell inside its block.

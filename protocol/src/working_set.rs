@@ -17,7 +17,7 @@
 use std::collections::HashSet;
 
 use crate::lod::Pyramid;
-use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS};
+use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, box_points, coarse_cell};
 
 /// Bytes a brick slot takes besides its colours: a 64-byte mask and a 4-byte colour base.
 const SLOT_BYTES: u64 = 64 + 4;
@@ -100,11 +100,6 @@ impl Rule {
     }
 }
 
-/// The level-`level` coarse cell over region `r` (`level >= 2`).
-pub fn coarse_cell(r: [u32; 3], level: u32) -> [u32; 3] {
-    r.map(|c| c >> (level - MIN_STAND_IN_LEVEL))
-}
-
 /// What a working set holds and what it costs.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Cost {
@@ -120,49 +115,39 @@ pub struct Cost {
 
 /// The cost of holding `base` (with its current `pyramid`) as `rule` says.
 pub fn cost(base: &BrickMap, pyramid: &Pyramid, rule: &Rule) -> Cost {
-    let (rd, cd) = (base.region_dims(), base.cell_dims());
+    let rd = base.region_dims();
     let mut c = Cost {
         bytes: rd.iter().map(|&d| u64::from(d)).product::<u64>() * 4,
         ..Cost::default()
     };
     let mut coarse: HashSet<(u32, [u32; 3])> = HashSet::new();
-    for z in 0..rd[2] {
-        for y in 0..rd[1] {
-            for x in 0..rd[0] {
-                let r = [x, y, z];
-                let k = rule.level_of(r);
-                if k == 0 {
-                    let mut bricks = 0;
-                    let lo = r.map(|c| c * REGION_CELLS);
-                    for cz in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
-                        for cy in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
-                            for cx in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
-                                if let Some(slot) = base.slot_of_cell([cx, cy, cz]) {
-                                    bricks += 1;
-                                    c.bytes +=
-                                        SLOT_BYTES + 2 * u64::from(base.fresh_chunk_words(slot));
-                                }
-                            }
-                        }
-                    }
-                    if bricks > 0 {
-                        c.full_regions += 1;
-                        c.full_bricks += bricks;
-                        c.bytes += BLOCK_BYTES;
-                    }
-                    continue;
-                }
-                let cell = coarse_cell(r, k);
-                let Some(slot) = pyramid.level(k).and_then(|l| l.slot_of_cell(cell)) else {
-                    continue;
-                };
-                c.stand_ins += 1;
-                if coarse.insert((k, cell)) {
-                    c.coarse_bricks += 1;
-                    let level = pyramid.level(k).expect("level exists: its slot was found");
-                    c.bytes += SLOT_BYTES + 2 * u64::from(level.fresh_chunk_words(slot));
-                }
+    for r in box_points([0; 3], rd) {
+        let k = rule.level_of(r);
+        if k == 0 {
+            let mut bricks = 0;
+            for slot in base
+                .region_cells(r)
+                .filter_map(|cell| base.slot_of_cell(cell))
+            {
+                bricks += 1;
+                c.bytes += SLOT_BYTES + 2 * u64::from(base.fresh_chunk_words(slot));
             }
+            if bricks > 0 {
+                c.full_regions += 1;
+                c.full_bricks += bricks;
+                c.bytes += BLOCK_BYTES;
+            }
+            continue;
+        }
+        let cell = coarse_cell(r, k);
+        let Some(slot) = pyramid.level(k).and_then(|l| l.slot_of_cell(cell)) else {
+            continue;
+        };
+        c.stand_ins += 1;
+        if coarse.insert((k, cell)) {
+            c.coarse_bricks += 1;
+            let level = pyramid.level(k).expect("level exists: its slot was found");
+            c.bytes += SLOT_BYTES + 2 * u64::from(level.fresh_chunk_words(slot));
         }
     }
     c

@@ -7,7 +7,7 @@
 use brickcast_protocol::brick::{BRICK_EDGE, Mask, bit_voxel, mask_get, mask_set, rank};
 use brickcast_protocol::lod::Pyramid;
 use brickcast_protocol::map::{
-    BrickMap, BrushMode, GpuChanges, MapError, REGION_CELLS, coarse_bit, region_stand_in,
+    BrickMap, BrushMode, GpuChanges, MapError, box_points, coarse_bit, region_stand_in,
 };
 use brickcast_protocol::render::{Camera, Lighting, render};
 use brickcast_protocol::trace::{Ray, trace};
@@ -81,47 +81,36 @@ fn written_out(mixed: &BrickMap) -> BrickMap {
     for (brick, _) in mixed.bricks() {
         out.put_brick(&brick).unwrap();
     }
-    let (rd, cd, size) = (mixed.region_dims(), mixed.cell_dims(), mixed.size());
+    let size = mixed.size();
     let mut scratch = [Colour::BLACK; 512];
-    for rz in 0..rd[2] {
-        for ry in 0..rd[1] {
-            for rx in 0..rd[0] {
-                let Some((level, slot)) = mixed.stand_in([rx, ry, rz]) else {
+    for r in box_points([0; 3], mixed.region_dims()) {
+        let Some((level, slot)) = mixed.stand_in(r) else {
+            continue;
+        };
+        let coarse_mask = mixed.masks()[slot as usize];
+        let coarse = mixed.slot_colours(slot, &mut scratch).to_vec();
+        for cell in mixed.region_cells(r) {
+            let mut mask: Mask = [0; 8];
+            let mut colours = Vec::new();
+            for bit in 0..512 {
+                let l = bit_voxel(bit);
+                let p: [u32; 3] = std::array::from_fn(|i| cell[i] * BRICK_EDGE + l[i]);
+                if (0..3).any(|i| p[i] >= size[i]) {
                     continue;
-                };
-                let coarse_mask = mixed.masks()[slot as usize];
-                let coarse = mixed.slot_colours(slot, &mut scratch).to_vec();
-                let lo = [rx, ry, rz].map(|c| c * REGION_CELLS);
-                for cz in lo[2]..(lo[2] + REGION_CELLS).min(cd[2]) {
-                    for cy in lo[1]..(lo[1] + REGION_CELLS).min(cd[1]) {
-                        for cx in lo[0]..(lo[0] + REGION_CELLS).min(cd[0]) {
-                            let cell = [cx, cy, cz];
-                            let mut mask: Mask = [0; 8];
-                            let mut colours = Vec::new();
-                            for bit in 0..512 {
-                                let l = bit_voxel(bit);
-                                let p: [u32; 3] =
-                                    std::array::from_fn(|i| cell[i] * BRICK_EDGE + l[i]);
-                                if (0..3).any(|i| p[i] >= size[i]) {
-                                    continue;
-                                }
-                                let cb = coarse_bit(p, level);
-                                if mask_get(&coarse_mask, cb) {
-                                    mask_set(&mut mask, bit, true);
-                                    colours.push(coarse[rank(&coarse_mask, cb) as usize]);
-                                }
-                            }
-                            if !colours.is_empty() {
-                                out.put_brick(&BrickData {
-                                    cell,
-                                    mask,
-                                    colours,
-                                })
-                                .unwrap();
-                            }
-                        }
-                    }
                 }
+                let cb = coarse_bit(p, level);
+                if mask_get(&coarse_mask, cb) {
+                    mask_set(&mut mask, bit, true);
+                    colours.push(coarse[rank(&coarse_mask, cb) as usize]);
+                }
+            }
+            if !colours.is_empty() {
+                out.put_brick(&BrickData {
+                    cell,
+                    mask,
+                    colours,
+                })
+                .unwrap();
             }
         }
     }

@@ -66,6 +66,13 @@ pub const fn region_block(entry: u32) -> Option<u32> {
     if entry < STAND_IN { Some(entry) } else { None }
 }
 
+/// The cell of the level-`level` brick that covers region `r` (`level >= 2`): such a brick
+/// spans `2^(level-2)` regions a side.
+#[inline(always)]
+pub fn coarse_cell(r: [u32; 3], level: u32) -> [u32; 3] {
+    r.map(|c| c >> (level - MIN_STAND_IN_LEVEL))
+}
+
 /// The bit of coarse voxel covering level-0 voxel `p` in a level-`level` brick's mask.
 #[inline(always)]
 pub fn coarse_bit(p: [u32; 3], level: u32) -> u32 {
