@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use brickcast_protocol::viewpoint;
+use brickcast_protocol::working_set::Rule;
 use brickcast_protocol::{BrickMap, Camera, Lighting, Projection};
 use serde::Serialize;
 
@@ -32,15 +33,24 @@ pub struct RenderReport {
     pub target: [f32; 3],
 }
 
+/// What of a scene to fetch: all of it (`budget: None`), or the working set a client with
+/// `budget` GPU bytes holds when its eye is at `eye` (the server's default camera when `None`).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Within {
+    pub budget: Option<u64>,
+    pub eye: Option<[f32; 3]>,
+}
+
 /// [`fetch`] from the first of `urls` that answers.
 pub async fn fetch_any(
     urls: &[String],
     token: Option<&str>,
     colours: Quality,
+    within: Within,
 ) -> Result<(Replica, f64)> {
     let mut last = anyhow::anyhow!("no scene address given");
     for url in urls {
-        match fetch(url, token, colours).await {
+        match fetch(url, token, colours, within).await {
             Ok(done) => return Ok(done),
             Err(e) => {
                 if urls.len() > 1 {
@@ -53,20 +63,39 @@ pub async fn fetch_any(
     Err(last)
 }
 
-/// Connects to `url`, syncs the whole scene and disconnects. Returns the replica and how long
-/// the sync took in milliseconds.
-pub async fn fetch(url: &str, token: Option<&str>, colours: Quality) -> Result<(Replica, f64)> {
+/// Connects to `url`, syncs the whole scene (or the working set `within` asks for) and
+/// disconnects. Returns the replica and how long the sync took in milliseconds.
+pub async fn fetch(
+    url: &str,
+    token: Option<&str>,
+    colours: Quality,
+    within: Within,
+) -> Result<(Replica, f64)> {
     let url = link::websocket_url(url)?;
     let started = Instant::now();
-    let mut link = Link::connect(&url, "brickcast render", 0, token, None)
+    let budget = within.budget.map(|bytes| brickcast_protocol::wire::Budget {
+        bytes,
+        eye: within.eye,
+    });
+    let mut link = Link::connect_within(&url, "brickcast render", 0, token, None, budget)
         .await
         .with_context(|| format!("connecting to {url}"))?;
     let mut replica = Replica::new(&link.welcome.scene, link.welcome.size)?;
     replica.set_colour_bound(colours.bound());
     replica.sync_total = link.welcome.total_bricks;
-    link::sync(&mut link, &mut replica, |_| {})
-        .await
-        .context("syncing the scene")?;
+    let eye = within.budget.and(within.eye);
+    let wanted = eye.map(|e| Rule::eye_region(replica.map.region_dims(), e));
+    loop {
+        link::sync(&mut link, &mut replica, |_| {})
+            .await
+            .context("syncing the scene")?;
+        // Complete for the camera asked for (the server may have begun from its own).
+        let at = replica.held().and_then(|h| h.rule()).map(|r| r.eye);
+        if wanted.is_none() || at == wanted {
+            break;
+        }
+        replica.synced = false;
+    }
     let sync_ms = started.elapsed().as_secs_f64() * 1e3;
     link.close().await;
     Ok((replica, sync_ms))
@@ -182,13 +211,23 @@ pub struct RenderJob<'a> {
     pub lighting: Lighting,
     /// How exactly the copy keeps colours.
     pub colours: Quality,
+    /// GPU bytes for the scene: `None` fetches every brick, a budget the working set at `eye`.
+    pub budget: Option<u64>,
 }
 
 pub fn run(job: &RenderJob<'_>) -> Result<RenderReport> {
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    let (mut replica, sync_ms) = runtime.block_on(fetch_any(job.urls, job.token, job.colours))?;
+    let (mut replica, sync_ms) = runtime.block_on(fetch_any(
+        job.urls,
+        job.token,
+        job.colours,
+        Within {
+            budget: job.budget,
+            eye: job.eye,
+        },
+    ))?;
     let camera = camera(&replica.map, job.eye, job.target, job.fov);
     let projection = camera.project(job.width, job.height).with_context(|| {
         format!(

@@ -154,13 +154,26 @@ impl Link {
         token: Option<&str>,
         resume_from: Option<u64>,
     ) -> Result<Link, LinkError> {
+        Link::connect_within(url, name, user, token, resume_from, None).await
+    }
+
+    /// [`Link::connect`] for a client that gives the scene a GPU budget: the server streams it
+    /// a working set within it and follows its camera (`None`: the whole scene).
+    pub async fn connect_within(
+        url: &str,
+        name: &str,
+        user: UserId,
+        token: Option<&str>,
+        resume_from: Option<u64>,
+        budget: Option<brickcast_protocol::wire::Budget>,
+    ) -> Result<Link, LinkError> {
         // Nagle's algorithm would hold a small edit back until the previous frame is
         // acknowledged, which the server's delayed ACK can put off until our *next* send: an
         // edit would wait for the one after it.
         let (mut ws, _) = tokio_tungstenite::connect_async_with_config(url, None, true)
             .await
             .map_err(|e| connect_error(url, &e))?;
-        let hello = hello(name, user, token, resume_from);
+        let hello = hello(name, user, token, resume_from, budget);
         let hello = encode_client(&hello)?;
         let bytes_out = hello.len() as u64;
         ws.send(Message::Binary(hello.into()))

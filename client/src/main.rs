@@ -74,6 +74,10 @@ enum Command {
         /// How exactly the copy keeps colours: `exact`, `bounded` or `bounded:N` (as `view`).
         #[arg(long, default_value_t = brickcast_protocol::blocks::Quality::default())]
         colours: brickcast_protocol::blocks::Quality,
+        /// GPU memory for the scene: `unlimited` (every brick) or a size such as 256MiB, for
+        /// the working set around --eye: full resolution near it, coarser further away.
+        #[arg(long, default_value = "unlimited")]
+        gpu_budget: brickcast_client_core::budget::GpuBudget,
     },
     /// Load-test a server: many clients edit one scene; report throughput and latency, and
     /// check that every client's copy ends equal to the server's (non-zero exit if not).
@@ -156,6 +160,7 @@ fn main() -> Result<()> {
             vulkan,
             light,
             colours,
+            gpu_budget,
         } => {
             if width == 0 || height == 0 || width > 16384 || height > 16384 {
                 bail!("image size {width}×{height} is out of range (1..=16384 per side)");
@@ -179,6 +184,7 @@ fn main() -> Result<()> {
                 timed_frames: frames,
                 lighting: light.lighting()?,
                 colours,
+                budget: gpu_budget.0,
             })?;
             if json {
                 println!(

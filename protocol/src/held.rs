@@ -9,10 +9,13 @@
 //! brick is wanted, so the server knows what each client holds without a copy of it, and sends
 //! a delta for a brick exactly when the client holds it.
 //!
-//! **Eviction is implied, and never leaves a hole**: a region keeps showing what it shows until
-//! the data it now wants is in place; then its level-0 bricks are dropped (or it stops pointing
-//! at a coarse brick), and a coarse brick no region shows or wants is freed. Data that arrives
-//! for something no longer wanted is ignored.
+//! **Eviction is implied, and never leaves a hole while the eye flies**: a region keeps showing
+//! what it shows until the data it now wants is in place; then its level-0 bricks are dropped
+//! (or it stops pointing at a coarse brick), and a coarse brick no region shows or wants is
+//! freed. After a *jump* (the eye moved more than [`SHELL_MOVE`] regions), level 0 no longer
+//! wanted is dropped at once, so the copy does not hold two working sets' level 0 while the
+//! new one streams in: those regions are empty until their coarse brick arrives. Data that
+//! arrives for something no longer wanted is ignored.
 //!
 //! Messages are handled in the order the server sent them: region data is a region's whole
 //! level 0 as it stands when sent; a coarse brick or a level-0 brick is the brick as it stands.
@@ -154,9 +157,10 @@ struct Coarse {
     shown_by: u32,
 }
 
-/// The client's working set.
+/// The client's working set: what it shows where, kept beside the map it fills (the
+/// replica's), which every method takes.
+#[derive(Debug, Clone)]
 pub struct Held {
-    map: BrickMap,
     rule: Option<Rule>,
     region_dims: [u32; 3],
     /// Per region (linear index): the level it shows, or [`NOTHING`].
@@ -165,28 +169,16 @@ pub struct Held {
 }
 
 impl Held {
-    /// Nothing held yet, of a scene of `size` voxels.
-    pub fn new(size: [u32; 3]) -> Result<Held, MapError> {
-        let map = BrickMap::new(size)?;
+    /// Nothing held yet of the scene `map` (an empty map) will hold.
+    pub fn new(map: &BrickMap) -> Held {
         let region_dims = map.region_dims();
         let regions = region_dims.iter().map(|&d| d as usize).product();
-        Ok(Held {
-            map,
+        Held {
             rule: None,
             region_dims,
             shown: vec![NOTHING; regions],
             coarse: HashMap::new(),
-        })
-    }
-
-    /// The map both tracers read.
-    pub fn map(&self) -> &BrickMap {
-        &self.map
-    }
-
-    /// The map, to let the GPU copy take its changes (`GpuScene::update`).
-    pub fn map_mut(&mut self) -> &mut BrickMap {
-        &mut self.map
+        }
     }
 
     pub fn rule(&self) -> Option<&Rule> {
@@ -214,30 +206,42 @@ impl Held {
     /// Adopts `rule`: regions whose wanted data is held switch now (a coarse brick they let go
     /// of is freed once nothing shows or wants it). Returns what the server must send
     /// ([`plan`]).
-    pub fn retarget(&mut self, rule: Rule) -> Result<Plan, MapError> {
+    pub fn retarget(&mut self, map: &mut BrickMap, rule: Rule) -> Result<Plan, MapError> {
         let plan = plan(self.region_dims, self.rule.as_ref(), &rule);
         let old = self.rule.replace(rule);
         // Only regions whose level changed can switch now; the others wait for their data.
+        let jump = old.is_none_or(|o| chebyshev(o.eye, rule.eye) > SHELL_MOVE);
         let mut switch = Vec::new();
+        let mut release = Vec::new();
         each_candidate(self.region_dims, old.as_ref(), &rule, |r| {
             let k = rule.level_of(r);
-            if k != 0
-                && self.shown_level(r) != Some(k)
-                && self.coarse.contains_key(&(k, coarse_cell(r, k)))
-            {
+            let shown = self.shown_level(r);
+            if k != 0 && shown != Some(k) && self.coarse.contains_key(&(k, coarse_cell(r, k))) {
                 switch.push((r, k));
+            } else if jump && k != 0 && shown == Some(0) {
+                release.push(r);
             }
         });
         for (r, k) in switch {
-            self.show_coarse(r, k)?;
+            self.show_coarse(map, r, k)?;
         }
-        self.map.prune_tombstones(u64::MAX);
+        // After a jump most of level 0 is let go of: it goes now, so the new level 0 reuses
+        // its room and the copy never holds two working sets' worth of it.
+        for r in release {
+            self.detach(map, r)?;
+        }
+        map.prune_tombstones(u64::MAX);
         Ok(plan)
     }
 
     /// Region `r`'s level-0 bricks, all of them (none: the region is empty at level 0). Ignored
     /// unless the rule wants `r` at level 0. Bricks outside `r` are refused.
-    pub fn receive_region(&mut self, r: [u32; 3], bricks: &[BrickData]) -> Result<(), MapError> {
+    pub fn receive_region(
+        &mut self,
+        map: &mut BrickMap,
+        r: [u32; 3],
+        bricks: &[BrickData],
+    ) -> Result<(), MapError> {
         let Some(rule) = self.rule else { return Ok(()) };
         if self.index(r).is_none() || rule.level_of(r) != 0 {
             return Ok(());
@@ -252,11 +256,11 @@ impl Held {
             });
         }
         for b in bricks {
-            self.map.check_brick(b)?;
+            map.check_brick(b)?;
         }
-        self.detach(r)?;
+        self.detach(map, r)?;
         for b in bricks {
-            self.map.put_brick(b)?;
+            map.put_brick(b)?;
         }
         let i = self.index(r).unwrap_or(0);
         self.shown[i] = 0;
@@ -267,6 +271,7 @@ impl Held {
     /// still show an older copy of it; the regions that want it switch to it.
     pub fn receive_coarse(
         &mut self,
+        map: &mut BrickMap,
         level: u32,
         cell: [u32; 3],
         brick: Option<&BrickData>,
@@ -278,7 +283,7 @@ impl Held {
             return Ok(());
         }
         let slot = match brick {
-            Some(b) => Some(self.map.add_coarse(b.mask, &b.colours)?),
+            Some(b) => Some(map.add_coarse(b.mask, &b.colours)?),
             None => None,
         };
         let regions = self.regions_under(level, cell);
@@ -288,11 +293,11 @@ impl Held {
                 let old = std::mem::replace(&mut entry.slot, slot);
                 for &r in &regions {
                     if self.shown_level(r) == Some(level) {
-                        self.map.set_stand_in(r, slot.map(|s| (level, s)))?;
+                        map.set_stand_in(r, slot.map(|s| (level, s)))?;
                     }
                 }
                 if let Some(old) = old {
-                    self.map.remove_coarse(old)?;
+                    map.remove_coarse(old)?;
                 }
             }
             None => {
@@ -301,11 +306,11 @@ impl Held {
         }
         for r in regions {
             if rule.level_of(r) == level && self.shown_level(r) != Some(level) {
-                self.show_coarse(r, level)?;
+                self.show_coarse(map, r, level)?;
             }
         }
         if !wanted && self.coarse.get(&key).is_some_and(|c| c.shown_by == 0) {
-            self.free_coarse(key)?;
+            self.free_coarse(map, key)?;
         }
         Ok(())
     }
@@ -314,6 +319,7 @@ impl Held {
     /// client shows and wants the cell's region at level 0, ignored elsewhere.
     pub fn receive_brick(
         &mut self,
+        map: &mut BrickMap,
         cell: [u32; 3],
         brick: Option<&BrickData>,
     ) -> Result<(), MapError> {
@@ -323,13 +329,13 @@ impl Held {
             return Ok(());
         }
         match brick {
-            Some(b) if b.cell == cell => self.map.put_brick(b),
+            Some(b) if b.cell == cell => map.put_brick(b),
             Some(b) => Err(MapError::OutsideRegion {
                 cell: b.cell,
                 region: r,
             }),
             None => {
-                self.map.remove_brick(cell);
+                map.remove_brick(cell);
                 Ok(())
             }
         }
@@ -345,14 +351,14 @@ impl Held {
     }
 
     /// Region `r` shows the held coarse brick of level `level` over it.
-    fn show_coarse(&mut self, r: [u32; 3], level: u32) -> Result<(), MapError> {
+    fn show_coarse(&mut self, map: &mut BrickMap, r: [u32; 3], level: u32) -> Result<(), MapError> {
         let key = (level, coarse_cell(r, level));
         let Some(slot) = self.coarse.get(&key).map(|c| c.slot) else {
             return Ok(());
         };
-        self.detach(r)?;
+        self.detach(map, r)?;
         if let Some(slot) = slot {
-            self.map.set_stand_in(r, Some((level, slot)))?;
+            map.set_stand_in(r, Some((level, slot)))?;
         }
         if let Some(c) = self.coarse.get_mut(&key) {
             c.shown_by += 1;
@@ -364,20 +370,20 @@ impl Held {
 
     /// Region `r` stops showing what it shows: its level-0 bricks go, or it lets go of its
     /// coarse brick (freed when nothing shows or wants it).
-    fn detach(&mut self, r: [u32; 3]) -> Result<(), MapError> {
+    fn detach(&mut self, map: &mut BrickMap, r: [u32; 3]) -> Result<(), MapError> {
         let Some(i) = self.index(r) else {
             return Ok(());
         };
         match self.shown[i] {
             NOTHING => {}
             0 => {
-                for cell in self.map.region_cells(r) {
-                    self.map.remove_brick(cell);
+                for cell in map.region_cells(r) {
+                    map.remove_brick(cell);
                 }
             }
             level => {
                 let level = u32::from(level);
-                self.map.set_stand_in(r, None)?;
+                map.set_stand_in(r, None)?;
                 let key = (level, coarse_cell(r, level));
                 let mut unused = false;
                 if let Some(c) = self.coarse.get_mut(&key) {
@@ -388,7 +394,7 @@ impl Held {
                     .rule
                     .is_some_and(|rule| rule.holds(self.region_dims, key.0, key.1));
                 if unused && !wanted {
-                    self.free_coarse(key)?;
+                    self.free_coarse(map, key)?;
                 }
             }
         }
@@ -396,12 +402,12 @@ impl Held {
         Ok(())
     }
 
-    fn free_coarse(&mut self, key: (u32, [u32; 3])) -> Result<(), MapError> {
+    fn free_coarse(&mut self, map: &mut BrickMap, key: (u32, [u32; 3])) -> Result<(), MapError> {
         if let Some(Coarse {
             slot: Some(slot), ..
         }) = self.coarse.remove(&key)
         {
-            self.map.remove_coarse(slot)?;
+            map.remove_coarse(slot)?;
         }
         Ok(())
     }
@@ -429,20 +435,25 @@ mod tests {
     }
 
     /// Sends what `plan` asks for, from the server's map and pyramid.
-    fn fulfil(held: &mut Held, plan: &Plan, base: &BrickMap, pyramid: &Pyramid) {
+    fn fulfil(
+        held: &mut Held,
+        map: &mut BrickMap,
+        plan: &Plan,
+        base: &BrickMap,
+        pyramid: &Pyramid,
+    ) {
         for &r in &plan.regions {
             let bricks: Vec<_> = base.region_cells(r).filter_map(|c| base.brick(c)).collect();
-            held.receive_region(r, &bricks).unwrap();
+            held.receive_region(map, r, &bricks).unwrap();
         }
         for &(k, cell) in &plan.coarse {
             let brick = pyramid.level(k).unwrap().brick(cell);
-            held.receive_coarse(k, cell, brick.as_ref()).unwrap();
+            held.receive_coarse(map, k, cell, brick.as_ref()).unwrap();
         }
     }
 
     /// The held map shows what a map built afresh for the rule shows, region by region.
-    fn assert_same(held: &Held, built: &BrickMap, step: usize) {
-        let map = held.map();
+    fn assert_same(map: &BrickMap, built: &BrickMap, step: usize) {
         map.check_invariants().unwrap();
         assert_eq!(map.brick_count(), built.brick_count(), "step {step}");
         assert_eq!(map.stand_in_count(), built.stand_in_count(), "step {step}");
@@ -520,7 +531,8 @@ mod tests {
         base.record_touched(true);
         base.take_touched();
         let mut pyramid = Pyramid::build(&base).unwrap();
-        let mut held = Held::new(base.size()).unwrap();
+        let mut map = BrickMap::new(base.size()).unwrap();
+        let mut held = Held::new(&map);
         let rd = base.region_dims();
         let mut rng = Rng(11);
         let mut eye = [200.0f32, 40.0, 150.0];
@@ -547,12 +559,20 @@ mod tests {
                     .count()
             };
             let before = showing(&held);
-            let plan = held.retarget(rule).unwrap();
-            assert!(showing(&held) >= before, "step {step}: a region went blank");
-            fulfil(&mut held, &plan, &base, &pyramid);
-            assert!(held.retarget(rule).unwrap().is_empty(), "step {step}");
+            let flight = held
+                .rule()
+                .is_some_and(|o| chebyshev(o.eye, rule.eye) <= SHELL_MOVE);
+            let plan = held.retarget(&mut map, rule).unwrap();
+            if flight {
+                assert!(showing(&held) >= before, "step {step}: a region went blank");
+            }
+            fulfil(&mut held, &mut map, &plan, &base, &pyramid);
+            assert!(
+                held.retarget(&mut map, rule).unwrap().is_empty(),
+                "step {step}"
+            );
             let built = working_set::build(&base, &pyramid, &rule).unwrap();
-            assert_same(&held, &built, step);
+            assert_same(&map, &built, step);
             // Every coarse brick held is wanted, and the solid ones are those a build holds.
             let cost = working_set::cost(&base, &pyramid, &rule);
             assert!(
@@ -579,7 +599,8 @@ mod tests {
             let changed = pyramid.update(&base, &touched).unwrap();
             for &i in &touched {
                 let cell = base.cell_coords(i);
-                held.receive_brick(cell, base.brick(cell).as_ref()).unwrap();
+                held.receive_brick(&mut map, cell, base.brick(cell).as_ref())
+                    .unwrap();
             }
             for (k0, cells) in changed.iter().enumerate() {
                 let k = k0 as u32 + 1;
@@ -589,13 +610,13 @@ mod tests {
                 for &i in cells {
                     let cell = level.cell_coords(i);
                     if k >= 2 && rule.holds(rd, k, cell) {
-                        held.receive_coarse(k, cell, level.brick(cell).as_ref())
+                        held.receive_coarse(&mut map, k, cell, level.brick(cell).as_ref())
                             .unwrap();
                     }
                 }
             }
             let built = working_set::build(&base, &pyramid, &rule).unwrap();
-            assert_same(&held, &built, step);
+            assert_same(&map, &built, step);
         }
     }
 
@@ -663,17 +684,19 @@ mod tests {
     fn data_for_what_is_not_wanted_is_ignored_and_bad_data_refused() {
         let base = scene();
         let pyramid = Pyramid::build(&base).unwrap();
-        let mut held = Held::new(base.size()).unwrap();
+        let mut map = BrickMap::new(base.size()).unwrap();
+        let mut held = Held::new(&map);
         let brick = base.bricks().next().unwrap().0;
         // Before any rule: nothing is wanted.
-        held.receive_brick(brick.cell, Some(&brick)).unwrap();
-        assert_eq!(held.map().brick_count(), 0);
+        held.receive_brick(&mut map, brick.cell, Some(&brick))
+            .unwrap();
+        assert_eq!(map.brick_count(), 0);
         let rule = Rule::new(&base, &pyramid, [10.0, 10.0, 10.0], 0);
-        held.retarget(rule).unwrap();
+        held.retarget(&mut map, rule).unwrap();
         // A region far away is not wanted at level 0.
         let far = [12, 0, 9];
         assert_ne!(rule.level_of(far), 0);
-        held.receive_region(far, &[]).unwrap();
+        held.receive_region(&mut map, far, &[]).unwrap();
         assert_eq!(held.shown_level(far), None);
         // Bricks of another region are refused.
         let r = [0, 0, 0];
@@ -682,8 +705,8 @@ mod tests {
             cell: [5, 0, 0],
             ..brick.clone()
         };
-        assert!(held.receive_region(r, &[stranger]).is_err());
+        assert!(held.receive_region(&mut map, r, &[stranger]).is_err());
         assert_eq!(held.shown_level(r), None);
-        held.map().check_invariants().unwrap();
+        map.check_invariants().unwrap();
     }
 }

@@ -4,8 +4,10 @@
 //! messages the same way, and so a reconnect can hand the same replica to a new connection.
 
 use crate::BrickMap;
-use crate::map::MapError;
+use crate::held::Held;
+use crate::map::{MAX_STAND_IN_LEVEL, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS};
 use crate::wire::{BlobDecoder, Limits, ServerMsg, WireError};
+use crate::working_set::Rule;
 
 /// Why the client stopped trusting what the server sent.
 #[derive(Debug, thiserror::Error)]
@@ -16,6 +18,10 @@ pub enum ReplicaError {
     Brick(#[from] MapError),
     #[error("server sent {0} before its Welcome")]
     NotWelcomed(&'static str),
+    #[error("server sent {0}")]
+    Unexpected(&'static str),
+    #[error("server sent a working-set rule that does not fit the scene: {0:?}")]
+    BadRule(Rule),
 }
 
 /// The local copy of one scene and how far it has caught up with the server.
@@ -46,6 +52,9 @@ pub struct Replica {
     gpu_log: bool,
     /// How far bricks may stray from their colours in this copy ([`BrickMap::set_colour_bound`]).
     colour_bound: Option<u32>,
+    /// What a client with a budget holds of the scene (issue #30), from the server's first
+    /// `Follow` until the copy is dropped; `None`: the whole scene.
+    held: Option<Held>,
 }
 
 /// How many deltas between clearance rebuilds. A rebuild is a few passes over the region grid
@@ -71,6 +80,7 @@ impl Replica {
             max_bricks: Limits::hard_caps().max_bricks_per_frame,
             gpu_log: true,
             colour_bound: None,
+            held: None,
         })
     }
 
@@ -127,7 +137,13 @@ impl Replica {
         self.scene = scene.to_string();
         self.seq = 0;
         self.reset = true;
+        self.held = None;
         Ok(())
+    }
+
+    /// What this copy holds of the scene when it follows a working set (`None`: all of it).
+    pub fn held(&self) -> Option<&Held> {
+        self.held.as_ref()
     }
 
     /// Applies one server message to the copy.
@@ -136,6 +152,11 @@ impl Replica {
             ServerMsg::Welcome {
                 scene, size, seq, ..
             } => self.welcome(scene, *size, *seq)?,
+            ServerMsg::SyncBatch { .. } if self.held.is_some() => {
+                return Err(ReplicaError::Unexpected(
+                    "a whole-scene sync to a working set",
+                ));
+            }
             ServerMsg::SyncBatch {
                 bricks,
                 sent,
@@ -158,9 +179,26 @@ impl Replica {
                 removed,
                 ..
             } => {
-                self.put_bricks(bricks)?;
-                for &cell in removed {
-                    self.map.remove_brick(cell);
+                match &mut self.held {
+                    // Only what the working set shows at full resolution takes a delta.
+                    Some(held) => {
+                        let mut got = Vec::new();
+                        self.decoder
+                            .for_each(bricks, self.max_bricks, |b| got.push(b.to_brick()))?;
+                        self.bricks_received += got.len() as u64;
+                        for b in &got {
+                            held.receive_brick(&mut self.map, b.cell, Some(b))?;
+                        }
+                        for &cell in removed {
+                            held.receive_brick(&mut self.map, cell, None)?;
+                        }
+                    }
+                    None => {
+                        self.put_bricks(bricks)?;
+                        for &cell in removed {
+                            self.map.remove_brick(cell);
+                        }
+                    }
                 }
                 self.seq = self.seq.max(*to_seq);
                 self.deltas_since_rebuild += 1;
@@ -177,6 +215,30 @@ impl Replica {
                     self.clear(&scene, size)?;
                 }
             }
+            &ServerMsg::Follow { eye, near, top } => self.follow(Rule { eye, near, top })?,
+            ServerMsg::Regions { regions, bricks } => self.receive_regions(regions, bricks)?,
+            ServerMsg::Coarse {
+                level,
+                bricks,
+                empty,
+            } => {
+                let Some(held) = &mut self.held else {
+                    return Err(ReplicaError::Unexpected("coarse bricks before a Follow"));
+                };
+                let mut got = Vec::new();
+                self.decoder
+                    .for_each(bricks, self.max_bricks, |b| got.push(b.to_brick()))?;
+                self.bricks_received += got.len() as u64;
+                for b in &got {
+                    held.receive_coarse(&mut self.map, *level, b.cell, Some(b))?;
+                }
+                for &cell in empty {
+                    held.receive_coarse(&mut self.map, *level, cell, None)?;
+                }
+                self.sync_sent = self
+                    .sync_sent
+                    .saturating_add((got.len() + empty.len()) as u32);
+            }
             ServerMsg::Ack { .. }
             | ServerMsg::Error { .. }
             | ServerMsg::Pong { .. }
@@ -184,6 +246,69 @@ impl Replica {
             | ServerMsg::Undone { .. }
             | ServerMsg::Refused { .. } => {}
         }
+        Ok(())
+    }
+
+    /// The server's rule for this copy's working set: adopted at once where the data is held
+    /// ([`Held::retarget`]); what it lacks follows, then a `SyncDone`. A copy that held the
+    /// whole scene (or nothing) starts from nothing.
+    fn follow(&mut self, rule: Rule) -> Result<(), ReplicaError> {
+        let dims = self.map.region_dims();
+        let sane = (0..3).all(|i| rule.eye[i] < dims[i])
+            && (MIN_STAND_IN_LEVEL..=MAX_STAND_IN_LEVEL).contains(&rule.top)
+            && rule.near <= dims.iter().max().copied().unwrap_or(0);
+        if !sane {
+            return Err(ReplicaError::BadRule(rule));
+        }
+        if self.held.is_none() {
+            let (scene, size) = (self.scene.clone(), self.map.size());
+            self.clear(&scene, size)?;
+            self.held = Some(Held::new(&self.map));
+        }
+        let Some(held) = &mut self.held else {
+            return Ok(());
+        };
+        let plan = held.retarget(&mut self.map, rule)?;
+        self.synced = false;
+        self.sync_sent = 0;
+        self.sync_total = (plan.regions.len() + plan.coarse.len()) as u32;
+        Ok(())
+    }
+
+    /// Whole regions at level 0: each listed region takes the blob's bricks inside it.
+    fn receive_regions(
+        &mut self,
+        regions: &[[u32; 3]],
+        blob: &crate::wire::BrickBlob,
+    ) -> Result<(), ReplicaError> {
+        let Some(held) = &mut self.held else {
+            return Err(ReplicaError::Unexpected("regions before a Follow"));
+        };
+        let mut bricks = Vec::with_capacity(blob.count as usize);
+        self.decoder
+            .for_each(blob, self.max_bricks, |brick| bricks.push(brick.to_brick()))?;
+        self.bricks_received += bricks.len() as u64;
+        let region_of = |b: &crate::BrickData| b.cell.map(|c| c / REGION_CELLS);
+        bricks.sort_by_key(|b| {
+            let r = region_of(b);
+            (r[2], r[1], r[0])
+        });
+        let mut used = 0;
+        for &r in regions {
+            let start = bricks.partition_point(|b| {
+                let q = region_of(b);
+                (q[2], q[1], q[0]) < (r[2], r[1], r[0])
+            });
+            let end = start + bricks[start..].partition_point(|b| region_of(b) == r);
+            used += end - start;
+            held.receive_region(&mut self.map, r, &bricks[start..end])?;
+        }
+        if used != bricks.len() {
+            return Err(ReplicaError::Unexpected(
+                "bricks outside the regions they came with",
+            ));
+        }
+        self.sync_sent = self.sync_sent.saturating_add(regions.len() as u32);
         Ok(())
     }
 
@@ -333,5 +458,53 @@ mod tests {
             })
             .is_err()
         );
+    }
+
+    /// What a hostile or confused server sends a working set is an error, never a panic, and
+    /// leaves the copy as it was: a rule outside the grid or with absurd levels, regions or
+    /// coarse bricks before any rule, bricks outside the regions they came with.
+    #[test]
+    fn bad_working_set_messages_are_errors_not_panics() {
+        let mut r = Replica::new("demo", [128, 64, 128]).unwrap();
+        let before = r.map.content_hash();
+        for (eye, near, top) in [
+            ([9, 0, 0], 1, 4),
+            ([0, 0, 0], 1, 40),
+            ([0, 0, 0], 1, 0),
+            ([0, 0, 0], u32::MAX, 4),
+        ] {
+            let err = r.apply(&ServerMsg::Follow { eye, near, top }).unwrap_err();
+            assert!(matches!(err, ReplicaError::BadRule(_)), "{err}");
+        }
+        let brick = brick_at([1, 1, 1], Colour(5));
+        let regions = ServerMsg::Regions {
+            regions: vec![[0, 0, 0]],
+            bricks: blob(std::slice::from_ref(&brick)),
+        };
+        assert!(matches!(
+            r.apply(&regions),
+            Err(ReplicaError::Unexpected(_))
+        ));
+        let coarse = ServerMsg::Coarse {
+            level: 2,
+            bricks: BrickBlob::empty(),
+            empty: vec![[0, 0, 0]],
+        };
+        assert!(matches!(r.apply(&coarse), Err(ReplicaError::Unexpected(_))));
+        assert_eq!(r.map.content_hash(), before);
+        // With a rule: a brick of region [0, 0, 0] listed under region [1, 0, 0] is refused.
+        r.apply(&ServerMsg::Follow {
+            eye: [0, 0, 0],
+            near: 3,
+            top: 4,
+        })
+        .unwrap();
+        let stray = ServerMsg::Regions {
+            regions: vec![[1, 0, 0]],
+            bricks: blob(&[brick]),
+        };
+        assert!(r.apply(&stray).is_err());
+        assert_eq!(r.map.brick_count(), 0);
+        r.map.check_invariants().unwrap();
     }
 }

@@ -38,16 +38,20 @@ pub struct Rule {
 impl Rule {
     /// The rule for an eye at voxel position `eye` (anywhere; clamped into `map`'s grid).
     pub fn new(map: &BrickMap, pyramid: &Pyramid, eye: [f32; 3], near: u32) -> Rule {
-        let rd = map.region_dims();
-        let eye = std::array::from_fn(|i| {
-            let r = (eye[i].max(0.0) / crate::map::REGION_EDGE as f32) as u32;
-            r.min(rd[i] - 1)
-        });
         Rule {
-            eye,
+            eye: Rule::eye_region(map.region_dims(), eye),
             near,
             top: pyramid.level_count().max(MIN_STAND_IN_LEVEL),
         }
+    }
+
+    /// The region of a grid of `region_dims` regions an eye at voxel position `eye` is in
+    /// (clamped into the grid).
+    pub fn eye_region(region_dims: [u32; 3], eye: [f32; 3]) -> [u32; 3] {
+        std::array::from_fn(|i| {
+            let r = (eye[i].max(0.0) / crate::map::REGION_EDGE as f32) as u32;
+            r.min(region_dims[i].saturating_sub(1))
+        })
     }
 
     /// The level region `r` is held at.
@@ -124,33 +128,67 @@ pub fn cost(base: &BrickMap, pyramid: &Pyramid, rule: &Rule) -> Cost {
     for r in box_points([0; 3], rd) {
         let k = rule.level_of(r);
         if k == 0 {
-            let mut bricks = 0;
-            for slot in base
+            let bricks = base
                 .region_cells(r)
-                .filter_map(|cell| base.slot_of_cell(cell))
-            {
-                bricks += 1;
-                c.bytes += SLOT_BYTES + 2 * u64::from(base.fresh_chunk_words(slot));
-            }
+                .filter(|&cell| base.slot_of_cell(cell).is_some())
+                .count() as u64;
             if bricks > 0 {
                 c.full_regions += 1;
                 c.full_bricks += bricks;
-                c.bytes += BLOCK_BYTES;
+                c.bytes += region_bytes(base, r);
             }
             continue;
         }
         let cell = coarse_cell(r, k);
-        let Some(slot) = pyramid.level(k).and_then(|l| l.slot_of_cell(cell)) else {
+        if pyramid
+            .level(k)
+            .and_then(|l| l.slot_of_cell(cell))
+            .is_none()
+        {
             continue;
-        };
+        }
         c.stand_ins += 1;
         if coarse.insert((k, cell)) {
             c.coarse_bricks += 1;
-            let level = pyramid.level(k).expect("level exists: its slot was found");
-            c.bytes += SLOT_BYTES + 2 * u64::from(level.fresh_chunk_words(slot));
+            c.bytes += coarse_bytes(pyramid, k, cell);
         }
     }
     c
+}
+
+/// Bytes region `r`'s level-0 bricks take in a working set: their slots and colours, and the
+/// region's cell block (0 for an empty region).
+pub fn region_bytes(base: &BrickMap, r: [u32; 3]) -> u64 {
+    let bricks: u64 = base
+        .region_cells(r)
+        .filter_map(|cell| base.slot_of_cell(cell))
+        .map(|slot| SLOT_BYTES + 2 * u64::from(base.fresh_chunk_words(slot)))
+        .sum();
+    if bricks > 0 { bricks + BLOCK_BYTES } else { 0 }
+}
+
+/// Bytes the coarse brick `(level, cell)` takes in a working set (0 when it is empty).
+pub fn coarse_bytes(pyramid: &Pyramid, level: u32, cell: [u32; 3]) -> u64 {
+    pyramid
+        .level(level)
+        .and_then(|l| {
+            l.slot_of_cell(cell)
+                .map(|slot| SLOT_BYTES + 2 * u64::from(l.fresh_chunk_words(slot)))
+        })
+        .unwrap_or(0)
+}
+
+/// Bytes of everything `plan` brings. The cost of a rule `new` is the cost of `old` plus the
+/// bytes of `held::plan(old, new)` minus those of `held::plan(new, old)` (what `new` lets go
+/// of): a move costs what its shells cost, not a pass over the world.
+pub fn plan_bytes(base: &BrickMap, pyramid: &Pyramid, plan: &crate::held::Plan) -> u64 {
+    let regions: u64 = plan.regions.iter().map(|&r| region_bytes(base, r)).sum();
+    let coarse: u64 = plan
+        .coarse
+        .iter()
+        .map(|&(k, cell)| coarse_bytes(pyramid, k, cell))
+        .sum();
+    regions + coarse
 }
 
 /// Why no working set fits.
@@ -278,5 +316,50 @@ pub(crate) mod tests {
             small,
             Err(BudgetError::TooSmall { budget: 1000, .. })
         ));
+    }
+
+    /// A rule's cost follows from the previous rule's and the two plans between them, for moves
+    /// of the eye (shells) and changes of `near` (full passes) alike.
+    #[test]
+    fn costs_follow_moves_through_the_plans() {
+        let base = scene();
+        let pyramid = Pyramid::build(&base).unwrap();
+        let rd = base.region_dims();
+        let mut rule = Rule::new(&base, &pyramid, [30.0, 20.0, 40.0], 1);
+        let mut bytes = cost(&base, &pyramid, &rule).bytes;
+        let mut x: u32 = 7;
+        for step in 0..60 {
+            x = x.wrapping_mul(1_103_515_245).wrapping_add(12345);
+            let eye = [(x >> 8) % 420, (x >> 4) % 70, (x >> 16) % 320];
+            let near = if step % 9 == 0 {
+                (x >> 20) % 4
+            } else {
+                rule.near
+            };
+            let next = if step % 3 == 0 {
+                Rule::new(&base, &pyramid, eye.map(|v| v as f32), near)
+            } else {
+                // A step of a region or two.
+                let e: [u32; 3] = std::array::from_fn(|i| {
+                    (rule.eye[i] + (x >> (3 * i)) % 5)
+                        .saturating_sub(2)
+                        .min(rd[i] - 1)
+                });
+                Rule {
+                    eye: e,
+                    near,
+                    ..rule
+                }
+            };
+            let gained = plan_bytes(&base, &pyramid, &crate::held::plan(rd, Some(&rule), &next));
+            let lost = plan_bytes(&base, &pyramid, &crate::held::plan(rd, Some(&next), &rule));
+            bytes = bytes + gained - lost;
+            rule = next;
+            assert_eq!(
+                bytes,
+                cost(&base, &pyramid, &rule).bytes,
+                "step {step}: {rule:?}"
+            );
+        }
     }
 }

@@ -134,6 +134,10 @@ fn client_msg() -> impl Strategy<Value = ClientMsg> {
                 token,
                 resume_from,
                 user: resume_from.unwrap_or(7),
+                budget: resume_from.map(|r| Budget {
+                    bytes: r.wrapping_mul(3),
+                    eye: (r % 2 == 0).then_some([r as f32, 1.5, -2.0]),
+                }),
             }),
         (any::<u64>(), vec(edit_op(), 0..48))
             .prop_map(|(client_seq, ops)| ClientMsg::Edit { client_seq, ops }),
@@ -364,6 +368,17 @@ fn server_msg() -> impl Strategy<Value = ServerMsg> {
                 }
             }),
         refusal().prop_map(|reason| ServerMsg::Refused { reason }),
+        (any::<[u32; 3]>(), any::<u32>(), any::<u32>())
+            .prop_map(|(eye, near, top)| ServerMsg::Follow { eye, near, top }),
+        (vec(any::<[u32; 3]>(), 0..6), blob())
+            .prop_map(|(regions, bricks)| ServerMsg::Regions { regions, bricks }),
+        (any::<u32>(), blob(), vec(any::<[u32; 3]>(), 0..6)).prop_map(|(level, bricks, empty)| {
+            ServerMsg::Coarse {
+                level,
+                bricks,
+                empty,
+            }
+        }),
     ]
 }
 
@@ -522,6 +537,7 @@ fn hello() -> ClientMsg {
         token: Some("secret".into()),
         resume_from: Some(42),
         user: 1234,
+        budget: None,
     }
 }
 
@@ -542,12 +558,28 @@ fn raw_frame<T: serde::Serialize>(value: &T) -> Vec<u8> {
 
 #[test]
 fn hello_carries_the_protocol_version() {
-    assert_eq!(PROTOCOL_VERSION, 4);
+    assert_eq!(PROTOCOL_VERSION, 5);
     let bytes = encode_client(&hello()).expect("encode");
     match decode_client(&bytes, &Limits::default()).expect("decode") {
         ClientMsg::Hello { protocol, .. } => assert_eq!(protocol, PROTOCOL_VERSION),
         other => panic!("decoded {other:?}"),
     }
+}
+
+/// A budget's eye orders what the server streams: a non-finite one is refused on decode.
+#[test]
+fn a_budget_eye_must_be_finite() {
+    let mut msg = hello();
+    if let ClientMsg::Hello { budget, .. } = &mut msg {
+        *budget = Some(Budget {
+            bytes: 1 << 28,
+            eye: Some([1.0, f32::NAN, 2.0]),
+        });
+    }
+    assert!(matches!(
+        decode_client(&raw_frame(&msg), &Limits::default()),
+        Err(WireError::NotFinite { .. })
+    ));
 }
 
 #[test]
@@ -663,6 +695,7 @@ fn long_texts_are_refused_both_ways() {
         token: None,
         resume_from: None,
         user: 0,
+        budget: None,
     };
     assert!(matches!(
         encode_client(&long),
@@ -682,6 +715,7 @@ fn long_texts_are_refused_both_ways() {
         token: Some("t".repeat(MAX_TOKEN_BYTES + 1)),
         resume_from: None,
         user: 0,
+        budget: None,
     };
     assert!(decode_client(&raw_frame(&token), &Limits::hard_caps()).is_err());
     let error = ServerMsg::Error {

@@ -96,7 +96,7 @@ pub async fn run(
     // bytes it sent may still be unread when the connection closes.
     let unread = std::sync::atomic::AtomicBool::new(false);
     match handshake(&mut stream, &scene, &app, &out, id, from, &unread).await {
-        Some((role, resume_from, who)) => {
+        Some((role, resume_from, budget, who)) => {
             let role = if level > 0 { Role::Viewer } else { role };
             let peer = Peer {
                 id,
@@ -120,6 +120,7 @@ pub async fn run(
                     role,
                     resume_from,
                     level,
+                    budget,
                     who: crate::scene::Joiner {
                         peer,
                         stable: who.stable,
@@ -142,6 +143,7 @@ pub async fn run(
                     who: &who,
                     from,
                     level,
+                    following: budget.is_some(),
                     unread: &unread,
                 };
                 read_loop(&mut stream, session).await;
@@ -189,7 +191,12 @@ async fn handshake(
     id: SessionId,
     from: IpAddr,
     unread: &std::sync::atomic::AtomicBool,
-) -> Option<(Role, Option<u64>, Identity)> {
+) -> Option<(
+    Role,
+    Option<u64>,
+    Option<brickcast_protocol::wire::Budget>,
+    Identity,
+)> {
     let fail = |code: ErrorCode, text: String| {
         app.metrics.rejected_frames.fetch_add(1, Relaxed);
         out.close(code, text);
@@ -227,6 +234,7 @@ async fn handshake(
             resume_from,
             name,
             user,
+            budget,
             ..
         }) => match app.auth.check(token.as_deref()) {
             Access::Granted(grant) => {
@@ -240,8 +248,8 @@ async fn handshake(
                     who = identify(open, None, 0, &name, id, reserved);
                 }
                 let role = grant.role;
-                tracing::info!(scene = %scene.name, client = %who.name, user = who.user, ?role, ?resume_from, "client joined");
-                Some((role, resume_from, who))
+                tracing::info!(scene = %scene.name, client = %who.name, user = who.user, ?role, ?resume_from, ?budget, "client joined");
+                Some((role, resume_from, budget, who))
             }
             Access::Refused => fail(ErrorCode::Unauthorized, "unknown token".into()),
         },
@@ -297,6 +305,9 @@ struct Session<'a> {
     from: IpAddr,
     /// The level of detail it views (0: the scene); above 0 it is not in presence.
     level: u32,
+    /// It holds a working set that follows its camera: every camera update counts, not only
+    /// those during a sync.
+    following: bool,
     /// Set when its input could not be read (see `run`).
     unread: &'a std::sync::atomic::AtomicBool,
 }
@@ -339,6 +350,7 @@ async fn read_loop(
         out,
         id,
         role,
+        following,
         ..
     } = session;
     let limits: &Limits = &scene.limits;
@@ -398,7 +410,7 @@ async fn read_loop(
                 // Streaming order is a hint: drop it rather than wait when the owner is busy,
                 // and do not wake the owner at all when no sync is going on.
                 if let Some(eye) = camera.take()
-                    && out.is_syncing()
+                    && (out.is_syncing() || following)
                     && scene.try_send(Command::Camera { session: id, eye }).is_ok()
                 {
                     Metrics::add(&app.metrics.camera_updates, 1);

@@ -243,6 +243,7 @@ async fn bad_frames_close_only_their_connection() {
         token: None,
         resume_from: None,
         user: 0,
+        budget: None,
     };
     ws.send(tokio_tungstenite::tungstenite::Message::Binary(
         encode_client(&hello).unwrap().into(),

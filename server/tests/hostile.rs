@@ -49,6 +49,7 @@ async fn hello(
         token: None,
         resume_from: None,
         user: 0,
+        budget: None,
     };
     ws.send(Message::Binary(encode_client(&hello).unwrap().into()))
         .await

@@ -101,6 +101,7 @@ pub fn fetch(url: &str) -> Result<Replica> {
             url,
             None,
             brickcast_protocol::blocks::Quality::Exact,
+            brickcast_client::headless::Within::default(),
         ))?
         .0)
 }

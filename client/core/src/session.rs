@@ -12,7 +12,7 @@ use brickcast_protocol::blocks::Quality;
 use brickcast_protocol::replica::{Replica, ReplicaError};
 use brickcast_protocol::roster::Roster;
 use brickcast_protocol::wire::{
-    ClientMsg, EditOp, ErrorCode, Limits, PROTOCOL_VERSION, Peer, Role, ServerMsg, UserId,
+    Budget, ClientMsg, EditOp, ErrorCode, Limits, PROTOCOL_VERSION, Peer, Role, ServerMsg, UserId,
 };
 
 /// First wait before reconnecting after a lost connection; it doubles up to [`BACKOFF_MAX`].
@@ -56,14 +56,22 @@ pub enum HandshakeError {
     Unexpected(&'static str),
 }
 
-/// The first message a client sends: who it is, and where it can resume from.
-pub fn hello(name: &str, user: UserId, token: Option<&str>, resume_from: Option<u64>) -> ClientMsg {
+/// The first message a client sends: who it is, where it can resume from, and the GPU memory
+/// it gives the scene (`None`: the whole scene).
+pub fn hello(
+    name: &str,
+    user: UserId,
+    token: Option<&str>,
+    resume_from: Option<u64>,
+    budget: Option<Budget>,
+) -> ClientMsg {
     ClientMsg::Hello {
         protocol: PROTOCOL_VERSION,
         name: name.to_string(),
         token: token.map(String::from),
         resume_from,
         user,
+        budget,
     }
 }
 

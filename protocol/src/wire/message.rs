@@ -28,6 +28,9 @@ pub enum ClientMsg {
         token: Option<String>,
         resume_from: Option<u64>,
         user: UserId,
+        /// The GPU memory the client gives the scene: the server streams it a working set
+        /// within it (`working_set`, `held`) and follows its camera; `None`: the whole scene.
+        budget: Option<Budget>,
     },
     /// A batch of edits, applied in order. `client_seq` comes back in the matching `Ack`.
     Edit {
@@ -62,6 +65,16 @@ pub enum ClientMsg {
         #[serde(deserialize_with = "bounded::string::<_, MAX_MESSAGE_BYTES>")]
         name: String,
     },
+}
+
+/// A client's GPU budget for the scene (`Hello.budget`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Budget {
+    /// Bytes of GPU memory the client's copy may take.
+    pub bytes: u64,
+    /// Where its eye starts, in voxels (`None`: the server's default camera), so the first
+    /// working set is fitted and sent for the right place.
+    pub eye: Option<[f32; 3]>,
 }
 
 /// What a connected client may do, decided by the server from its token.
@@ -197,6 +210,26 @@ pub enum ServerMsg {
     },
     /// A `Presence` or `Rename` was refused; nothing changed and the connection stays.
     Refused { reason: Refusal },
+    /// To a client with a budget: from here on it holds the working set of this rule
+    /// ([`crate::working_set::Rule`], adopted with [`crate::held::Held::retarget`]). What it
+    /// lacks follows as `Regions` and `Coarse` frames, then a `SyncDone`.
+    Follow { eye: [u32; 3], near: u32, top: u32 },
+    /// The whole level 0 of each listed region (32 voxels a side), as it stands: a listed
+    /// region's bricks not in the blob are empty.
+    Regions {
+        #[serde(deserialize_with = "bounded::vec::<_, _, MAX_REMOVED_PER_FRAME>")]
+        regions: Vec<[u32; 3]>,
+        bricks: BrickBlob,
+    },
+    /// Bricks of level `level` of the scene's pyramid (`lod`), as they stand, their cells in
+    /// that level's grid; `empty`: cells of that level whose brick is empty. Sent for what a
+    /// following client's rule wants, and again when an edit changes it.
+    Coarse {
+        level: u32,
+        bricks: BrickBlob,
+        #[serde(deserialize_with = "bounded::vec::<_, _, MAX_REMOVED_PER_FRAME>")]
+        empty: Vec<[u32; 3]>,
+    },
 }
 
 fn check_len(what: &'static str, len: usize, max: usize) -> Result<(), WireError> {
@@ -237,8 +270,16 @@ impl ClientMsg {
     /// Edit ops are not validated here (see [`EditOp::validate`]).
     pub fn validate(&self, limits: &Limits) -> Result<(), WireError> {
         match self {
-            ClientMsg::Hello { name, token, .. } => {
+            ClientMsg::Hello {
+                name,
+                token,
+                budget,
+                ..
+            } => {
                 check_len("client name", name.len(), MAX_NAME_BYTES)?;
+                if let Some(Budget { eye: Some(eye), .. }) = budget {
+                    check_finite("budget eye", eye)?;
+                }
                 match token {
                     Some(token) => check_len("token", token.len(), MAX_TOKEN_BYTES),
                     None => Ok(()),
@@ -266,7 +307,7 @@ impl ClientMsg {
 
 impl ServerMsg {
     /// The name of every variant, in wire order (for logs and per-kind metrics).
-    pub const KINDS: [&'static str; 11] = [
+    pub const KINDS: [&'static str; 14] = [
         "Welcome",
         "SyncBatch",
         "SyncDone",
@@ -278,6 +319,9 @@ impl ServerMsg {
         "Presence",
         "Undone",
         "Refused",
+        "Follow",
+        "Regions",
+        "Coarse",
     ];
 
     /// The variant's name, one of [`ServerMsg::KINDS`].
@@ -294,6 +338,9 @@ impl ServerMsg {
             ServerMsg::Presence { .. } => 8,
             ServerMsg::Undone { .. } => 9,
             ServerMsg::Refused { .. } => 10,
+            ServerMsg::Follow { .. } => 11,
+            ServerMsg::Regions { .. } => 12,
+            ServerMsg::Coarse { .. } => 13,
         }]
     }
 
@@ -336,7 +383,17 @@ impl ServerMsg {
                 check_count("peer states", states.len(), MAX_PEERS_PER_FRAME)?;
                 check_peers(joined)
             }
-            ServerMsg::Undone { .. } | ServerMsg::Refused { .. } => Ok(()),
+            ServerMsg::Undone { .. } | ServerMsg::Refused { .. } | ServerMsg::Follow { .. } => {
+                Ok(())
+            }
+            ServerMsg::Regions { regions, bricks } => {
+                check_count("regions", regions.len(), MAX_REMOVED_PER_FRAME)?;
+                bricks.validate_header(limits.brick_cap())
+            }
+            ServerMsg::Coarse { bricks, empty, .. } => {
+                check_count("empty coarse bricks", empty.len(), MAX_REMOVED_PER_FRAME)?;
+                bricks.validate_header(limits.brick_cap())
+            }
             ServerMsg::SyncBatch { bricks, .. } => bricks.validate_header(limits.brick_cap()),
             ServerMsg::Delta {
                 bricks, removed, ..

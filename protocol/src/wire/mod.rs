@@ -44,7 +44,7 @@ pub use collab::{
 pub use edit::{BrushMode, EditOp, RayAction, Rejection};
 pub use error::WireError;
 pub use limits::{Limits, MAX_PRESENCE_HZ};
-pub use message::{ClientMsg, ErrorCode, OpRejection, Role, ServerMsg};
+pub use message::{Budget, ClientMsg, ErrorCode, OpRejection, Role, ServerMsg};
 pub use names::{MAX_MARKS_PER_LETTER, check_display_name, clean_display_name};
 
 /// Version of this wire format. A `Hello` carrying another number is answered with
@@ -52,8 +52,9 @@ pub use names::{MAX_MARKS_PER_LETTER, check_display_name, clean_display_name};
 ///
 /// 2 added identity (`Hello.user`, `Welcome.you`/`peers`), presence, undo/redo and the history
 /// and presence limits. 3 added `Refusal::NameTaken`. 4 sends each brick's colours as its
-/// exact colour block ([`crate::palette`]) instead of every voxel's RGB565.
-pub const PROTOCOL_VERSION: u32 = 4;
+/// exact colour block ([`crate::palette`]) instead of every voxel's RGB565. 5 added working
+/// sets: `Hello.budget`, `Follow`, `Regions` and `Coarse`.
+pub const PROTOCOL_VERSION: u32 = 5;
 
 /// Largest frame either side will ever encode or decode, whatever a server announces. It is also
 /// bincode's decode limit, the ceiling on what a length prefix can make the decoder reserve.

@@ -246,6 +246,7 @@ pub(super) mod testing {
             role: Role::Editor,
             resume_from: None,
             level: 0,
+            budget: None,
             who: Joiner::solo(session, user, Role::Editor),
             joined,
         };

@@ -96,6 +96,11 @@ impl Levels {
         Ok(())
     }
 
+    /// The pyramid, once it is complete and current.
+    pub(super) fn pyramid(&self) -> Option<&Pyramid> {
+        self.pyramid.as_ref().filter(|_| self.ready())
+    }
+
     /// Level `level` of the scene: `map` itself for 0; `None` for a level that is not complete.
     pub(super) fn map_at<'a>(&'a self, map: &'a BrickMap, level: u32) -> Option<&'a BrickMap> {
         match level {

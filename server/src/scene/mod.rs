@@ -31,6 +31,7 @@
 pub mod answered;
 mod cells;
 mod edit_job;
+mod follow;
 pub mod history;
 mod jobs;
 pub mod levels;
@@ -84,6 +85,9 @@ pub enum Command {
         /// Which level of detail the session views: 0 is the scene, K > 0 its level K
         /// (`levels.rs`; such a session is a viewer).
         level: u32,
+        /// GPU bytes the client gives the scene: it is streamed a working set within them and
+        /// followed (`follow.rs`); `None`: the whole scene.
+        budget: Option<brickcast_protocol::wire::Budget>,
         /// Who joins, and who it saw present (for the Welcome).
         who: Joiner,
         /// Fired once the Welcome is queued: the session sends nothing before it.
@@ -357,6 +361,8 @@ pub(crate) struct Subscriber {
     sync_total: u32,
     sync_sent: u32,
     syncing: bool,
+    /// Its working set, when it gave a budget (`follow.rs`).
+    follow: Option<follow::Follow>,
 }
 
 /// Starts the owner thread for a scene loaded from the redb store.

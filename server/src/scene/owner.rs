@@ -480,11 +480,17 @@ impl Owner {
                     role,
                     resume_from,
                     level,
+                    budget,
                     who,
                     joined,
                 } => {
                     self.publish(&mut log, &mut acks, clock)?;
-                    if self.join(session, out, role, resume_from, level, who) {
+                    let wants = super::sync::Wants {
+                        resume_from,
+                        level,
+                        budget,
+                    };
+                    if self.join(session, out, role, wants, who) {
                         let _ = joined.send(());
                     }
                 }
@@ -799,12 +805,12 @@ impl Owner {
         let mut viewed: Vec<u32> = self
             .subs
             .values()
-            .filter(|s| s.awaits_levels.is_none())
+            .filter(|s| s.awaits_levels.is_none() && s.follow.is_none())
             .map(|s| s.level)
             .collect();
         viewed.sort_unstable();
         viewed.dedup();
-        if viewed.is_empty() {
+        if viewed.is_empty() && !self.subs.values().any(|s| s.follow.is_some()) {
             viewed.push(0);
         }
         for level in viewed {
@@ -814,6 +820,8 @@ impl Owner {
             };
             self.broadcast_level(level, cells, from, to, clock);
         }
+        self.broadcast_follow(&touched, &changed, from, to);
+        clock.mark(&self.metrics, OwnerPhase::Fanout);
     }
 
     /// Sends the subscribers viewing `level` its cells that changed from sequence `from` to
@@ -844,7 +852,11 @@ impl Owner {
                 // had, which re-encodes the bricks in smaller sync batches.
                 tracing::error!(scene = %self.name, error = %e, level, "could not encode a delta; resyncing every client");
                 self.metrics.count_unencodable("Delta");
-                for sub in self.subs.values_mut().filter(|s| s.level == level) {
+                for sub in self
+                    .subs
+                    .values_mut()
+                    .filter(|s| s.level == level && s.follow.is_none())
+                {
                     if !sub.lagging {
                         sub.lagging = true;
                         Metrics::add(&self.metrics.resyncs, 1);
@@ -855,7 +867,11 @@ impl Owner {
         };
         clock.mark(&self.metrics, OwnerPhase::Encode);
         let bytes: usize = frames.iter().map(|f| f.len()).sum();
-        for sub in self.subs.values_mut().filter(|s| s.level == level) {
+        for sub in self
+            .subs
+            .values_mut()
+            .filter(|s| s.level == level && s.follow.is_none())
+        {
             if sub.lagging || sub.awaits_levels.is_some() {
                 continue;
             }
@@ -908,7 +924,11 @@ impl Owner {
     fn drop_levels(&mut self, e: &brickcast_protocol::map::MapError) {
         tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
         self.levels = super::levels::Levels::default();
-        for sub in self.subs.values().filter(|s| s.level > 0) {
+        for sub in self
+            .subs
+            .values()
+            .filter(|s| s.level > 0 || s.follow.is_some())
+        {
             sub.out.close(
                 brickcast_protocol::wire::ErrorCode::Internal,
                 format!("the server could not build the scene's levels of detail: {e}"),
@@ -924,7 +944,11 @@ impl Owner {
             self.drop_levels(&e);
             return;
         }
-        for sub in self.subs.values_mut().filter(|s| s.level > 0) {
+        for sub in self
+            .subs
+            .values_mut()
+            .filter(|s| s.level > 0 || s.follow.is_some())
+        {
             if sub.awaits_levels.is_none() {
                 sub.awaits_levels = Some(true);
             }

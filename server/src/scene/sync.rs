@@ -29,10 +29,18 @@ pub(super) const SYNC_AHEAD: usize = 64 << 10;
 /// scene's last batch (Sibenik ~60 B, the demo's terrain ~110 B: 1,100 and 600 bricks).
 /// Frames of fewer bricks compress worse (Sibenik's sync: +3.7% bytes at 1,024 bricks a frame,
 /// +14% at 256, against 4,096), larger ones sit whole in a client that does not read.
-const SYNC_BATCH_BYTES: usize = 64 << 10;
+pub(super) const SYNC_BATCH_BYTES: usize = 64 << 10;
 
 /// Bricks in one sync batch, at least (noise, 1 KiB a brick: 256 KiB).
-const SYNC_BATCH_MIN_BRICKS: usize = 256;
+pub(super) const SYNC_BATCH_MIN_BRICKS: usize = 256;
+
+/// What a joining session asks for: to resume from a sequence, a level of detail, a working
+/// set within a GPU budget (`Command::Join`).
+pub(super) struct Wants {
+    pub(super) resume_from: Option<u64>,
+    pub(super) level: u32,
+    pub(super) budget: Option<brickcast_protocol::wire::Budget>,
+}
 
 impl Owner {
     /// Subscribes a session: queues its Welcome and starts its sync. False when the session
@@ -42,10 +50,14 @@ impl Owner {
         session: SessionId,
         out: Outbox,
         role: Role,
-        resume_from: Option<u64>,
-        level: u32,
+        wants: Wants,
         who: super::Joiner,
     ) -> bool {
+        let Wants {
+            resume_from,
+            level,
+            budget,
+        } = wants;
         if level > brickcast_protocol::lod::level_count(self.map.size()) {
             // The session checked the level against the scene's size before it joined.
             out.close(
@@ -54,7 +66,14 @@ impl Owner {
             );
             return false;
         }
-        if level > 0
+        if level > 0 && budget.is_some() {
+            out.close(
+                brickcast_protocol::wire::ErrorCode::NotAllowed,
+                "a working set (a GPU budget) is served at the scene's own level only, not at a level of detail",
+            );
+            return false;
+        }
+        if (level > 0 || budget.is_some())
             && let Err(e) = self.levels.start(&self.map, self.seq)
         {
             tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
@@ -67,7 +86,11 @@ impl Owner {
         // While the levels are being built the session is welcomed now and synced later.
         let view = self.levels.map_at(&self.map, level);
         let size = brickcast_protocol::lod::level_size(self.map.size(), level);
-        let camera = [size[0] as f32 * 0.5, size[1] as f32, size[2] as f32 * 0.5];
+        let camera = budget.and_then(|b| b.eye).unwrap_or([
+            size[0] as f32 * 0.5,
+            size[1] as f32,
+            size[2] as f32 * 0.5,
+        ]);
         out.wake_owner_with(self.wake.clone());
         let mut sub = Subscriber {
             out,
@@ -83,10 +106,13 @@ impl Owner {
             sync_total: 0,
             sync_sent: 0,
             syncing: false,
+            follow: budget.map(|b| super::follow::Follow::new(b.bytes)),
         };
         // A resume is served as a resync from the client's sequence; anything else (or a
         // sequence from the future, i.e. another store) is a full sync.
         let (total, resume, everything) = match view {
+            // A working set is counted in its `Follow`'s plan.
+            _ if budget.is_some() => (0, None, None),
             None => (0, None, None),
             Some(map) => {
                 let (total, resume) = match resume_from {
@@ -115,6 +141,18 @@ impl Owner {
         if !sub.out.send(&welcome, &self.metrics) {
             return false;
         }
+        if sub.follow.is_some() {
+            // A client that resumed holds a copy of its own: it drops it.
+            if self.levels.ready() {
+                self.start_follow(&mut sub, resume_from.is_some());
+            } else {
+                sub.awaits_levels = Some(resume_from.is_some());
+                sub.syncing = true;
+                sub.out.set_syncing(true);
+            }
+            self.subs.insert(session, sub);
+            return true;
+        }
         match resume {
             _ if everything.is_none() && resume.is_none() => {
                 sub.awaits_levels = Some(resume_from.is_some());
@@ -142,7 +180,13 @@ impl Owner {
 
     /// A client's camera moved: its pending sync is re-sorted nearest-first from there.
     pub(super) fn camera(&mut self, session: SessionId, eye: [f32; 3]) {
-        if let Some(sub) = self.subs.get_mut(&session) {
+        if let Some(mut sub) = self.subs.remove(&session)
+            && sub.follow.is_some()
+        {
+            sub.camera = eye;
+            self.follow_camera(&mut sub);
+            self.subs.insert(session, sub);
+        } else if let Some(sub) = self.subs.get_mut(&session) {
             sub.camera = eye;
             // A session waiting for its level has nothing pending to sort.
             if let Some(map) = self.levels.map_at(&self.map, sub.level) {
@@ -161,6 +205,12 @@ impl Owner {
     /// asked to resume from 0), where "changed after 0" would miss every brick the scene was
     /// created with.
     pub(super) fn start_resync(&self, sub: &mut Subscriber, announce: bool) {
+        if sub.follow.is_some() {
+            // A working set starts again from the camera: cheaper to reason about than a
+            // resume, and what it holds is small.
+            self.start_follow(sub, true);
+            return;
+        }
         // A level being built again: the session waits for it, then drops its copy.
         let Some(map) = self.levels.map_at(&self.map, sub.level) else {
             sub.awaits_levels = Some(true);
@@ -212,6 +262,10 @@ impl Owner {
     /// brick of its level, nearest first, after `Resync { since: 0 }` if it holds a copy.
     pub(super) fn start_level_sync(&self, sub: &mut Subscriber) {
         let drop_copy = sub.awaits_levels.take().unwrap_or(false);
+        if sub.follow.is_some() {
+            self.start_follow(sub, drop_copy);
+            return;
+        }
         let Some(map) = self.levels.map_at(&self.map, sub.level) else {
             return;
         };
@@ -361,6 +415,13 @@ impl Owner {
             let mut frames = 0;
             let ahead = self.sync_ahead();
             while sub.syncing && frames < FRAMES_PER_TURN && sub.out.queued() < ahead {
+                if sub.follow.is_some() {
+                    frames += self.follow_frames(&mut sub);
+                    if sub.awaits_levels.is_some() || sub.out.is_closed() {
+                        break;
+                    }
+                    continue;
+                }
                 let most = self.config.limits.max_bricks_per_frame as usize;
                 let take = (SYNC_BATCH_BYTES / self.sync_brick_bytes.max(1))
                     .clamp(SYNC_BATCH_MIN_BRICKS.min(most), most)
@@ -691,6 +752,7 @@ mod tests {
             role: Role::Editor,
             resume_from: None,
             level: 0,
+            budget: None,
             who: guest,
             joined,
         };

@@ -267,6 +267,7 @@ impl Sim {
             role,
             resume_from,
             level: 0,
+            budget: None,
             who: crate::scene::Joiner::solo(session, c as u64 + 1, role),
             joined,
         });

@@ -161,6 +161,7 @@ impl Client {
             token: token.map(String::from),
             resume_from: since,
             user,
+            budget: None,
         };
         ws.send(Message::Binary(encode_client(&hello).unwrap().into()))
             .await
