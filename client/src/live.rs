@@ -33,7 +33,7 @@ impl Live {
         user: UserId,
         token: Option<String>,
     ) -> std::io::Result<Live> {
-        Live::start_any(vec![url], name, user, token, Quality::Exact)
+        Live::start_any(vec![url], name, user, token, Quality::Exact, None)
     }
 
     /// [`Live::start`] with several addresses of one scene (a cluster's nodes): it connects to
@@ -45,9 +45,11 @@ impl Live {
         user: UserId,
         token: Option<String>,
         colours: Quality,
+        budget: Option<u64>,
     ) -> std::io::Result<Live> {
         let state = Arc::new(Mutex::new(Session {
             colours,
+            budget,
             ..Session::default()
         }));
         let (outbox, inbox) = mpsc::unbounded_channel();
@@ -83,6 +85,9 @@ impl Live {
 
     /// Shares where we look and point (the caller keeps to the server's rate).
     pub fn presence(&self, view: Option<View>, cursor: Option<Cursor>) {
+        if let Some(v) = &view {
+            self.lock().eye = Some(v.eye);
+        }
         let _ = self.outbox.send(ClientMsg::Presence { view, cursor });
     }
 }
@@ -101,8 +106,13 @@ async fn run(
     loop {
         let url = &urls[attempt % urls.len().max(1)];
         attempt += 1;
-        let resume = lock().resume_point();
-        let reason = match Link::connect(url, &name, user, token.as_deref(), resume).await {
+        let (resume, budget) = {
+            let s = lock();
+            (s.resume_point(), s.hello_budget())
+        };
+        let connected =
+            Link::connect_within(url, &name, user, token.as_deref(), resume, budget).await;
+        let reason = match connected {
             Ok(mut link) => {
                 backoff = BACKOFF_START;
                 if lock().welcomed(&link.welcome).is_err() {

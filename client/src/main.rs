@@ -89,6 +89,16 @@ enum Command {
         #[command(flatten)]
         args: brickcast_client::load::LoadArgs,
     },
+    /// Load-test streaming of large worlds: clients with a GPU budget fly straight paths
+    /// through a scene; report time to first picture and to a complete working set, how often
+    /// level 0 surrounds the eye, GPU bytes against the budget, bandwidth and server CPU.
+    Fly {
+        /// Scene address, e.g. ws://127.0.0.1:7878/scenes/world.
+        #[arg(required = true, num_args = 1..)]
+        urls: Vec<String>,
+        #[command(flatten)]
+        args: brickcast_client::load::fly::FlyArgs,
+    },
 }
 
 /// `--out`: only PNG is written, so a name that promises another format is refused up front
@@ -138,6 +148,23 @@ fn main() -> Result<()> {
                     "the run failed its checks ({} problems, listed above)",
                     outcome.failures.len()
                 );
+            }
+            Ok(())
+        }
+        Command::Fly { urls, args } => {
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()?;
+            let report = runtime.block_on(brickcast_client::load::fly::run(&urls, &args))?;
+            let table = brickcast_client::load::fly::table(&report);
+            if args.json {
+                eprint!("{table}");
+                println!(
+                    "{}",
+                    serde_json::to_string(&report).context("encoding the report")?
+                );
+            } else {
+                print!("{table}");
             }
             Ok(())
         }

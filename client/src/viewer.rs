@@ -71,6 +71,11 @@ pub struct ViewArgs {
     /// Ride along with this user's camera as soon as they are present (F cycles, moving stops).
     #[arg(long)]
     pub follow: Option<String>,
+    /// GPU memory for the scene: `unlimited` (every brick) or a size such as 256MiB: the
+    /// server streams full resolution near the camera and coarser levels further away, and
+    /// follows the camera. Needed for worlds larger than the GPU.
+    #[arg(long, default_value = "unlimited")]
+    pub gpu_budget: brickcast_client_core::budget::GpuBudget,
     #[command(flatten)]
     pub light: crate::LightArgs,
 }
@@ -148,8 +153,15 @@ pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()>
         .clone()
         .unwrap_or_else(crate::identity::default_name);
     brickcast_protocol::wire::check_display_name(&name).map_err(|e| anyhow!("--name: {e}"))?;
-    let live = Live::start_any(urls, name, crate::identity::user_id(), token, args.colours)
-        .context("starting the network thread")?;
+    let live = Live::start_any(
+        urls,
+        name,
+        crate::identity::user_id(),
+        token,
+        args.colours,
+        args.gpu_budget.0,
+    )
+    .context("starting the network thread")?;
     let follow = Follow::by_name(args.follow.clone());
     let lighting = args.light.lighting()?;
     let mut app = App {

@@ -119,7 +119,13 @@ fn each_candidate(dims: [u32; 3], old: Option<&Rule>, new: &Rule, mut f: impl Fn
 }
 
 /// Calls `f` for each region of the grid whose Chebyshev distance from `e` is in `a..=b`.
-fn each_in_shell(dims: [u32; 3], e: [u32; 3], a: u32, b: u32, f: &mut impl FnMut([u32; 3])) {
+pub(crate) fn each_in_shell(
+    dims: [u32; 3],
+    e: [u32; 3],
+    a: u32,
+    b: u32,
+    f: &mut impl FnMut([u32; 3]),
+) {
     let lo = |i: usize| e[i].saturating_sub(b);
     let hi = |i: usize| e[i].saturating_add(b).min(dims[i] - 1);
     for z in lo(2)..=hi(2) {

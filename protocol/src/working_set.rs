@@ -14,10 +14,8 @@
 //! colour chunks), found by measuring candidates against the scene and its pyramid. The region
 //! array is a fixed cost (4 bytes a region: 16 MiB for a 16384×512×16384 world).
 
-use std::collections::HashSet;
-
 use crate::lod::Pyramid;
-use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, box_points, coarse_cell};
+use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, box_points};
 
 /// Bytes a brick slot takes besides its colours: a 64-byte mask and a 4-byte colour base.
 const SLOT_BYTES: u64 = 64 + 4;
@@ -117,40 +115,49 @@ pub struct Cost {
     pub stand_ins: u64,
 }
 
-/// The cost of holding `base` (with its current `pyramid`) as `rule` says.
+/// The cost of holding `base` (with its current `pyramid`) as `rule` says. Visits the regions
+/// within `near` of the eye and each level's solid coarse bricks (and the regions under those
+/// held), not every region of the world one by one.
 pub fn cost(base: &BrickMap, pyramid: &Pyramid, rule: &Rule) -> Cost {
     let rd = base.region_dims();
     let mut c = Cost {
         bytes: rd.iter().map(|&d| u64::from(d)).product::<u64>() * 4,
         ..Cost::default()
     };
-    let mut coarse: HashSet<(u32, [u32; 3])> = HashSet::new();
-    for r in box_points([0; 3], rd) {
-        let k = rule.level_of(r);
-        if k == 0 {
-            let bricks = base
+    let lo = rule.eye.map(|e| e.saturating_sub(rule.near));
+    let hi: [u32; 3] = std::array::from_fn(|i| {
+        rule.eye[i]
+            .saturating_add(rule.near)
+            .saturating_add(1)
+            .min(rd[i])
+    });
+    for r in box_points(lo, hi) {
+        let bytes = region_bytes(base, r);
+        if bytes > 0 {
+            c.full_regions += 1;
+            c.full_bricks += base
                 .region_cells(r)
                 .filter(|&cell| base.slot_of_cell(cell).is_some())
                 .count() as u64;
-            if bricks > 0 {
-                c.full_regions += 1;
-                c.full_bricks += bricks;
-                c.bytes += region_bytes(base, r);
+            c.bytes += bytes;
+        }
+    }
+    for k in MIN_STAND_IN_LEVEL..=rule.top {
+        let Some(level) = pyramid.level(k) else {
+            continue;
+        };
+        let span = 1u32 << (k - MIN_STAND_IN_LEVEL);
+        for (cell, _) in level.brick_cells() {
+            if !rule.holds(rd, k, cell) {
+                continue;
             }
-            continue;
-        }
-        let cell = coarse_cell(r, k);
-        if pyramid
-            .level(k)
-            .and_then(|l| l.slot_of_cell(cell))
-            .is_none()
-        {
-            continue;
-        }
-        c.stand_ins += 1;
-        if coarse.insert((k, cell)) {
             c.coarse_bricks += 1;
             c.bytes += coarse_bytes(pyramid, k, cell);
+            let lo = cell.map(|v| v.saturating_mul(span));
+            let hi: [u32; 3] = std::array::from_fn(|i| lo[i].saturating_add(span).min(rd[i]));
+            c.stand_ins += box_points(lo, hi)
+                .filter(|&r| rule.level_of(r) == k)
+                .count() as u64;
         }
     }
     c
@@ -203,7 +210,11 @@ pub enum BudgetError {
 }
 
 /// The rule with the largest `near` (at most `max_near`) whose working set fits `budget` bytes,
-/// and its cost. A binary search: cost grows with `near`.
+/// and its cost. Cost grows with `near`: `near` doubles until the set no longer fits, then a
+/// binary search between the last two. Each probe's level 0 is the sum of the regions' bytes
+/// in the rings of regions around the eye (each ring measured once, as far out as the largest
+/// probe), its coarse part a walk over the pyramid's bricks; the full [`Cost`] is measured
+/// once, for the answer.
 pub fn fit(
     base: &BrickMap,
     pyramid: &Pyramid,
@@ -211,29 +222,69 @@ pub fn fit(
     budget: u64,
     max_near: u32,
 ) -> Result<(Rule, Cost), BudgetError> {
-    let at = |near| {
+    let rd = base.region_dims();
+    let fixed = rd.iter().map(|&d| u64::from(d)).product::<u64>() * 4;
+    // Bytes of level 0 in the ring of regions at each distance from the eye.
+    let mut rings: Vec<u64> = Vec::new();
+    let mut bytes_at = |near: u32| {
         let rule = Rule::new(base, pyramid, eye, near);
-        (rule, cost(base, pyramid, &rule))
+        while rings.len() <= near as usize {
+            let d = rings.len() as u32;
+            let mut ring = 0;
+            crate::held::each_in_shell(rd, rule.eye, d, d, &mut |r| {
+                ring += region_bytes(base, r);
+            });
+            rings.push(ring);
+        }
+        let level0: u64 = rings[..=near as usize].iter().sum();
+        (rule, fixed + level0 + coarse_part(pyramid, rd, &rule))
     };
-    let (rule, c) = at(0);
-    if c.bytes > budget {
+    let (rule, bytes) = bytes_at(0);
+    if bytes > budget {
         return Err(BudgetError::TooSmall {
             budget,
-            needed: c.bytes,
+            needed: bytes,
         });
     }
-    let (mut lo, mut best) = (0, (rule, c));
-    let mut hi = max_near;
+    let reach = rd.iter().max().copied().unwrap_or(0).min(max_near);
+    let (mut lo, mut best) = (0u32, rule);
+    let mut hi = reach;
+    let mut step = 1u32;
+    while step <= reach {
+        let (rule, bytes) = bytes_at(step);
+        if bytes > budget {
+            hi = step - 1;
+            break;
+        }
+        (lo, best) = (step, rule);
+        step = step.saturating_mul(2);
+    }
     while lo < hi {
         let mid = lo + (hi - lo).div_ceil(2);
-        let (rule, c) = at(mid);
-        if c.bytes <= budget {
-            (lo, best) = (mid, (rule, c));
+        let (rule, bytes) = bytes_at(mid);
+        if bytes <= budget {
+            (lo, best) = (mid, rule);
         } else {
             hi = mid - 1;
         }
     }
-    Ok(best)
+    Ok((best, cost(base, pyramid, &best)))
+}
+
+/// Bytes of the coarse bricks `rule` holds.
+fn coarse_part(pyramid: &Pyramid, rd: [u32; 3], rule: &Rule) -> u64 {
+    let mut bytes = 0;
+    for k in MIN_STAND_IN_LEVEL..=rule.top {
+        let Some(level) = pyramid.level(k) else {
+            continue;
+        };
+        for (cell, _) in level.brick_cells() {
+            if rule.holds(rd, k, cell) {
+                bytes += coarse_bytes(pyramid, k, cell);
+            }
+        }
+    }
+    bytes
 }
 
 /// The map a client holding `rule`'s working set holds.

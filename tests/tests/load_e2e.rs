@@ -287,3 +287,53 @@ fn a_run_whose_server_goes_away_fails_loudly() {
         "a run that lost its server must not pass"
     );
 }
+
+/// `brickcast fly`: clients with a GPU budget get a complete working set, fly with level 0
+/// around the eye in most frames, and never hold more than their budget.
+#[test]
+fn fly_streams_working_sets_within_the_budget() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start_with(dir.path(), local(), |c| c.demo_size = [512, 64, 512])
+        .expect("server starts");
+    let url = server.url("demo");
+    let budget = 200 * 1024;
+    let args = [
+        "fly",
+        &url,
+        "--clients",
+        "2",
+        "--gpu-budget",
+        "200KiB",
+        "--duration",
+        "3",
+        "--speed",
+        "4",
+        "--full-within",
+        "32",
+        "--json",
+    ];
+    let (status, stdout, stderr) = run_brickcast(&args, &[], RUN_LIMIT).expect("brickcast fly");
+    assert!(status.success(), "{args:?} failed:\n{stderr}");
+    let report: Value = serde_json::from_str(stdout.trim())
+        .unwrap_or_else(|e| panic!("stdout is not one JSON object ({e}): {stdout}"));
+    assert_eq!(num(&report, &["budget_bytes"]), f64::from(budget));
+    assert!(num(&report, &["complete_ms_max"]) > 0.0, "{report}");
+    assert!(
+        num(&report, &["first_picture_ms_max"]) <= num(&report, &["complete_ms_max"]),
+        "{report}"
+    );
+    assert!(
+        num(&report, &["peak_gpu_bytes_max"]) <= f64::from(budget),
+        "over the budget: {report}"
+    );
+    assert!(num(&report, &["sharp_share_all"]) > 0.5, "{report}");
+    for flight in report["flights"].as_array().expect("flights") {
+        assert!(num(flight, &["frames"]) >= 30.0, "{flight}");
+    }
+    let (status, _, stderr) =
+        run_brickcast(&["fly", &url, "--gpu-budget", "unlimited"], &[], RUN_LIMIT)
+            .expect("brickcast fly");
+    assert!(!status.success());
+    assert!(stderr.contains("limited --gpu-budget"), "{stderr}");
+    server.stop().expect("server stops");
+}

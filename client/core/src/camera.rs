@@ -105,13 +105,20 @@ impl FlyCamera {
     }
 }
 
+/// Whether `map` holds a working set (stand-ins for coarse levels far away).
+fn map_is_partial(map: &BrickMap) -> bool {
+    map.stand_in_count() > 0
+}
+
 /// Field of view of a viewer's first camera, degrees.
 pub const FIRST_FOV: f32 = 55.0;
 
 /// Places a viewer's first camera, then improves it once. Why: at Welcome the map is still
 /// empty, so the best a viewer can do is the grid's overview; once the scene has synced,
 /// [`viewpoint::find`] can see the model and pick a camera that shows it (from inside, for an
-/// enclosed one). The better view replaces the first only while the user has not moved it.
+/// enclosed one). The better view replaces the first only while the user has not moved it,
+/// and never for a working set (a copy that holds only part of the scene, `Replica::held`): its
+/// camera decides what it holds, so it stays where the user put it.
 #[derive(Debug, Default)]
 pub struct FirstView {
     placed: Option<FlyCamera>,
@@ -129,7 +136,7 @@ impl FirstView {
             *camera = Some(first);
             self.placed = Some(first);
         }
-        if synced && !self.settled {
+        if synced && !self.settled && !map_is_partial(map) {
             self.settled = true;
             if *camera == self.placed {
                 let found = viewpoint::find(map, FIRST_FOV).camera;

@@ -163,6 +163,11 @@ pub struct Session {
     pub last_refusal: Option<String>,
     /// How exactly the copy keeps colours (`--colours`; bounded by default: a GPU copy).
     pub colours: Quality,
+    /// GPU bytes the copy may take (`--gpu-budget`): the server streams a working set within
+    /// them and follows the camera; `None`: the whole scene.
+    pub budget: Option<u64>,
+    /// Where our eye was when we last shared it, so a reconnect's working set starts there.
+    pub eye: Option<[f32; 3]>,
 }
 
 impl Default for Session {
@@ -180,11 +185,21 @@ impl Default for Session {
             last_undo: None,
             last_refusal: None,
             colours: Quality::default(),
+            budget: None,
+            eye: None,
         }
     }
 }
 
 impl Session {
+    /// The budget a `Hello` carries (with where the eye is), or `None` for the whole scene.
+    pub fn hello_budget(&self) -> Option<Budget> {
+        self.budget.map(|bytes| Budget {
+            bytes,
+            eye: self.eye,
+        })
+    }
+
     /// Where a new connection can resume from: the last sequence our copy holds completely.
     pub fn resume_point(&self) -> Option<u64> {
         self.replica.as_ref().and_then(Replica::resume_point)

@@ -11,6 +11,7 @@
 //! sequence; see [`observe`]); ack latency; bytes per client; resyncs, rejected ops, errors.
 
 pub mod copy;
+pub mod fly;
 pub mod histogram;
 pub mod observe;
 pub mod ops;
@@ -621,7 +622,7 @@ async fn fetch(url: &str, token: Option<&str>) -> Result<Replica, LoadError> {
 
 /// The server's counters, read from `/metrics` on the scene's host: series (labels included) →
 /// value. `None` when that does not answer (a proxy may expose only the websocket).
-async fn server_metrics(ws_url: &str) -> Option<BTreeMap<String, f64>> {
+pub(crate) async fn server_metrics(ws_url: &str) -> Option<BTreeMap<String, f64>> {
     let host = ws_url.strip_prefix("ws://")?.split('/').next()?.to_string();
     let get = async {
         let mut stream = tokio::net::TcpStream::connect(&host).await.ok()?;
