@@ -119,7 +119,19 @@ fn token_of_links(urls: &[String]) -> Option<String> {
         .find_map(|u| brickcast_client::link::link_token(u))
 }
 
-fn main() -> Result<()> {
+/// Runs the command; errors are printed for people (the cause chain on one line, no backtrace
+/// even with `RUST_BACKTRACE` set) with a failing exit status.
+fn main() -> std::process::ExitCode {
+    match run() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("Error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run() -> Result<()> {
     use std::io::IsTerminal;
     tracing_subscriber::fmt()
         .with_env_filter(

@@ -24,8 +24,10 @@
 
 use std::collections::{BTreeSet, HashMap};
 
-use crate::brick::BrickData;
+use crate::brick::{BrickData, Mask};
+use crate::colour::Colour;
 use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS, box_points, coarse_cell};
+use crate::wire::BrickRef;
 use crate::working_set::Rule;
 
 /// What the server must send when the rule changes: everything wanted that is not held.
@@ -49,6 +51,9 @@ impl Plan {
 /// moved a region or two under the same `near`, only the shells of regions around each level's
 /// boundary distance are visited ([`each_candidate`]); otherwise every region.
 pub fn plan(region_dims: [u32; 3], old: Option<&Rule>, new: &Rule) -> Plan {
+    if !shells_apply(old, new) {
+        return plan_whole(region_dims, old, new);
+    }
     let mut regions = Vec::new();
     let mut coarse = BTreeSet::new();
     each_candidate(region_dims, old, new, |r| {
@@ -70,6 +75,45 @@ pub fn plan(region_dims: [u32; 3], old: Option<&Rule>, new: &Rule) -> Plan {
     }
 }
 
+/// [`plan`] for a jump, a first rule or a new `near`, without visiting every region: level 0 is
+/// the box of regions within `near` of the eye, and a coarse brick is wanted now and was not
+/// exactly when the new rule [`Rule::holds`] it and the old one does not (a region under it at
+/// that level whose old level was the same would have made the old rule hold it), so each
+/// level's cells are checked in constant time each.
+fn plan_whole(dims: [u32; 3], old: Option<&Rule>, new: &Rule) -> Plan {
+    let lo = new.eye.map(|e| e.saturating_sub(new.near));
+    let hi: [u32; 3] = std::array::from_fn(|i| {
+        new.eye[i]
+            .saturating_add(new.near)
+            .saturating_add(1)
+            .min(dims[i])
+    });
+    let mut regions: Vec<[u32; 3]> = box_points(lo, hi)
+        .filter(|&r| old.is_none_or(|o| o.level_of(r) != 0))
+        .collect();
+    regions.sort_unstable_by_key(|&r| (chebyshev(r, new.eye), r[2], r[1], r[0]));
+    let mut coarse = Vec::new();
+    for k in MIN_STAND_IN_LEVEL..=new.top {
+        let span = 1u32 << (k - MIN_STAND_IN_LEVEL);
+        let cells = dims.map(|d| d.div_ceil(span));
+        for cell in box_points([0; 3], cells) {
+            if new.holds(dims, k, cell) && !old.is_some_and(|o| o.holds(dims, k, cell)) {
+                coarse.push((k, cell));
+            }
+        }
+    }
+    coarse.sort_unstable();
+    Plan { regions, coarse }
+}
+
+/// Whether a move from `old` to `new` can be planned from the shells around level boundaries:
+/// the same `near` and top, and an eye that moved at most [`SHELL_MOVE`] regions.
+fn shells_apply(old: Option<&Rule>, new: &Rule) -> bool {
+    old.is_some_and(|o| {
+        o.near == new.near && o.top == new.top && chebyshev(o.eye, new.eye) <= SHELL_MOVE
+    })
+}
+
 /// Chebyshev distance between two regions.
 fn chebyshev(a: [u32; 3], b: [u32; 3]) -> u32 {
     (0..3).map(|i| a[i].abs_diff(b[i])).max().unwrap_or(0)
@@ -84,9 +128,7 @@ const SHELL_MOVE: u32 = 2;
 /// of a level's boundary distance: those shells are visited. Anything else visits every region.
 fn each_candidate(dims: [u32; 3], old: Option<&Rule>, new: &Rule, mut f: impl FnMut([u32; 3])) {
     let m = old.map(|o| chebyshev(o.eye, new.eye));
-    let shells = old.is_some_and(|o| o.near == new.near && o.top == new.top)
-        && m.is_some_and(|m| m <= SHELL_MOVE);
-    if !shells {
+    if !shells_apply(old, new) {
         box_points([0; 3], dims).for_each(f);
         return;
     }
@@ -149,6 +191,54 @@ pub(crate) fn each_in_shell(
                 }
             }
         }
+    }
+}
+
+/// A brick as [`Held`] receives it: owned ([`BrickData`]), or straight from a wire blob
+/// ([`BrickRef`]: stored with the colour block it travelled in, not coded again).
+pub trait Incoming {
+    fn cell(&self) -> [u32; 3];
+    fn mask(&self) -> &Mask;
+    fn colours(&self) -> &[Colour];
+    /// Whether `map` can take it (inside the scene, consistent).
+    fn check(&self, map: &BrickMap) -> Result<(), MapError>;
+    /// Stores it as a level-0 brick of `map`.
+    fn put(&self, map: &mut BrickMap) -> Result<(), MapError>;
+}
+
+impl Incoming for BrickData {
+    fn cell(&self) -> [u32; 3] {
+        self.cell
+    }
+    fn mask(&self) -> &Mask {
+        &self.mask
+    }
+    fn colours(&self) -> &[Colour] {
+        &self.colours
+    }
+    fn check(&self, map: &BrickMap) -> Result<(), MapError> {
+        map.check_brick(self)
+    }
+    fn put(&self, map: &mut BrickMap) -> Result<(), MapError> {
+        map.put_brick(self)
+    }
+}
+
+impl Incoming for BrickRef<'_> {
+    fn cell(&self) -> [u32; 3] {
+        self.cell
+    }
+    fn mask(&self) -> &Mask {
+        &self.mask
+    }
+    fn colours(&self) -> &[Colour] {
+        BrickRef::colours(self)
+    }
+    fn check(&self, map: &BrickMap) -> Result<(), MapError> {
+        map.check_parts(self.cell, &self.mask, BrickRef::colours(self))
+    }
+    fn put(&self, map: &mut BrickMap) -> Result<(), MapError> {
+        map.put_coded(self.cell, self.mask, BrickRef::colours(self), self.block())
     }
 }
 
@@ -242,11 +332,11 @@ impl Held {
 
     /// Region `r`'s level-0 bricks, all of them (none: the region is empty at level 0). Ignored
     /// unless the rule wants `r` at level 0. Bricks outside `r` are refused.
-    pub fn receive_region(
+    pub fn receive_region<B: Incoming>(
         &mut self,
         map: &mut BrickMap,
         r: [u32; 3],
-        bricks: &[BrickData],
+        bricks: &[B],
     ) -> Result<(), MapError> {
         let Some(rule) = self.rule else { return Ok(()) };
         if self.index(r).is_none() || rule.level_of(r) != 0 {
@@ -254,19 +344,19 @@ impl Held {
         }
         if let Some(b) = bricks
             .iter()
-            .find(|b| (0..3).any(|i| b.cell[i] / REGION_CELLS != r[i]))
+            .find(|b| (0..3).any(|i| b.cell()[i] / REGION_CELLS != r[i]))
         {
             return Err(MapError::OutsideRegion {
-                cell: b.cell,
+                cell: b.cell(),
                 region: r,
             });
         }
         for b in bricks {
-            map.check_brick(b)?;
+            b.check(map)?;
         }
         self.detach(map, r)?;
         for b in bricks {
-            map.put_brick(b)?;
+            b.put(map)?;
         }
         let i = self.index(r).unwrap_or(0);
         self.shown[i] = 0;
@@ -275,12 +365,12 @@ impl Held {
 
     /// A coarse brick, as it stands (`None`: empty). Stored when the rule wants it or regions
     /// still show an older copy of it; the regions that want it switch to it.
-    pub fn receive_coarse(
+    pub fn receive_coarse<B: Incoming>(
         &mut self,
         map: &mut BrickMap,
         level: u32,
         cell: [u32; 3],
-        brick: Option<&BrickData>,
+        brick: Option<&B>,
     ) -> Result<(), MapError> {
         let Some(rule) = self.rule else { return Ok(()) };
         let key = (level, cell);
@@ -289,7 +379,7 @@ impl Held {
             return Ok(());
         }
         let slot = match brick {
-            Some(b) => Some(map.add_coarse(b.mask, &b.colours)?),
+            Some(b) => Some(map.add_coarse(*b.mask(), b.colours())?),
             None => None,
         };
         let regions = self.regions_under(level, cell);
@@ -323,11 +413,11 @@ impl Held {
 
     /// A level-0 brick as it stands, or `None` for a cell whose brick went: applied where the
     /// client shows and wants the cell's region at level 0, ignored elsewhere.
-    pub fn receive_brick(
+    pub fn receive_brick<B: Incoming>(
         &mut self,
         map: &mut BrickMap,
         cell: [u32; 3],
-        brick: Option<&BrickData>,
+        brick: Option<&B>,
     ) -> Result<(), MapError> {
         let Some(rule) = self.rule else { return Ok(()) };
         let r = cell.map(|c| c / REGION_CELLS);
@@ -335,9 +425,9 @@ impl Held {
             return Ok(());
         }
         match brick {
-            Some(b) if b.cell == cell => map.put_brick(b),
+            Some(b) if b.cell() == cell => b.put(map),
             Some(b) => Err(MapError::OutsideRegion {
-                cell: b.cell,
+                cell: b.cell(),
                 region: r,
             }),
             None => {
@@ -683,6 +773,17 @@ mod tests {
                 plan_everywhere(dims, Some(&old), &new),
                 "case {case}: {old:?} → {new:?} in {dims:?}"
             );
+            // A jump anywhere, and a first rule.
+            let far = Rule {
+                eye: [rng.below(dims[0]), rng.below(dims[1]), rng.below(dims[2])],
+                ..new
+            };
+            assert_eq!(
+                plan(dims, Some(&old), &far),
+                plan_everywhere(dims, Some(&old), &far),
+                "case {case}: {old:?} → {far:?} in {dims:?}"
+            );
+            assert_eq!(plan(dims, None, &far), plan_everywhere(dims, None, &far));
         }
     }
 
@@ -702,7 +803,7 @@ mod tests {
         // A region far away is not wanted at level 0.
         let far = [12, 0, 9];
         assert_ne!(rule.level_of(far), 0);
-        held.receive_region(&mut map, far, &[]).unwrap();
+        held.receive_region::<BrickData>(&mut map, far, &[]).unwrap();
         assert_eq!(held.shown_level(far), None);
         // Bricks of another region are refused.
         let r = [0, 0, 0];

@@ -934,6 +934,20 @@ impl BrickMap {
 
     /// Checks that a brick fits this scene: inside the coarse grid, consistent, and with no solid
     /// voxel beyond the scene's edge (the last brick on an axis may be partial).
+    /// [`BrickMap::check_brick`] for a brick given by its parts (a wire blob's `BrickRef`).
+    pub fn check_parts(
+        &self,
+        cell: [u32; 3],
+        mask: &Mask,
+        colours: &[Colour],
+    ) -> Result<(), MapError> {
+        self.check_cell(cell)?;
+        if crate::brick::mask_is_empty(mask) || colours.len() != popcount(mask) as usize {
+            return Err(MapError::InconsistentBrick(cell));
+        }
+        self.check_voxels(cell, mask)
+    }
+
     pub fn check_brick(&self, brick: &BrickData) -> Result<(), MapError> {
         self.check_cell(brick.cell)?;
         if !brick.is_consistent() {

@@ -6,7 +6,7 @@
 use crate::BrickMap;
 use crate::held::Held;
 use crate::map::{MAX_STAND_IN_LEVEL, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS};
-use crate::wire::{BlobDecoder, Limits, ServerMsg, WireError};
+use crate::wire::{BlobDecoder, BrickRef, Limits, ServerMsg, WireError};
 use crate::working_set::Rule;
 
 /// Why the client stopped trusting what the server sent.
@@ -184,13 +184,13 @@ impl Replica {
                     Some(held) => {
                         let mut got = Vec::new();
                         self.decoder
-                            .for_each(bricks, self.max_bricks, |b| got.push(b.to_brick()))?;
+                            .for_each(bricks, self.max_bricks, |b| got.push(b))?;
                         self.bricks_received += got.len() as u64;
                         for b in &got {
                             held.receive_brick(&mut self.map, b.cell, Some(b))?;
                         }
                         for &cell in removed {
-                            held.receive_brick(&mut self.map, cell, None)?;
+                            held.receive_brick::<BrickRef>(&mut self.map, cell, None)?;
                         }
                     }
                     None => {
@@ -227,13 +227,13 @@ impl Replica {
                 };
                 let mut got = Vec::new();
                 self.decoder
-                    .for_each(bricks, self.max_bricks, |b| got.push(b.to_brick()))?;
+                    .for_each(bricks, self.max_bricks, |b| got.push(b))?;
                 self.bricks_received += got.len() as u64;
                 for b in &got {
                     held.receive_coarse(&mut self.map, *level, b.cell, Some(b))?;
                 }
                 for &cell in empty {
-                    held.receive_coarse(&mut self.map, *level, cell, None)?;
+                    held.receive_coarse::<BrickRef>(&mut self.map, *level, cell, None)?;
                 }
                 self.sync_sent = self
                     .sync_sent
@@ -286,9 +286,9 @@ impl Replica {
         };
         let mut bricks = Vec::with_capacity(blob.count as usize);
         self.decoder
-            .for_each(blob, self.max_bricks, |brick| bricks.push(brick.to_brick()))?;
+            .for_each(blob, self.max_bricks, |brick| bricks.push(brick))?;
         self.bricks_received += bricks.len() as u64;
-        let region_of = |b: &crate::BrickData| b.cell.map(|c| c / REGION_CELLS);
+        let region_of = |b: &BrickRef| b.cell.map(|c| c / REGION_CELLS);
         bricks.sort_by_key(|b| {
             let r = region_of(b);
             (r[2], r[1], r[0])

@@ -118,7 +118,19 @@ enum ClusterCmd {
     },
 }
 
-fn main() -> anyhow::Result<()> {
+/// Runs the command; errors are printed for people (the cause chain on one line, no backtrace
+/// even with `RUST_BACKTRACE` set) with a failing exit status.
+fn main() -> std::process::ExitCode {
+    match run() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("Error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run() -> anyhow::Result<()> {
     // Logs go to stderr: stdout carries what a command prints (`--json` output included).
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)

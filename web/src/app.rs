@@ -468,6 +468,9 @@ impl App {
             return;
         }
         let sharing = (view, cursor);
+        if let Some(v) = &view {
+            self.session.eye = Some(v.eye);
+        }
         if self.presence_sent != Some(sharing) && self.send(&ClientMsg::Presence { view, cursor }) {
             self.presence_sent = Some(sharing);
             self.presence_at = now + 1000.0 / f64::from(self.session.presence_hz.max(1));

@@ -30,7 +30,9 @@ pub struct Viewer {
 
 /// Starts the viewer on the page's canvas for scene `scene`, with `token` (from the URL
 /// fragment or the token form), display name `name` and colour quality `colours` (`?colours=`:
-/// `exact`, `bounded` or `bounded:N`; bounded when absent). A `colours` it cannot read is an
+/// `exact`, `bounded` or `bounded:N`; bounded when absent) and GPU budget `budget` (`?budget=`:
+/// `unlimited` or a size such as `256MiB`; unlimited when absent: within a budget the server
+/// streams a working set around the camera). A `colours` or `budget` it cannot read is an
 /// error that says what it takes.
 #[wasm_bindgen]
 pub fn start(
@@ -38,12 +40,20 @@ pub fn start(
     token: Option<String>,
     name: Option<String>,
     colours: Option<String>,
+    budget: Option<String>,
 ) -> Result<Viewer, JsValue> {
+    let budget = match budget.filter(|b| !b.is_empty()) {
+        Some(b) => {
+            brickcast_client_core::budget::parse_budget(&b).map_err(|e| JsValue::from_str(&e))?
+        }
+        None => None,
+    };
     let colours = match colours.filter(|c| !c.is_empty()) {
         Some(c) => c.parse().map_err(|e: String| JsValue::from_str(&e))?,
         None => brickcast_protocol::blocks::Quality::default(),
     };
     let app = App::new(scene, token, name, colours)?;
+    app.borrow_mut().session.budget = budget;
     input::listen(&app)?;
     net::connect(&app);
     app::start_gpu(&app);

@@ -99,7 +99,7 @@ pub fn connect(app: &Rc<RefCell<App>>) {
                 a.user,
                 a.token.as_deref(),
                 a.session.resume_point(),
-                None,
+                a.session.hello_budget(),
             );
             if let Ok(bytes) = encode_client(&msg) {
                 let _ = ws.send_with_u8_array(&bytes);

@@ -210,10 +210,29 @@ fn sharp(replica: &Replica, eye: [f32; 3], reach: u32) -> bool {
     brickcast_protocol::map::box_points(lo, hi).all(|r| held.shown_level(r) == Some(0))
 }
 
+/// The scene's size from the server's `/scenes` list, so a path can start before connecting.
+async fn scene_size(ws_url: &str) -> Option<[u32; 3]> {
+    let name = ws_url.split("/scenes/").nth(1)?.split('/').next()?;
+    let response = super::http_get(ws_url, "/scenes").await?;
+    let (_, body) = response.split_once("\r\n\r\n")?;
+    let list: serde_json::Value = serde_json::from_str(body).ok()?;
+    let scene = list.as_array()?.iter().find(|s| s["name"] == name)?;
+    let size: Vec<u32> = scene["size"]
+        .as_array()?
+        .iter()
+        .filter_map(|v| v.as_u64().and_then(|v| u32::try_from(v).ok()))
+        .collect();
+    size.try_into().ok()
+}
+
 async fn fly_one(url: &str, args: &FlyArgs, budget: u64, i: u32) -> anyhow::Result<Flight> {
+    // Where the path starts goes in the Hello, so the first working set is the one at the eye
+    // (a server whose `/scenes` does not answer starts it at its default camera instead).
+    let seed = args.seed.wrapping_add(u64::from(i));
+    let planned = scene_size(url)
+        .await
+        .map(|size| Path::new(size, args.height, args.speed, seed));
     let started = Instant::now();
-    // The scene's size comes with the Welcome: the path is made once it is known, and the
-    // working set starts at the server's default camera until the first frame moves it.
     let mut link = Link::connect_within(
         url,
         &format!("brickcast fly {i}"),
@@ -222,17 +241,15 @@ async fn fly_one(url: &str, args: &FlyArgs, budget: u64, i: u32) -> anyhow::Resu
         None,
         Some(Budget {
             bytes: budget,
-            eye: None,
+            eye: planned.as_ref().map(|p| p.eye),
         }),
     )
     .await?;
     let size = link.welcome.size;
-    let mut path = Path::new(
-        size,
-        args.height,
-        args.speed,
-        args.seed.wrapping_add(u64::from(i)),
-    );
+    let mut path = match planned {
+        Some(p) if p.size == size.map(|s| s as f32) => p,
+        _ => Path::new(size, args.height, args.speed, seed),
+    };
     let mut replica = Replica::new(&link.welcome.scene, size)?;
     replica.record_gpu_changes(false);
     let camera = |eye| ClientMsg::Camera {

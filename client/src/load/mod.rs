@@ -623,14 +623,20 @@ async fn fetch(url: &str, token: Option<&str>) -> Result<Replica, LoadError> {
 /// The server's counters, read from `/metrics` on the scene's host: series (labels included) →
 /// value. `None` when that does not answer (a proxy may expose only the websocket).
 pub(crate) async fn server_metrics(ws_url: &str) -> Option<BTreeMap<String, f64>> {
+    parse_metrics(&http_get(ws_url, "/metrics").await?)
+}
+
+/// The whole HTTP response to `GET path` on the host of a `ws://` scene address (at most 4
+/// MiB, within 5 s); `None` when it does not answer.
+pub(crate) async fn http_get(ws_url: &str, path: &str) -> Option<String> {
     let host = ws_url.strip_prefix("ws://")?.split('/').next()?.to_string();
     let get = async {
         let mut stream = tokio::net::TcpStream::connect(&host).await.ok()?;
-        let request = format!("GET /metrics HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n");
+        let request = format!("GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n");
         stream.write_all(request.as_bytes()).await.ok()?;
         let mut body = Vec::new();
         stream.take(4 << 20).read_to_end(&mut body).await.ok()?;
-        parse_metrics(&String::from_utf8_lossy(&body))
+        Some(String::from_utf8_lossy(&body).into_owned())
     };
     tokio::time::timeout(Duration::from_secs(5), get)
         .await
