@@ -81,13 +81,7 @@ pub fn plan(region_dims: [u32; 3], old: Option<&Rule>, new: &Rule) -> Plan {
 /// that level whose old level was the same would have made the old rule hold it), so each
 /// level's cells are checked in constant time each.
 fn plan_whole(dims: [u32; 3], old: Option<&Rule>, new: &Rule) -> Plan {
-    let lo = new.eye.map(|e| e.saturating_sub(new.near));
-    let hi: [u32; 3] = std::array::from_fn(|i| {
-        new.eye[i]
-            .saturating_add(new.near)
-            .saturating_add(1)
-            .min(dims[i])
-    });
+    let (lo, hi) = new.level_0_box(dims);
     let mut regions: Vec<[u32; 3]> = box_points(lo, hi)
         .filter(|&r| old.is_none_or(|o| o.level_of(r) != 0))
         .collect();
@@ -803,7 +797,8 @@ mod tests {
         // A region far away is not wanted at level 0.
         let far = [12, 0, 9];
         assert_ne!(rule.level_of(far), 0);
-        held.receive_region::<BrickData>(&mut map, far, &[]).unwrap();
+        held.receive_region::<BrickData>(&mut map, far, &[])
+            .unwrap();
         assert_eq!(held.shown_level(far), None);
         // Bricks of another region are refused.
         let r = [0, 0, 0];

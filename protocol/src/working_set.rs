@@ -52,6 +52,19 @@ impl Rule {
         })
     }
 
+    /// The box of regions held at level 0 in a grid of `region_dims` (`lo` inclusive, `hi`
+    /// exclusive): those within `near` of the eye.
+    pub fn level_0_box(&self, region_dims: [u32; 3]) -> ([u32; 3], [u32; 3]) {
+        let lo = self.eye.map(|e| e.saturating_sub(self.near));
+        let hi = std::array::from_fn(|i| {
+            self.eye[i]
+                .saturating_add(self.near)
+                .saturating_add(1)
+                .min(region_dims[i])
+        });
+        (lo, hi)
+    }
+
     /// The level region `r` is held at.
     pub fn level_of(&self, r: [u32; 3]) -> u32 {
         let d = (0..3)
@@ -124,13 +137,7 @@ pub fn cost(base: &BrickMap, pyramid: &Pyramid, rule: &Rule) -> Cost {
         bytes: rd.iter().map(|&d| u64::from(d)).product::<u64>() * 4,
         ..Cost::default()
     };
-    let lo = rule.eye.map(|e| e.saturating_sub(rule.near));
-    let hi: [u32; 3] = std::array::from_fn(|i| {
-        rule.eye[i]
-            .saturating_add(rule.near)
-            .saturating_add(1)
-            .min(rd[i])
-    });
+    let (lo, hi) = rule.level_0_box(rd);
     for r in box_points(lo, hi) {
         let bytes = region_bytes(base, r);
         if bytes > 0 {
