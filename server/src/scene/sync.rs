@@ -180,9 +180,8 @@ impl Owner {
 
     /// A client's camera moved: its pending sync is re-sorted nearest-first from there.
     pub(super) fn camera(&mut self, session: SessionId, eye: [f32; 3]) {
-        if let Some(mut sub) = self.subs.remove(&session)
-            && sub.follow.is_some()
-        {
+        let following = self.subs.get(&session).is_some_and(|s| s.follow.is_some());
+        if following && let Some(mut sub) = self.subs.remove(&session) {
             sub.camera = eye;
             self.follow_camera(&mut sub);
             self.subs.insert(session, sub);
