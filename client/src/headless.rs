@@ -82,6 +82,7 @@ pub async fn fetch(
         .with_context(|| format!("connecting to {url}"))?;
     let mut replica = Replica::new(&link.welcome.scene, link.welcome.size)?;
     replica.set_colour_bound(colours.bound());
+    replica.set_budget(within.budget);
     replica.sync_total = link.welcome.total_bricks;
     let eye = within.budget.and(within.eye);
     let wanted = eye.map(|e| Rule::eye_region(replica.map.region_dims(), e));
@@ -144,7 +145,8 @@ pub fn render_gpu(
     lighting: &Lighting,
     timed: u32,
 ) -> Result<Rendered> {
-    let scene = GpuScene::new(ctx, &mut replica.map, None)?;
+    let budget = replica.budget();
+    let scene = GpuScene::within(ctx, &mut replica.map, None, budget)?;
     let mut tracer = Tracer::new(ctx)?;
     tracer.trace(ctx, &scene, projection, lighting)?;
     let mut samples = Vec::new();

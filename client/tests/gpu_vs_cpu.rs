@@ -507,6 +507,41 @@ fn mixed_levels_match_the_cpu_tracer() {
     map.check_invariants().expect("invariants");
     scene.update(&ctx, &mut map).expect("update");
     hits += check("levels changed", &scene, &mut tracer, &map);
+    // Packed (a copy that outgrew its budget does this), then held to a budget its buffers
+    // were over: they shrink to fit, and the picture stays the same.
+    assert!(map.free_bytes() > 0, "the level changes freed room");
+    let packed = map.compact();
+    map.check_invariants().expect("invariants after packing");
+    let budget = packed.bytes_after + packed.bytes_after / 16;
+    assert!(
+        scene.gpu_bytes() > budget,
+        "the buffers must start over this budget"
+    );
+    scene.set_budget(Some(budget));
+    let stats = scene.update(&ctx, &mut map).expect("update");
+    assert!(stats.reallocations > 0, "{stats:?}");
+    assert!(
+        scene.gpu_bytes() <= budget,
+        "{} GPU bytes for a budget of {budget}",
+        scene.gpu_bytes()
+    );
+    hits += check("packed, within a budget", &scene, &mut tracer, &map);
+    // Growing again within the budget: headroom is cut to what the budget leaves.
+    assert_eq!(map.stand_in([2, 0, 1]), None, "a region held at level 0");
+    map.fill_box(
+        [66, 3, 34],
+        [90, 20, 60],
+        BrushMode::Fill,
+        Colour::from_rgb8(9, 9, 200),
+    );
+    scene.update(&ctx, &mut map).expect("update");
+    let need = map.memory().total_bytes;
+    assert!(
+        scene.gpu_bytes() <= budget.max(need + 64 * 4 * 5),
+        "{} GPU bytes for a budget of {budget} ({need} needed)",
+        scene.gpu_bytes()
+    );
+    hits += check("grown within a budget", &scene, &mut tracer, &map);
     assert!(hits > 2000, "the cameras saw almost nothing: {hits}");
 }
 

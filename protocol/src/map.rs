@@ -29,7 +29,9 @@ use crate::brick::{
 };
 use crate::colour::Colour;
 
+mod compact;
 mod stand_in;
+pub use compact::Compacted;
 use stand_in::COARSE;
 pub use stand_in::{
     MAX_STAND_IN_LEVEL, MAX_STAND_IN_SLOTS, MIN_STAND_IN_LEVEL, STAND_IN, coarse_bit, coarse_cell,

@@ -55,6 +55,11 @@ pub struct Replica {
     /// What a client with a budget holds of the scene (issue #30), from the server's first
     /// `Follow` until the copy is dropped; `None`: the whole scene.
     held: Option<Held>,
+    /// GPU bytes this copy may take (the budget its `Hello` states): a working set whose
+    /// arrays outgrow it is packed ([`Held::compact`]). `None`: no limit.
+    budget: Option<u64>,
+    /// Times the arrays were packed to stay within the budget.
+    pub compactions: u64,
 }
 
 /// How many deltas between clearance rebuilds. A rebuild is a few passes over the region grid
@@ -81,6 +86,8 @@ impl Replica {
             gpu_log: true,
             colour_bound: None,
             held: None,
+            budget: None,
+            compactions: 0,
         })
     }
 
@@ -91,6 +98,31 @@ impl Replica {
     pub fn set_colour_bound(&mut self, bound: Option<u32>) {
         self.colour_bound = bound;
         self.map.set_colour_bound(bound);
+    }
+
+    /// The GPU bytes this copy may take ([`Replica::budget`]); set it with the budget the
+    /// `Hello` states.
+    pub fn set_budget(&mut self, budget: Option<u64>) {
+        self.budget = budget;
+    }
+
+    /// The GPU bytes this copy may take: a working set's arrays are packed when free room in
+    /// them would take it past this, and the GPU copy keeps its buffers within it.
+    pub fn budget(&self) -> Option<u64> {
+        self.budget
+    }
+
+    /// Keeps a working set's arrays within the budget: when freed slots, blocks and colour
+    /// chunks take them past it, they are packed. What the copy shows does not change; the
+    /// GPU copy is rewritten in full (every array is marked changed).
+    fn keep_within_budget(&mut self) {
+        let (Some(budget), Some(held)) = (self.budget, &mut self.held) else {
+            return;
+        };
+        if self.map.memory().total_bytes > budget && self.map.free_bytes() > 0 {
+            held.compact(&mut self.map);
+            self.compactions += 1;
+        }
     }
 
     /// Turns the map's GPU change log on or off, now and after every reset.
@@ -246,6 +278,7 @@ impl Replica {
             | ServerMsg::Undone { .. }
             | ServerMsg::Refused { .. } => {}
         }
+        self.keep_within_budget();
         Ok(())
     }
 

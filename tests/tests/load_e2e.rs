@@ -289,7 +289,7 @@ fn a_run_whose_server_goes_away_fails_loudly() {
 }
 
 /// `brickcast fly`: clients with a GPU budget get a complete working set, fly with level 0
-/// around the eye in most frames, and stay near their budget.
+/// around the eye in most frames, and never hold more than their budget.
 #[test]
 fn fly_streams_working_sets_within_the_budget() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -322,13 +322,13 @@ fn fly_streams_working_sets_within_the_budget() {
         num(&report, &["first_picture_ms_max"]) <= num(&report, &["complete_ms_max"]),
         "{report}"
     );
-    // While the data for a move is in flight a copy holds some of the old working set too, and
-    // its arrays do not shrink: a transient overshoot of a few percent is a known weakness
-    // (issue #30; seen 212 KB of 200 KiB). The settled working set is held within the budget
-    // (`server/tests/working_sets.rs`); a quarter over would mean the fitting is wrong.
+    // The copy never takes more than its budget: after a move the coarse bricks that let old
+    // level 0 go arrive before the new level 0, and arrays that free room takes past the
+    // budget are packed.
+    eprintln!("{report}");
     assert!(
-        num(&report, &["peak_gpu_bytes_max"]) <= f64::from(budget) * 1.25,
-        "far over the budget: {report}"
+        num(&report, &["peak_gpu_bytes_max"]) <= f64::from(budget),
+        "over the budget: {report}"
     );
     assert!(num(&report, &["sharp_share_all"]) > 0.5, "{report}");
     for flight in report["flights"].as_array().expect("flights") {

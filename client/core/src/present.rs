@@ -33,7 +33,8 @@ pub fn sync_scene(
     let size = replica.map.size();
     let stale = scene.as_ref().is_none_or(|s| s.size() != size);
     if replica.take_reset() || stale {
-        *scene = Some(GpuScene::new(ctx, &mut replica.map, None)?);
+        let budget = replica.budget();
+        *scene = Some(GpuScene::within(ctx, &mut replica.map, None, budget)?);
         return Ok(true);
     }
     match scene {

@@ -212,6 +212,7 @@ impl Session {
             Some(r) => r.welcome(&w.scene, w.size, w.seq),
             None => Replica::new(&w.scene, w.size).map(|mut r| {
                 r.set_colour_bound(self.colours.bound());
+                r.set_budget(self.budget);
                 self.replica = Some(r);
             }),
         };

@@ -7,7 +7,8 @@
 //!   rule of the starting eye);
 //! - **full resolution near the eye**: the share of frames in which every region within
 //!   `--full-within` voxels of the eye shows level 0;
-//! - the most GPU bytes its copy took (the map's arrays as uploaded), against the budget;
+//! - the most GPU bytes its copy took (the map's arrays as uploaded, after every message),
+//!   against the budget, and how often it packed its arrays to stay within it;
 //! - bytes received per second in flight, and the server's CPU per client (from `/metrics`).
 
 use std::time::{Duration, Instant};
@@ -63,8 +64,10 @@ pub struct Flight {
     pub frames: u64,
     /// Frames with level 0 everywhere within `--full-within` of the eye.
     pub sharp_frames: u64,
-    /// The most bytes the copy's arrays took (sampled every frame).
+    /// The most bytes the copy's arrays took (after every message the copy applied).
     pub peak_gpu_bytes: u64,
+    /// Times the copy packed its arrays to stay within the budget.
+    pub compactions: u64,
     /// Bytes received per second during the flight.
     pub bytes_per_s: f64,
     /// Level-0 reach the server fitted (regions), at the start and at the end.
@@ -87,6 +90,8 @@ pub struct FlyReport {
     pub sharp_share_min: f64,
     pub sharp_share_all: f64,
     pub peak_gpu_bytes_max: u64,
+    /// Times the copies packed their arrays to stay within the budget, all clients together.
+    pub compactions: u64,
     pub bytes_per_s_median: f64,
     /// Server CPU over the flight per client (1.0 = one core), when `/metrics` answers.
     pub server_cpu_per_client: Option<f64>,
@@ -151,6 +156,7 @@ pub async fn run(urls: &[String], args: &FlyArgs) -> anyhow::Result<FlyReport> {
         sharp_share_min: flights.iter().map(share).fold(1.0, f64::min),
         sharp_share_all: sharp as f64 / frames.max(1) as f64,
         peak_gpu_bytes_max: flights.iter().map(|f| f.peak_gpu_bytes).max().unwrap_or(0),
+        compactions: flights.iter().map(|f| f.compactions).sum(),
         bytes_per_s_median: bps_med,
         server_cpu_per_client,
         flights,
@@ -252,6 +258,7 @@ async fn fly_one(url: &str, args: &FlyArgs, budget: u64, i: u32) -> anyhow::Resu
     };
     let mut replica = Replica::new(&link.welcome.scene, size)?;
     replica.record_gpu_changes(false);
+    replica.set_budget(Some(budget));
     let camera = |eye| ClientMsg::Camera {
         eye,
         forward: [1.0, 0.0, 0.0],
@@ -259,9 +266,11 @@ async fn fly_one(url: &str, args: &FlyArgs, budget: u64, i: u32) -> anyhow::Resu
     link.send(&camera(path.eye)).await?;
     let want = Rule::eye_region(replica.map.region_dims(), path.eye);
     let mut first_picture = None;
+    let mut peak = 0;
     let complete = loop {
         let msg = next(&mut link).await?;
         replica.apply(&msg)?;
+        peak = peak.max(replica.map.memory().total_bytes);
         if first_picture.is_none()
             && matches!(msg, ServerMsg::Regions { .. } | ServerMsg::Coarse { .. })
         {
@@ -279,7 +288,7 @@ async fn fly_one(url: &str, args: &FlyArgs, budget: u64, i: u32) -> anyhow::Resu
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let flight_start = Instant::now();
     let bytes_before = link.bytes_in;
-    let (mut frames, mut sharp_frames, mut peak) = (0u64, 0u64, replica.map.memory().total_bytes);
+    let (mut frames, mut sharp_frames) = (0u64, 0u64);
     while flight_start.elapsed().as_secs_f64() < args.duration {
         tokio::select! {
             _ = tick.tick() => {
@@ -287,12 +296,12 @@ async fn fly_one(url: &str, args: &FlyArgs, budget: u64, i: u32) -> anyhow::Resu
                 if sharp(&replica, path.eye, reach) {
                     sharp_frames += 1;
                 }
-                peak = peak.max(replica.map.memory().total_bytes);
                 path.advance();
                 link.send(&camera(path.eye)).await?;
             }
             msg = next(&mut link) => {
                 replica.apply(&msg?)?;
+                peak = peak.max(replica.map.memory().total_bytes);
             }
         }
     }
@@ -306,6 +315,7 @@ async fn fly_one(url: &str, args: &FlyArgs, budget: u64, i: u32) -> anyhow::Resu
         frames,
         sharp_frames,
         peak_gpu_bytes: peak,
+        compactions: replica.compactions,
         bytes_per_s,
         near_start,
         near_end,
@@ -338,11 +348,12 @@ pub fn table(r: &FlyReport) -> String {
         r.first_picture_ms_median, r.first_picture_ms_max, r.complete_ms_median, r.complete_ms_max
     );
     s += &format!(
-        "sharp frames    {:.1}% of all, worst client {:.1}%\npeak GPU copy   {:.1} MiB (budget {:.1} MiB)\nreceived        median {:.1} KiB/s per client\n",
+        "sharp frames    {:.1}% of all, worst client {:.1}%\npeak GPU copy   {:.1} MiB (budget {:.1} MiB), packed {} times\nreceived        median {:.1} KiB/s per client\n",
         100.0 * r.sharp_share_all,
         100.0 * r.sharp_share_min,
         mib(r.peak_gpu_bytes_max as f64),
         mib(r.budget_bytes as f64),
+        r.compactions,
         r.bytes_per_s_median / 1024.0
     );
     if let Some(cpu) = r.server_cpu_per_client {

@@ -53,9 +53,14 @@ pub fn process_instance() -> String {
         .clone()
 }
 
+/// How long a starting node waits for NATS to answer before it gives up.
+pub const BOOT_UNAVAILABLE: Duration = Duration::from_secs(30);
+
 /// Takes `name` for this process (instance `instance`, listening on `listen`) and keeps it
 /// while the process lives. A name held by a node that just died frees itself within
-/// [`NODE_TTL`], so a restarted node waits that long before it calls the name taken.
+/// [`NODE_TTL`], so a restarted node waits that long before it calls the name taken. NATS
+/// not answering (restarting, a blip) is waited out for [`BOOT_UNAVAILABLE`]; a create that
+/// landed with its answer lost is found again (the entry names this instance).
 pub async fn register<J: Jet>(
     jet: &J,
     name: &str,
@@ -72,18 +77,41 @@ pub async fn register<J: Jet>(
     let value = Bytes::from(
         serde_json::to_vec(&entry).map_err(|e| ClusterError::Nats(format!("node entry: {e}")))?,
     );
-    let deadline = tokio::time::Instant::now() + NODE_TTL + Duration::from_secs(1);
+    let start = tokio::time::Instant::now();
+    // A name held by a dead process frees itself within NODE_TTL.
+    let taken_until = start + NODE_TTL + Duration::from_secs(1);
+    // NATS may be restarting or briefly out of reach as the node starts.
+    let unreachable_until = start + BOOT_UNAVAILABLE;
     let revision = loop {
-        match jet.kv_create(Bucket::Nodes, name, value.clone()).await {
+        let error = match jet.kv_create(Bucket::Nodes, name, value.clone()).await {
             Ok(r) => break r,
-            Err(PortError::Conflict(_)) => {
-                if tokio::time::Instant::now() >= deadline {
+            Err(e) => e,
+        };
+        match error {
+            PortError::Conflict(_) => {
+                // The create may have landed with its answer lost: then the entry is ours.
+                match jet.kv_get(Bucket::Nodes, name).await {
+                    Ok(Some(entry)) if entry.value == value => break entry.revision,
+                    Ok(_) | Err(PortError::NotFound(_)) => {}
+                    Err(PortError::Unavailable(_))
+                        if tokio::time::Instant::now() < unreachable_until => {}
+                    Err(e) => return Err(ClusterError::Nats(format!("registering the node: {e}"))),
+                }
+                if tokio::time::Instant::now() >= taken_until {
                     return Err(ClusterError::NodeInUse(name.into()));
                 }
-                tokio::time::sleep(Duration::from_millis(250)).await;
             }
-            Err(e) => return Err(ClusterError::Nats(format!("registering the node: {e}"))),
+            PortError::Unavailable(e) => {
+                if tokio::time::Instant::now() >= unreachable_until {
+                    return Err(ClusterError::Nats(format!(
+                        "registering the node: {e} (tried for {BOOT_UNAVAILABLE:?})"
+                    )));
+                }
+                tracing::warn!(node = name, error = %e, "NATS did not answer while registering; trying again");
+            }
+            e => return Err(ClusterError::Nats(format!("registering the node: {e}"))),
         }
+        tokio::time::sleep(Duration::from_millis(250)).await;
     };
     let (release, released) = oneshot::channel();
     let (lost_tx, lost) = signal::channel(None);

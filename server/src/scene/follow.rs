@@ -7,7 +7,9 @@
 //! - **Join** (once the levels of detail are built): the largest `near` whose working set fits
 //!   [`FIT_SHARE`] of the budget at the client's camera, a `Follow` with the rule, then the
 //!   plan (`protocol::held::plan`) streamed by the sync pump: coarse bricks and whole level-0
-//!   regions (nearest first) in turn, then `SyncDone`.
+//!   regions (nearest first) in turn, then `SyncDone`. After a move every coarse brick owed
+//!   goes first: a region leaving level 0 lets its bricks go when its coarse brick arrives,
+//!   so the copy shrinks before the new level 0 grows it.
 //! - **Camera**: when the eye enters another region the rule changes: a new `Follow`, and the
 //!   plan from the old rule to the new one (only the shells around level boundaries are
 //!   visited) added to what is still owed and still wanted.
@@ -61,6 +63,10 @@ pub(crate) struct Follow {
     coarse: Vec<(u32, [u32; 3])>,
     /// Whether the next frame of the stream is coarse (coarse and regions take turns).
     coarse_next: bool,
+    /// The working set moved: its coarse bricks go before any region, because a region
+    /// leaving level 0 lets its bricks go only once the coarse brick that replaces it arrives;
+    /// sent first, the copy shrinks before the new level 0 grows it (its budget holds).
+    coarse_first: bool,
 }
 
 impl Follow {
@@ -73,6 +79,7 @@ impl Follow {
             regions: Vec::new(),
             coarse: Vec::new(),
             coarse_next: true,
+            coarse_first: false,
         }
     }
 
@@ -204,6 +211,7 @@ impl Owner {
         let dims = self.map.region_dims();
         let old = follow.rule.replace(rule);
         let wanted = plan(dims, old.as_ref(), &rule);
+        follow.coarse_first = old.is_some();
         follow.regions.retain(|&r| rule.level_of(r) == 0);
         follow.coarse.retain(|&(k, c)| rule.holds(dims, k, c));
         follow.regions.extend(wanted.regions);
@@ -237,7 +245,8 @@ impl Owner {
         let Some(follow) = &mut sub.follow else {
             return 0;
         };
-        let coarse = !follow.coarse.is_empty() && (follow.regions.is_empty() || follow.coarse_next);
+        let coarse = !follow.coarse.is_empty()
+            && (follow.regions.is_empty() || follow.coarse_first || follow.coarse_next);
         follow.coarse_next = !follow.coarse_next;
         let (encoded, count) = if coarse {
             let level = follow.coarse.last().map_or(0, |&(k, _)| k);

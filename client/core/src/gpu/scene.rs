@@ -135,17 +135,27 @@ impl PagedArray {
         self.page_words * self.array.max_pages() as u64
     }
 
-    /// Makes room for `needed` words, plus `needed / headroom_divisor` when it must reallocate.
-    /// Returns the word range whose buffers were replaced (their contents must be written
-    /// again), or `None` when everything already fitted.
+    /// Makes room for `needed` words, plus `needed / headroom_divisor` when it must reallocate,
+    /// within `cap` words (unless it needs more). With `shrink`, an array over `cap` (it
+    /// shrank, or a budget leaves it less room) is reallocated smaller. Returns the word range
+    /// whose buffers were replaced (their contents must be written again), or `None` when
+    /// everything already fitted.
     fn reserve(
         &mut self,
         ctx: &GpuContext,
         needed: u64,
         headroom_divisor: u64,
+        cap: u64,
+        shrink: bool,
     ) -> Result<Option<Range<u64>>, GpuError> {
-        if needed <= self.capacity_words && !self.pages.is_empty() {
+        let over = shrink && self.capacity_words > cap.max(needed).max(MIN_WORDS);
+        if needed <= self.capacity_words && !self.pages.is_empty() && !over {
             return Ok(None);
+        }
+        if over {
+            // Smaller: every page goes (their contents are written again).
+            self.pages.clear();
+            self.capacity_words = 0;
         }
         if needed > self.max_words() {
             return Err(GpuError::TooBig {
@@ -156,6 +166,7 @@ impl PagedArray {
             });
         }
         let want = (needed + needed / headroom_divisor)
+            .min(cap.max(needed))
             .max(MIN_WORDS)
             .min(self.max_words());
         // Only the last page can be short; full pages stay as they are, contents and all.
@@ -234,6 +245,9 @@ pub struct GpuScene {
     dummy: wgpu::Buffer,
     /// Totals since creation.
     pub uploaded: UploadStats,
+    /// GPU bytes the scene's buffers may take (`--gpu-budget`): headroom is cut to fit it,
+    /// and buffers larger than their share are reallocated smaller. `None`: no limit.
+    budget: Option<u64>,
 }
 
 impl GpuScene {
@@ -244,6 +258,16 @@ impl GpuScene {
         ctx: &GpuContext,
         map: &mut BrickMap,
         page_bytes: Option<u64>,
+    ) -> Result<GpuScene, GpuError> {
+        GpuScene::within(ctx, map, page_bytes, None)
+    }
+
+    /// [`GpuScene::new`] with buffers kept within `budget` bytes ([`GpuScene::set_budget`]).
+    pub fn within(
+        ctx: &GpuContext,
+        map: &mut BrickMap,
+        page_bytes: Option<u64>,
+        budget: Option<u64>,
     ) -> Result<GpuScene, GpuError> {
         let limit = ctx.max_binding_bytes();
         let page_bytes = page_bytes.unwrap_or(limit).min(limit).max(MIN_WORDS * 4);
@@ -275,6 +299,7 @@ impl GpuScene {
             generation: 0,
             dummy,
             uploaded: UploadStats::default(),
+            budget,
         };
         map.record_gpu_changes(true);
         scene.upload_all(ctx, map)?;
@@ -296,9 +321,13 @@ impl GpuScene {
         map.take_gpu_changes();
         self.occupied = map.occupied_regions();
         let mut stats = UploadStats::default();
-        for array in &mut self.arrays {
+        let (caps, shrink) = (self.caps(map), self.over_budget(map));
+        for (array, cap) in self.arrays.iter_mut().zip(caps) {
             let len = array.array.len_words(map);
-            if array.reserve(ctx, len, FULL_UPLOAD_HEADROOM)?.is_some() {
+            if array
+                .reserve(ctx, len, FULL_UPLOAD_HEADROOM, cap, shrink)?
+                .is_some()
+            {
                 stats.reallocations += 1;
             }
             if len > 0 {
@@ -325,9 +354,10 @@ impl GpuScene {
         if changes.is_empty() {
             return Ok(stats);
         }
-        for array in &mut self.arrays {
+        let (caps, shrink) = (self.caps(map), self.over_budget(map));
+        for (array, cap) in self.arrays.iter_mut().zip(caps) {
             let len = array.array.len_words(map);
-            let fresh = array.reserve(ctx, len, GROWTH_HEADROOM)?;
+            let fresh = array.reserve(ctx, len, GROWTH_HEADROOM, cap, shrink)?;
             if let Some(range) = &fresh {
                 stats.reallocations += 1;
                 let end = range.end.min(len);
@@ -359,6 +389,36 @@ impl GpuScene {
         }
         self.add(stats);
         Ok(stats)
+    }
+
+    /// Keeps the buffers within `budget` bytes from the next update on (`None`: no limit).
+    /// A map larger than the budget still gets buffers that hold it, without headroom.
+    pub fn set_budget(&mut self, budget: Option<u64>) {
+        self.budget = budget;
+    }
+
+    /// The most words each array may take: without a budget, any; with one, what the array
+    /// needs and an equal share of what the budget leaves over (at most half again its size).
+    fn caps(&self, map: &BrickMap) -> [u64; 5] {
+        let lens = self.arrays.each_ref().map(|a| a.array.len_words(map));
+        let Some(budget) = self.budget else {
+            return [u64::MAX; 5];
+        };
+        let spare = (budget / 4).saturating_sub(lens.iter().sum()) / lens.len() as u64;
+        lens.map(|len| len + spare.min(len / GROWTH_HEADROOM))
+    }
+
+    /// Whether the buffers would take more than the budget once each holds its array: then
+    /// those over their share shrink.
+    fn over_budget(&self, map: &BrickMap) -> bool {
+        self.budget.is_some_and(|b| {
+            let words: u64 = self
+                .arrays
+                .iter()
+                .map(|a| a.capacity_words.max(a.array.len_words(map)))
+                .sum();
+            words * 4 > b
+        })
     }
 
     fn add(&mut self, s: UploadStats) {

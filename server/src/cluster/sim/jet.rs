@@ -37,7 +37,7 @@ pub struct Faults {
     pub duplicate: f64,
     /// Core messages arrive up to this late.
     pub delay: Duration,
-    /// Chance that an append lands but its answer is lost.
+    /// Chance that an append or a key's write lands but its answer is lost.
     pub lost_acks: f64,
 }
 
@@ -157,6 +157,14 @@ impl World {
         for m in due {
             self.deliver(m.subject, m.message);
         }
+    }
+
+    /// The answer to a write that landed: lost now and then, as an append's may be.
+    fn answer<T>(&mut self, value: T) -> PortResult<T> {
+        if self.rng.random_bool(self.faults.lost_acks) {
+            return Err(PortError::Unavailable("the write's answer was lost".into()));
+        }
+        Ok(value)
     }
 
     pub fn down(&self) -> bool {
@@ -352,7 +360,8 @@ impl Jet for SimJet {
         if w.live(bucket, key).is_some() {
             return Err(PortError::Conflict(format!("{key} exists")));
         }
-        Ok(w.write(bucket, key, value))
+        let revision = w.write(bucket, key, value);
+        w.answer(revision)
     }
 
     async fn kv_update(
@@ -367,7 +376,8 @@ impl Jet for SimJet {
         if w.live(bucket, key).map(|s| s.revision) != Some(revision) {
             return Err(PortError::Conflict(format!("{key} is not at {revision}")));
         }
-        Ok(w.write(bucket, key, value))
+        let revision = w.write(bucket, key, value);
+        w.answer(revision)
     }
 
     async fn kv_delete(&self, bucket: Bucket, key: &str, revision: Option<u64>) -> PortResult<()> {
@@ -378,7 +388,7 @@ impl Jet for SimJet {
             return Err(PortError::Conflict(format!("{key} is not at {revision:?}")));
         }
         w.kv.remove(&(bucket, key.to_string()));
-        Ok(())
+        w.answer(())
     }
 
     async fn kv_keys(&self, bucket: Bucket) -> PortResult<Vec<String>> {

@@ -752,8 +752,13 @@ impl Sim {
                         format!("{}#{}", p.name, p.id)
                     })
                     .collect();
+                let all: Vec<String> = self
+                    .procs
+                    .iter()
+                    .map(|p| format!("{}#{} {:?} ({})", p.name, p.id, p.status, p.describe()))
+                    .collect();
                 return Err(format!(
-                    "liveness: {waiting:?} had no edit acknowledged within {LIVENESS:?} after the faults healed"
+                    "liveness: {waiting:?} had no edit acknowledged within {LIVENESS:?} after the faults healed; processes: {all:?}"
                 ));
             }
         }

@@ -73,6 +73,18 @@ fn the_cluster_survives_random_faults() {
     }
 }
 
+/// Seeds that once failed, run every time: 484178004085 (NATS went down while three restarted
+/// nodes waited for their names; each gave up at its first unanswered request, nothing started
+/// them again, and no node served the scene after the faults healed).
+#[test]
+fn seeds_that_once_failed_pass() {
+    for seed in [484_178_004_085] {
+        if let Err((e, trace)) = run_seed(seed) {
+            panic!("seed {seed} failed: {e}\nlast actions:\n{trace}");
+        }
+    }
+}
+
 /// A scene written before snapshot heads existed (base `<scene>`, deltas `<scene>+N`) loads
 /// as it was; its next snapshot starts a head, which a load then follows.
 #[test]
