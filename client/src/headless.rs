@@ -92,7 +92,8 @@ pub async fn fetch(
             .context("syncing the scene")?;
         // Complete for the camera asked for (the server may have begun from its own).
         let at = replica.held().and_then(|h| h.rule()).map(|r| r.eye);
-        if wanted.is_none() || at == wanted {
+        // A budget the whole scene fits is served the whole scene: nothing held to check.
+        if wanted.is_none() || replica.held().is_none() || at == wanted {
             break;
         }
         replica.synced = false;

@@ -74,9 +74,10 @@ enum Command {
         /// How exactly the copy keeps colours: `exact`, `bounded` or `bounded:N` (as `view`).
         #[arg(long, default_value_t = brickcast_protocol::blocks::Quality::default())]
         colours: brickcast_protocol::blocks::Quality,
-        /// GPU memory for the scene: `unlimited` (every brick) or a size such as 256MiB, for
-        /// the working set around --eye: full resolution near it, coarser further away.
-        #[arg(long, default_value = "unlimited")]
+        /// GPU memory for the scene: `unlimited` (every brick) or a size such as 256MiB. A
+        /// scene that fits half of it is held whole; a larger world, the working set around
+        /// --eye: full resolution near it, coarser further away.
+        #[arg(long, default_value_t = brickcast_client_core::budget::GpuBudget(Some(brickcast_client_core::budget::NATIVE_DEFAULT)))]
         gpu_budget: brickcast_client_core::budget::GpuBudget,
     },
     /// Load-test a server: many clients edit one scene; report throughput and latency, and

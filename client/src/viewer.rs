@@ -71,10 +71,10 @@ pub struct ViewArgs {
     /// Ride along with this user's camera as soon as they are present (F cycles, moving stops).
     #[arg(long)]
     pub follow: Option<String>,
-    /// GPU memory for the scene: `unlimited` (every brick) or a size such as 256MiB: the
-    /// server streams full resolution near the camera and coarser levels further away, and
-    /// follows the camera. Needed for worlds larger than the GPU.
-    #[arg(long, default_value = "unlimited")]
+    /// GPU memory for the scene: `unlimited` (every brick) or a size such as 256MiB. A scene
+    /// that fits half of it is held whole; a larger world streams: full resolution near the
+    /// camera, coarser levels further away, following the camera.
+    #[arg(long, default_value_t = brickcast_client_core::budget::GpuBudget(Some(brickcast_client_core::budget::NATIVE_DEFAULT)))]
     pub gpu_budget: brickcast_client_core::budget::GpuBudget,
     #[command(flatten)]
     pub light: crate::LightArgs,

@@ -270,10 +270,35 @@ async fn budgets_that_cannot_be_served_are_refused_clearly() {
     let (code, text) = tiny.errors.first().cloned().expect("an error");
     assert_eq!(code, ErrorCode::NotAllowed);
     assert!(text.contains("GPU budget of 1000 bytes"), "{text}");
-    let mut level = Follower::connect(&server.url("demo@2"), 1 << 30, None, None).await;
+    // A level of detail too large for the budget to hold whole: level views are served whole.
+    let mut level = Follower::connect(&server.url("demo@2"), 1000, None, None).await;
     while level.next().await.is_some() {}
     let (code, text) = level.errors.first().cloned().expect("an error");
     assert_eq!(code, ErrorCode::NotAllowed);
     assert!(text.contains("level of detail"), "{text}");
+    server.shutdown().await.unwrap();
+}
+
+/// A budget the whole scene fits with room to spare (every viewer states one by default) is
+/// served the whole scene, as a client without a budget is: no working set, every brick, and
+/// a level view likewise.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_budget_the_scene_fits_gets_the_whole_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = serve(dir.path()).await;
+    let mut whole = Follower::connect(&server.url("demo"), 1 << 30, None, None).await;
+    while !whole.replica.synced {
+        let msg = whole.next().await.expect("the sync");
+        assert!(!matches!(msg, ServerMsg::Follow { .. }), "a working set");
+    }
+    assert!(whole.replica.held().is_none());
+    let bricks = whole.replica.map.brick_count();
+    assert!(bricks > 0);
+    let mut level = Follower::connect(&server.url("demo@2"), 1 << 30, None, None).await;
+    while !level.replica.synced {
+        assert!(level.next().await.is_some(), "{:?}", level.errors);
+    }
+    assert!(level.replica.held().is_none() && level.replica.map.brick_count() > 0);
+    assert!(level.replica.map.brick_count() < bricks);
     server.shutdown().await.unwrap();
 }

@@ -31,8 +31,9 @@ pub struct Viewer {
 /// Starts the viewer on the page's canvas for scene `scene`, with `token` (from the URL
 /// fragment or the token form), display name `name` and colour quality `colours` (`?colours=`:
 /// `exact`, `bounded` or `bounded:N`; bounded when absent) and GPU budget `budget` (`?budget=`:
-/// `unlimited` or a size such as `256MiB`; unlimited when absent: within a budget the server
-/// streams a working set around the camera). A `colours` or `budget` it cannot read is an
+/// `unlimited` or a size such as `256MiB`; [`BROWSER_DEFAULT`](brickcast_client_core::budget::BROWSER_DEFAULT)
+/// when absent: a scene that fits half of it is held whole, a larger world streams a working
+/// set around the camera). A `colours` or `budget` it cannot read is an
 /// error that says what it takes.
 #[wasm_bindgen]
 pub fn start(
@@ -46,7 +47,7 @@ pub fn start(
         Some(b) => {
             brickcast_client_core::budget::parse_budget(&b).map_err(|e| JsValue::from_str(&e))?
         }
-        None => None,
+        None => Some(brickcast_client_core::budget::BROWSER_DEFAULT),
     };
     let colours = match colours.filter(|c| !c.is_empty()) {
         Some(c) => c.parse().map_err(|e: String| JsValue::from_str(&e))?,

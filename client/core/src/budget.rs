@@ -1,7 +1,15 @@
 //! The GPU budget a client gives a scene (`--gpu-budget`, the page's `?budget=`): how many
 //! bytes of GPU memory its copy of the scene may take. Within a budget the server streams a
 //! working set (level 0 near the eye, coarser further away) and follows the camera; unlimited,
-//! the client holds every brick.
+//! the client holds every brick. A scene that fits half the budget is served whole.
+
+/// The native viewer's and `render`'s budget when none is given: 1 GiB. wgpu does not say how
+/// much memory an adapter has; a quarter of a 4 GiB card (the smallest common discrete GPU)
+/// leaves the rest to the frame and other programs. A scene that fits half of it is served
+/// whole, as without a budget; a larger world streams a working set instead of failing.
+pub const NATIVE_DEFAULT: u64 = 1 << 30;
+/// The browser viewer's budget when the page gives none: 256 MiB, safe on phone-class GPUs.
+pub const BROWSER_DEFAULT: u64 = 256 << 20;
 
 /// Parses a budget: `unlimited`, a byte count, or a number with a unit (`K`, `M`, `G`, with or
 /// without `iB`/`B`, powers of 1024): `256MiB`, `1G`, `300000000`. `None` is unlimited.

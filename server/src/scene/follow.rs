@@ -2,6 +2,9 @@
 //! of the scene — level 0 near its eye, coarser levels of the pyramid further away — and the
 //! owner follows its camera. Part of the owner (these are `impl Owner` methods), like `sync.rs`.
 //!
+//! A budget that the whole scene fits with room to grow ([`fits_whole`]: half of it) is served
+//! the whole scene, as a client without a budget is: a working set is for what does not fit.
+//!
 //! Both sides run the same rule ([`Rule`], from `protocol::working_set`), so the owner knows
 //! exactly what each client holds without a copy of it:
 //! - **Join** (once the levels of detail are built): the largest `near` whose working set fits
@@ -86,6 +89,18 @@ impl Follow {
     fn owes_nothing(&self) -> bool {
         self.regions.is_empty() && self.coarse.is_empty()
     }
+}
+
+/// The share of a budget the whole scene (or level view) may take for a client with that
+/// budget to be served all of it, not a working set (1/2: room for edits to grow it).
+const WHOLE_SHARE: (u64, u64) = (1, 2);
+
+/// Whether level `level` of `map` (0: the scene itself), as a client lays it out, fits a GPU
+/// budget of `budget` bytes with room to grow ([`WHOLE_SHARE`]). A level view is taken as a
+/// quarter of the level below (surfaces shrink so, solids by an eighth).
+pub(super) fn fits_whole(map: &brickcast_protocol::BrickMap, level: u32, budget: u64) -> bool {
+    let bytes = map.memory().total_bytes >> (2 * level.min(30));
+    bytes <= budget / WHOLE_SHARE.1 * WHOLE_SHARE.0
 }
 
 /// The bytes of a budget a working set is fitted in ([`FIT_SHARE`]).

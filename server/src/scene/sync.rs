@@ -66,6 +66,9 @@ impl Owner {
             );
             return false;
         }
+        // A budget the whole view fits with room to grow is served the whole view: a working
+        // set is for what does not fit (every viewer states a budget by default).
+        let budget = budget.filter(|b| !super::follow::fits_whole(&self.map, level, b.bytes));
         if level > 0 && budget.is_some() {
             out.close(
                 brickcast_protocol::wire::ErrorCode::NotAllowed,
