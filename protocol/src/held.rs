@@ -22,7 +22,7 @@
 //! So a delta sent after the data it changes applies to it, and data sent after a delta already
 //! includes it.
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::BTreeSet;
 
 use crate::brick::{BrickData, Mask};
 use crate::colour::Colour;
@@ -255,7 +255,7 @@ pub struct Held {
     region_dims: [u32; 3],
     /// Per region (linear index): the level it shows, or [`NOTHING`].
     shown: Vec<u8>,
-    coarse: HashMap<(u32, [u32; 3]), Coarse>,
+    coarse: rustc_hash::FxHashMap<(u32, [u32; 3]), Coarse>,
 }
 
 impl Held {
@@ -267,7 +267,7 @@ impl Held {
             rule: None,
             region_dims,
             shown: vec![NOTHING; regions],
-            coarse: HashMap::new(),
+            coarse: Default::default(),
         }
     }
 
@@ -279,6 +279,13 @@ impl Held {
     pub fn shown_level(&self, r: [u32; 3]) -> Option<u32> {
         let i = self.index(r)?;
         (self.shown[i] != NOTHING).then(|| u32::from(self.shown[i]))
+    }
+
+    /// Whether moving to `rule` is a jump (or the first rule): most of what the copy shows
+    /// changes, and much of it is new.
+    pub fn is_jump(&self, rule: &Rule) -> bool {
+        self.rule
+            .is_none_or(|o| chebyshev(o.eye, rule.eye) > SHELL_MOVE)
     }
 
     /// Coarse bricks held (empty ones included).
@@ -394,11 +401,19 @@ impl Held {
                 self.coarse.insert(key, Coarse { slot, shown_by: 0 });
             }
         }
+        // Clearance is lowered once around the brick's regions, not around each of them.
+        map.defer_region_clearance();
+        let mut shown = Ok(());
         for r in regions {
             if rule.level_of(r) == level && self.shown_level(r) != Some(level) {
-                self.show_coarse(map, r, level)?;
+                shown = self.show_coarse(map, r, level);
+                if shown.is_err() {
+                    break;
+                }
             }
         }
+        map.lower_deferred_region_clearance();
+        shown?;
         if !wanted && self.coarse.get(&key).is_some_and(|c| c.shown_by == 0) {
             self.free_coarse(map, key)?;
         }

@@ -21,8 +21,6 @@
 //! Every brick carries the sequence number of the last edit that touched it, and removed bricks
 //! leave a tombstone, so "what changed since sequence S" is answerable for a reconnecting client.
 
-use std::collections::HashMap;
-
 use crate::brick::{
     BRICK_EDGE, BRICK_VOXELS, BrickData, EMPTY, EMPTY_MASK, Mask, for_each_bit, mask_get,
     mask_is_empty, mask_set, popcount, rank, voxel_bit,
@@ -241,7 +239,7 @@ pub struct BrickMap {
     free_chunks: Vec<Vec<u32>>,
 
     /// Linear cell index → sequence at which its brick was removed.
-    tombstones: HashMap<u32, u64>,
+    tombstones: rustc_hash::FxHashMap<u32, u64>,
     /// Tombstones at or below this sequence have been dropped: a resume from before it needs a
     /// full resync.
     tombstone_horizon: u64,
@@ -268,6 +266,9 @@ pub struct BrickMap {
     /// During [`BrickMap::write_bricks`]: regions of the bricks inserted, whose cells' clearance
     /// is recomputed once at the end instead of after every brick.
     deferred_clearance: Option<Vec<u32>>,
+    /// While [`BrickMap::defer_region_clearance`] holds: the box of regions stand-ins occupied,
+    /// whose surroundings' clearance is lowered once at the end (`None` inside: none yet).
+    deferred_regions: Option<Option<([u32; 3], [u32; 3])>>,
 }
 
 /// An 8×8×8 cube of cells as bits (cell (x, y, z) is bit `x + 8y` of word `z`, like a brick's
@@ -323,7 +324,7 @@ impl BrickMap {
             block_cells: Vec::new(),
             free_blocks: Vec::new(),
             free_chunks: vec![Vec::new(); colour_capacity(MAX_BLOCK_WORDS) as usize + 1],
-            tombstones: HashMap::new(),
+            tombstones: Default::default(),
             tombstone_horizon: 0,
             occupied: None,
             sequence: 0,
@@ -337,6 +338,7 @@ impl BrickMap {
             gpu: None,
             journal: crate::journal::Journal::default(),
             deferred_clearance: None,
+            deferred_regions: None,
         })
     }
 
@@ -1186,7 +1188,7 @@ impl BrickMap {
                 }
                 let r = cell.map(|c| c / REGION_CELLS);
                 self.occupy_region(r);
-                self.lower_clearance_around(r);
+                self.lower_clearance_for(r);
                 block
             }
         };
@@ -1359,24 +1361,112 @@ impl BrickMap {
 
     /// A region just became occupied: no empty region within distance D of it may claim a
     /// clearance of D or more.
-    fn lower_clearance_around(&mut self, r: [u32; 3]) {
-        let cap = CLEARANCE_CAP as i64;
+    /// Region `r` was just occupied: the clearance around it is lowered now, or, while
+    /// [`BrickMap::defer_region_clearance`] holds, once around the box of all such regions.
+    fn lower_clearance_for(&mut self, r: [u32; 3]) {
+        match &mut self.deferred_regions {
+            Some(b) => {
+                *b = Some(match *b {
+                    None => (r, r),
+                    Some((lo, hi)) => (
+                        std::array::from_fn(|a| lo[a].min(r[a])),
+                        std::array::from_fn(|a| hi[a].max(r[a])),
+                    ),
+                });
+            }
+            None => self.lower_clearance_around_box(r, r),
+        }
+    }
+
+    /// Regions `lo..=hi` were occupied (some or all of them): empty regions within
+    /// [`CLEARANCE_CAP`] of the box may claim less clearance than they do, and an empty region
+    /// inside the box claims none (lowering around each occupied region would leave it at most
+    /// that; zero is always safe, and [`BrickMap::rebuild_clearance`] makes it exact again).
+    ///
+    /// Outside the box it goes shell by shell (the regions at distance 1, then 2, ...) and
+    /// stops at the first shell where no region had to be lowered: clearance is 1-Lipschitz
+    /// (it is a capped distance, and every change keeps it so: lowering takes the minimum with
+    /// another such distance, a freed region gets 0 beside an occupied neighbour), so if every
+    /// region at distance `d` claims less than `d`, every region at `d + 1` claims less than
+    /// `d + 1`. Where the box lies among occupied regions this visits the 26 around it, not
+    /// (2·cap+1)³.
+    fn lower_clearance_around_box(&mut self, lo: [u32; 3], hi: [u32; 3]) {
         let dims = self.region_dims.map(i64::from);
-        let r = r.map(i64::from);
-        for z in (r[2] - cap).max(0)..=(r[2] + cap).min(dims[2] - 1) {
-            for y in (r[1] - cap).max(0)..=(r[1] + cap).min(dims[1] - 1) {
-                for x in (r[0] - cap).max(0)..=(r[0] + cap).min(dims[0] - 1) {
-                    let d = (x - r[0]).abs().max((y - r[1]).abs()).max((z - r[2]).abs());
-                    let i = (x + dims[0] * (y + dims[1] * z)) as usize;
-                    let entry = self.regions[i];
-                    if d > 0 && region_is_empty(entry) && i64::from(region_clearance(entry)) >= d {
-                        self.regions[i] = EMPTY_REGION | (d - 1) as u32;
-                        if let Some(g) = &mut self.gpu {
-                            g.regions.push(i as u32);
+        let (lo, hi) = (lo.map(i64::from), hi.map(i64::from));
+        let lower = |map: &mut BrickMap, x: i64, y: i64, z: i64, d: i64| -> bool {
+            let i = (x + dims[0] * (y + dims[1] * z)) as usize;
+            let entry = map.regions[i];
+            if !region_is_empty(entry) || i64::from(region_clearance(entry)) < d.max(1) {
+                return false;
+            }
+            map.regions[i] = EMPTY_REGION | (d - 1).max(0) as u32;
+            if let Some(g) = &mut map.gpu {
+                g.regions.push(i as u32);
+            }
+            true
+        };
+        for z in lo[2]..=hi[2] {
+            for y in lo[1]..=hi[1] {
+                for x in lo[0]..=hi[0] {
+                    lower(self, x, y, z, 0);
+                }
+            }
+        }
+        for d in 1..=i64::from(CLEARANCE_CAP) {
+            let from: [i64; 3] = std::array::from_fn(|a| lo[a] - d);
+            let to: [i64; 3] = std::array::from_fn(|a| hi[a] + d);
+            let inside = |v: i64, a: usize| v > from[a] && v < to[a];
+            let mut any = false;
+            for z in from[2].max(0)..=to[2].min(dims[2] - 1) {
+                for y in from[1].max(0)..=to[1].min(dims[1] - 1) {
+                    if inside(z, 2) && inside(y, 1) {
+                        // Only the two ends of this row lie on the shell.
+                        for x in [from[0], to[0]] {
+                            if x >= 0 && x < dims[0] {
+                                any |= lower(self, x, y, z, d);
+                            }
+                        }
+                    } else {
+                        for x in from[0].max(0)..=to[0].min(dims[0] - 1) {
+                            any |= lower(self, x, y, z, d);
                         }
                     }
                 }
             }
+            if !any {
+                break;
+            }
+        }
+    }
+
+    /// Every empty region claims no clearance (always safe): regions occupied from now on
+    /// lower nothing around them, until [`BrickMap::rebuild_clearance`]. For a copy about to
+    /// take many regions in empty space at once.
+    pub fn zero_region_clearance(&mut self) {
+        for i in 0..self.regions.len() {
+            if region_is_empty(self.regions[i]) && region_clearance(self.regions[i]) != 0 {
+                self.regions[i] = EMPTY_REGION;
+                if let Some(g) = &mut self.gpu {
+                    g.regions.push(i as u32);
+                }
+            }
+        }
+    }
+
+    /// From now until [`BrickMap::lower_deferred_region_clearance`], regions newly occupied
+    /// (by a stand-in or a first brick) do not lower the clearance around them one by one: it
+    /// is lowered once around the box of them all. For many regions close together (those a
+    /// coarse brick covers, a batch of level-0 regions), where lowering around each visits
+    /// (2·cap+1)³ regions.
+    pub fn defer_region_clearance(&mut self) {
+        self.deferred_regions = Some(None);
+    }
+
+    /// Ends [`BrickMap::defer_region_clearance`]: lowers the clearance around the box of the
+    /// stand-ins set meanwhile.
+    pub fn lower_deferred_region_clearance(&mut self) {
+        if let Some(Some((lo, hi))) = self.deferred_regions.take() {
+            self.lower_clearance_around_box(lo, hi);
         }
     }
 

@@ -60,6 +60,8 @@ pub struct Replica {
     budget: Option<u64>,
     /// Times the arrays were packed to stay within the budget.
     pub compactions: u64,
+    /// The working set's clearance was rebuilt at a `SyncDone` since it started.
+    held_clearance_built: bool,
 }
 
 /// How many deltas between clearance rebuilds. A rebuild is a few passes over the region grid
@@ -88,6 +90,7 @@ impl Replica {
             held: None,
             budget: None,
             compactions: 0,
+            held_clearance_built: false,
         })
     }
 
@@ -170,6 +173,7 @@ impl Replica {
         self.seq = 0;
         self.reset = true;
         self.held = None;
+        self.held_clearance_built = false;
         Ok(())
     }
 
@@ -202,8 +206,17 @@ impl Replica {
                 self.seq = self.seq.max(*seq);
                 self.synced = true;
                 self.sync_sent = self.sync_total;
-                self.map.rebuild_clearance();
-                self.deltas_since_rebuild = 0;
+                // A working set's SyncDone follows every move of its eye: its clearance is
+                // rebuilt after its first sync, then like a delta's, every so many messages
+                // (a rebuild is a pass over the whole region grid).
+                let settled = self.held.is_some()
+                    && self.held_clearance_built
+                    && self.deltas_since_rebuild < CLEARANCE_REBUILD_DELTAS;
+                if !settled {
+                    self.map.rebuild_clearance();
+                    self.deltas_since_rebuild = 0;
+                    self.held_clearance_built = self.held.is_some();
+                }
             }
             ServerMsg::Delta {
                 to_seq,
@@ -247,8 +260,14 @@ impl Replica {
                     self.clear(&scene, size)?;
                 }
             }
-            &ServerMsg::Follow { eye, near, top } => self.follow(Rule { eye, near, top })?,
-            ServerMsg::Regions { regions, bricks } => self.receive_regions(regions, bricks)?,
+            &ServerMsg::Follow { eye, near, top } => {
+                self.follow(Rule { eye, near, top })?;
+                self.deltas_since_rebuild += 1;
+            }
+            ServerMsg::Regions { regions, bricks } => {
+                self.receive_regions(regions, bricks)?;
+                self.deltas_since_rebuild += 1;
+            }
             ServerMsg::Coarse {
                 level,
                 bricks,
@@ -270,6 +289,7 @@ impl Replica {
                 self.sync_sent = self
                     .sync_sent
                     .saturating_add((got.len() + empty.len()) as u32);
+                self.deltas_since_rebuild += 1;
             }
             ServerMsg::Ack { .. }
             | ServerMsg::Error { .. }
@@ -301,6 +321,14 @@ impl Replica {
         let Some(held) = &mut self.held else {
             return Ok(());
         };
+        if held.is_jump(&rule) {
+            // Most of what arrives next occupies regions that were empty, and lowering the
+            // clearance around each new region visits (2·cap+1)³ others where the world is a
+            // surface: claim none anywhere until the next SyncDone rebuilds it (the copy is
+            // traced meanwhile, correct and a little slower).
+            self.map.zero_region_clearance();
+            self.held_clearance_built = false;
+        }
         let plan = held.retarget(&mut self.map, rule)?;
         self.synced = false;
         self.sync_sent = 0;

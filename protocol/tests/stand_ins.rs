@@ -347,3 +347,57 @@ fn stand_ins_refuse_bad_requests_and_give_way_to_level_0() {
     }
     assert!(map.regions().iter().all(|&e| region_stand_in(e).is_none()));
 }
+
+/// Clearance stays conservative (no empty region claims past an occupied one) however regions
+/// come and go: level-0 bricks and stand-ins set one by one (lowered shell by shell, stopping
+/// where nothing needs it) and boxes of stand-ins set under a deferral (lowered once around
+/// their box), scattered through a sparse grid where clearance matters, with removals between.
+#[test]
+fn clearance_stays_conservative_as_regions_come_and_go() {
+    let mut map = BrickMap::new([1024, 128, 1024]).unwrap();
+    let dims = map.region_dims();
+    let mut rng = Rng(5);
+    let mut mask: Mask = [0; 8];
+    mask_set(&mut mask, 0, true);
+    let slot = map.add_coarse(mask, &[Colour(3)]).unwrap();
+    let mut stand_ins = Vec::new();
+    for step in 0..300 {
+        let r = [rng.below(dims[0]), rng.below(dims[1]), rng.below(dims[2])];
+        match rng.below(5) {
+            0 | 1 => {
+                if map.stand_in(r).is_none() {
+                    map.set(r.map(|v| v * 32 + 5), Colour(7));
+                }
+            }
+            2 => {
+                if map.set_stand_in(r, Some((2, slot))).is_ok() {
+                    stand_ins.push(r);
+                }
+            }
+            3 => {
+                // A coarse brick's worth of regions at once, some of it already held.
+                let hi: [u32; 3] =
+                    std::array::from_fn(|i| (r[i] + 1 + rng.below(4)).min(dims[i] - 1));
+                map.defer_region_clearance();
+                for q in box_points(r, hi.map(|v| v + 1)) {
+                    if rng.below(4) != 0 && map.set_stand_in(q, Some((4, slot))).is_ok() {
+                        stand_ins.push(q);
+                    }
+                }
+                map.lower_deferred_region_clearance();
+            }
+            _ => {
+                if let Some(q) = stand_ins.pop() {
+                    map.set_stand_in(q, None).unwrap();
+                }
+                map.clear(r.map(|v| v * 32 + 5));
+            }
+        }
+        if let Err(e) = map.check_invariants() {
+            panic!("step {step}: {e}");
+        }
+        if step % 50 == 49 {
+            map.rebuild_clearance();
+        }
+    }
+}

@@ -143,7 +143,6 @@ pub async fn run(
                     who: &who,
                     from,
                     level,
-                    following: budget.is_some(),
                     unread: &unread,
                 };
                 read_loop(&mut stream, session).await;
@@ -305,9 +304,6 @@ struct Session<'a> {
     from: IpAddr,
     /// The level of detail it views (0: the scene); above 0 it is not in presence.
     level: u32,
-    /// It holds a working set that follows its camera: every camera update counts, not only
-    /// those during a sync.
-    following: bool,
     /// Set when its input could not be read (see `run`).
     unread: &'a std::sync::atomic::AtomicBool,
 }
@@ -350,7 +346,6 @@ async fn read_loop(
         out,
         id,
         role,
-        following,
         ..
     } = session;
     let limits: &Limits = &scene.limits;
@@ -410,7 +405,7 @@ async fn read_loop(
                 // Streaming order is a hint: drop it rather than wait when the owner is busy,
                 // and do not wake the owner at all when no sync is going on.
                 if let Some(eye) = camera.take()
-                    && (out.is_syncing() || following)
+                    && (out.is_syncing() || out.is_following())
                     && scene.try_send(Command::Camera { session: id, eye }).is_ok()
                 {
                     Metrics::add(&app.metrics.camera_updates, 1);

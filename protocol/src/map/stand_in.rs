@@ -154,7 +154,7 @@ impl BrickMap {
                 if !was {
                     self.stand_ins += 1;
                     self.occupy_region(region);
-                    self.lower_clearance_around(region);
+                    self.lower_clearance_for(region);
                 }
             }
             None => {

@@ -89,6 +89,8 @@ struct Shared {
     drained: Notify,
     /// The owner is streaming this session a sync: its camera decides what goes next.
     syncing: AtomicBool,
+    /// The session holds a working set that follows its camera (set by the owner).
+    following: AtomicBool,
     /// Woken when the writer takes a frame while the owner streams a sync: the owner queues
     /// a sync only a little ahead of the writer ([`Outbox::wake_owner_with`]).
     owner: std::sync::OnceLock<Arc<Notify>>,
@@ -206,6 +208,7 @@ impl Outbox {
             refusals_folded: AtomicUsize::new(0),
             drained: Notify::new(),
             syncing: AtomicBool::new(false),
+            following: AtomicBool::new(false),
             owner: std::sync::OnceLock::new(),
         });
         (
@@ -375,6 +378,17 @@ impl Outbox {
     /// costs the owner nothing.
     pub fn is_syncing(&self) -> bool {
         self.shared.syncing.load(Relaxed)
+    }
+
+    /// Marks whether the session holds a working set that follows its camera (set by the
+    /// owner when it joins: a budget the whole scene fits is served the whole scene).
+    pub fn set_following(&self, on: bool) {
+        self.shared.following.store(on, Relaxed);
+    }
+
+    /// Whether every camera update matters (a working set follows it), not only during a sync.
+    pub fn is_following(&self) -> bool {
+        self.shared.following.load(Relaxed)
     }
 
     /// Bytes this session's queue holds.
