@@ -157,6 +157,90 @@ fn page_frame_matches_the_cpu_renderer() -> Result<()> {
     server.stop()
 }
 
+/// `?budget=` on a world larger than the budget: the page holds the working set the server
+/// streams (level 0 around the camera, coarse bricks further away), within the budget in its
+/// copy and on the GPU, and traces it as the CPU traces the same working set built from the
+/// whole scene. Without `?budget=` (256 MiB) the small scene is held whole.
+#[test]
+fn the_page_holds_a_working_set_within_its_budget() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let server = TestServer::start_with(dir.path(), local(), |c| c.demo_size = [512, 64, 512])?;
+    let mut browser = Browser::start(320, 180)?;
+    let budget = 200 * 1024;
+    browser.goto(&format!("{}?budget=200KiB", viewer_url(&server, "demo")))?;
+    let state = browser.wait_state(
+        "s.synced && s.working_set !== null && s.gpu_bytes !== null && s.frames > 0",
+        120_000,
+    )?;
+    println!("page state with a budget: {state}");
+    assert_eq!(state["budget"], budget, "{state}");
+    assert!(state["stand_ins"].as_u64().unwrap_or(0) > 0, "{state}");
+    for what in ["scene_bytes", "gpu_bytes"] {
+        let bytes = state[what].as_u64().context("bytes")?;
+        assert!(bytes <= budget, "{what}: {bytes} of {budget}: {state}");
+    }
+    let exact = fetch(&server.url("demo"))?.map;
+    assert!(state["bricks"].as_u64().unwrap_or(0) < exact.brick_count());
+    let ws = &state["working_set"];
+    let coord = |v: &serde_json::Value| -> Result<[u32; 3]> {
+        let a: Vec<u32> = serde_json::from_value(v.clone())?;
+        a.try_into()
+            .map_err(|_| anyhow::anyhow!("three numbers: {v}"))
+    };
+    let rule = brickcast_protocol::working_set::Rule {
+        eye: coord(&ws["eye"])?,
+        near: ws["near"].as_u64().context("near")? as u32,
+        top: ws["top"].as_u64().context("top")? as u32,
+    };
+    let pyramid = brickcast_protocol::lod::Pyramid::build(&exact)?;
+    let mut held = brickcast_protocol::working_set::build(&exact, &pyramid, &rule)?;
+    held.rebuild_clearance();
+    // From the working set's eye region looking across it, and from above the whole world.
+    let eye = rule.eye.map(|r| (r * 32 + 16) as f32);
+    let size = held.size();
+    let cameras = [
+        Camera {
+            eye: [eye[0], 60.0, eye[2]],
+            target: [eye[0] + 200.0, 10.0, eye[2] + 120.0],
+            fov_y: 70.0,
+        },
+        Camera::overview(size),
+    ];
+    for camera in cameras {
+        let (w, h) = (96, 54);
+        let frame = browser.trace(w, h, camera.eye, camera.target, camera.fov_y)?;
+        let cpu = render(
+            &held,
+            &camera.project(w, h).context("camera")?,
+            &Lighting::default(),
+            0,
+        );
+        let mut mismatches = 0;
+        let mut hit_pixels = 0;
+        for i in 0..(w * h) as usize {
+            let page_hit = frame.hits[i].map_or(MISS, |v| voxel_index(size, v));
+            hit_pixels += usize::from(cpu.hits[i] != MISS);
+            mismatches += usize::from(page_hit != cpu.hits[i]);
+        }
+        assert!(
+            hit_pixels > 500,
+            "{camera:?} sees the world ({hit_pixels} hits)"
+        );
+        assert!(
+            mismatches <= 3 + (w * h) as usize / 2000,
+            "{mismatches} of {} pixels hit another voxel in the page than on the CPU from {camera:?}",
+            w * h
+        );
+    }
+
+    browser.goto(&viewer_url(&server, "demo"))?;
+    let state = browser.wait_state("s.synced && s.frames > 0", 120_000)?;
+    assert_eq!(state["budget"], 256u64 << 20, "{state}");
+    assert!(state["working_set"].is_null(), "held whole: {state}");
+    assert_eq!(state["bricks"].as_u64(), Some(exact.brick_count()));
+    server.stop()
+}
+
 /// An edit made with the mouse in the page reaches a native client, and a native edit shows
 /// in the page's next frame.
 #[test]

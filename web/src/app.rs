@@ -724,6 +724,13 @@ impl App {
             "others": self.session.roster.others.values().map(|o| o.peer.name.clone()).collect::<Vec<_>>(),
             "bytes_in": self.bytes_in,
             "camera": self.camera.map(|c| c.eye),
+            "budget": self.session.budget,
+            "gpu_bytes": self.gpu.as_ref().and_then(|g| g.scene.as_ref()).map(|s| s.gpu_bytes()),
+            // The working set the server streams within the budget (`null`: the whole scene).
+            "working_set": replica.and_then(|r| r.held()).and_then(|h| h.rule()).map(|rule| {
+                serde_json::json!({ "eye": rule.eye, "near": rule.near, "top": rule.top })
+            }),
+            "stand_ins": replica.map_or(0, |r| r.map.stand_in_count()),
         });
         value.to_string()
     }
