@@ -192,6 +192,78 @@ pub fn coarse_bytes(pyramid: &Pyramid, level: u32, cell: [u32; 3]) -> u64 {
         .unwrap_or(0)
 }
 
+/// [`region_bytes`] of every region, remembered: the cost of a move is mostly the regions of
+/// its shells, measured again on every move otherwise (a pass over each region's bricks and
+/// their colour blocks). Whoever changes the map forgets the regions of the cells it touched
+/// ([`RegionCosts::forget_cells`]). Interior mutability (relaxed atomics), so a shared
+/// reference to the owner's state can fill it.
+pub struct RegionCosts {
+    /// Per region (linear index): its bytes, or `UNKNOWN`.
+    bytes: Vec<std::sync::atomic::AtomicU32>,
+}
+
+impl RegionCosts {
+    const UNKNOWN: u32 = u32::MAX;
+
+    /// Nothing known yet of a map of `region_dims` regions.
+    pub fn new(region_dims: [u32; 3]) -> RegionCosts {
+        let n = region_dims.iter().map(|&d| d as usize).product();
+        RegionCosts {
+            bytes: (0..n)
+                .map(|_| std::sync::atomic::AtomicU32::new(Self::UNKNOWN))
+                .collect(),
+        }
+    }
+
+    /// [`region_bytes`] of region `r` of `base`.
+    pub fn get(&self, base: &BrickMap, r: [u32; 3]) -> u64 {
+        use std::sync::atomic::Ordering::Relaxed;
+        let d = base.region_dims();
+        let i = (r[0] + d[0] * (r[1] + d[1] * r[2])) as usize;
+        let Some(slot) = self.bytes.get(i) else {
+            return region_bytes(base, r);
+        };
+        match slot.load(Relaxed) {
+            Self::UNKNOWN => {
+                let bytes = region_bytes(base, r);
+                // A region holds at most 64 bricks of a few KiB: always below the marker.
+                slot.store(u32::try_from(bytes).unwrap_or(Self::UNKNOWN), Relaxed);
+                bytes
+            }
+            known => u64::from(known),
+        }
+    }
+
+    /// The regions of the level-0 cells `cells` (linear indices) changed.
+    pub fn forget_cells(&self, base: &BrickMap, cells: &[u32]) {
+        use std::sync::atomic::Ordering::Relaxed;
+        let d = base.region_dims();
+        for &c in cells {
+            let r = base.cell_coords(c).map(|v| v / crate::map::REGION_CELLS);
+            let i = (r[0] + d[0] * (r[1] + d[1] * r[2])) as usize;
+            if let Some(slot) = self.bytes.get(i) {
+                slot.store(Self::UNKNOWN, Relaxed);
+            }
+        }
+    }
+}
+
+/// [`plan_bytes`] with the regions' bytes from `costs`.
+pub fn plan_bytes_with(
+    base: &BrickMap,
+    pyramid: &Pyramid,
+    plan: &crate::held::Plan,
+    costs: &RegionCosts,
+) -> u64 {
+    let regions: u64 = plan.regions.iter().map(|&r| costs.get(base, r)).sum();
+    let coarse: u64 = plan
+        .coarse
+        .iter()
+        .map(|&(k, cell)| coarse_bytes(pyramid, k, cell))
+        .sum();
+    regions + coarse
+}
+
 /// Bytes of everything `plan` brings. The cost of a rule `new` is the cost of `old` plus the
 /// bytes of `held::plan(old, new)` minus those of `held::plan(new, old)` (what `new` lets go
 /// of): a move costs what its shells cost, not a pass over the world.
@@ -374,6 +446,30 @@ pub(crate) mod tests {
             small,
             Err(BudgetError::TooSmall { budget: 1000, .. })
         ));
+    }
+
+    /// Remembered region costs equal measured ones after edits, once the edited cells'
+    /// regions are forgotten; a stale entry is what forgetting prevents.
+    #[test]
+    fn remembered_region_costs_follow_the_edits() {
+        let mut base = scene();
+        base.record_touched(true);
+        base.take_touched();
+        let costs = RegionCosts::new(base.region_dims());
+        let d = base.region_dims();
+        let every = || box_points([0, 0, 0], d);
+        for r in every() {
+            assert_eq!(costs.get(&base, r), region_bytes(&base, r));
+        }
+        base.sphere([100.0, 20.0, 100.0], 14.0, BrushMode::Fill, Colour(0x1234));
+        base.sphere([300.0, 3.0, 200.0], 9.0, BrushMode::Erase, Colour(0));
+        let touched = base.take_touched();
+        let stale = every().filter(|&r| costs.get(&base, r) != region_bytes(&base, r));
+        assert!(stale.count() > 0, "the edits change some regions' cost");
+        costs.forget_cells(&base, &touched);
+        for r in every() {
+            assert_eq!(costs.get(&base, r), region_bytes(&base, r), "{r:?}");
+        }
     }
 
     /// A rule's cost follows from the previous rule's and the two plans between them, for moves

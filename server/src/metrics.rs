@@ -111,12 +111,14 @@ pub enum OwnerPhase {
     Fanout,
     /// Encoding and queueing sync and resync batches.
     Sync,
+    /// Following cameras: working sets retargeted as their eyes move (rules, plans, costs).
+    Follow,
     /// Writing snapshots.
     Snapshot,
 }
 
 impl OwnerPhase {
-    pub const ALL: [OwnerPhase; 8] = [
+    pub const ALL: [OwnerPhase; 9] = [
         OwnerPhase::Wait,
         OwnerPhase::Apply,
         OwnerPhase::Commit,
@@ -124,6 +126,7 @@ impl OwnerPhase {
         OwnerPhase::Encode,
         OwnerPhase::Fanout,
         OwnerPhase::Sync,
+        OwnerPhase::Follow,
         OwnerPhase::Snapshot,
     ];
 
@@ -136,6 +139,7 @@ impl OwnerPhase {
             OwnerPhase::Encode => "encode",
             OwnerPhase::Fanout => "fanout",
             OwnerPhase::Sync => "sync",
+            OwnerPhase::Follow => "follow",
             OwnerPhase::Snapshot => "snapshot",
         }
     }

@@ -66,6 +66,10 @@ pub(crate) struct Follow {
     coarse: Vec<(u32, [u32; 3])>,
     /// Whether the next frame of the stream is coarse (coarse and regions take turns).
     coarse_next: bool,
+    /// `near` could not grow back at this cost (the larger rule did not fit): not tried again
+    /// until the cost falls a sixteenth of the budget below it, so a working set held small
+    /// by a dense part of the world does not cost two whole plans on every move.
+    grow_failed_at: Option<u64>,
     /// The working set moved: its coarse bricks go before any region, because a region
     /// leaving level 0 lets its bricks go only once the coarse brick that replaces it arrives;
     /// sent first, the copy shrinks before the new level 0 grows it (its budget holds).
@@ -83,6 +87,7 @@ impl Follow {
             coarse: Vec::new(),
             coarse_next: true,
             coarse_first: false,
+            grow_failed_at: None,
         }
     }
 
@@ -179,44 +184,74 @@ impl Owner {
             return;
         };
         let dims = self.map.region_dims();
+        // The cost after moving: what `to` brings, less what it lets go of; and the plan.
+        let Some(costs) = self.levels.costs() else {
+            return;
+        };
         let moved = |from: &Rule, to: &Rule, bytes: u64| {
-            let gained = working_set::plan_bytes(&self.map, pyramid, &plan(dims, Some(from), to));
-            let lost = working_set::plan_bytes(&self.map, pyramid, &plan(dims, Some(to), from));
-            (bytes + gained).saturating_sub(lost)
+            let wanted = plan(dims, Some(from), to);
+            let cost = |p| working_set::plan_bytes_with(&self.map, pyramid, p, costs);
+            let gained = cost(&wanted);
+            let lost = cost(&plan(dims, Some(to), from));
+            ((bytes + gained).saturating_sub(lost), wanted)
         };
         let limit = share(follow.budget);
         let mut rule = Rule::new(&self.map, pyramid, sub.camera, old.near);
         if rule == old {
             return;
         }
-        let mut bytes = moved(&old, &rule, follow.bytes);
+        let (mut bytes, mut wanted) = moved(&old, &rule, follow.bytes);
+        let mut changed_near = false;
         while bytes > limit && rule.near > 0 {
             let smaller = Rule {
                 near: rule.near - 1,
                 ..rule
             };
-            bytes = moved(&rule, &smaller, bytes);
+            bytes = moved(&rule, &smaller, bytes).0;
             rule = smaller;
+            changed_near = true;
         }
-        while rule.near < follow.fitted_near && bytes < limit / 4 * 3 {
+        let may_grow = follow
+            .grow_failed_at
+            .is_none_or(|failed| bytes + limit / 16 < failed);
+        while may_grow && rule.near < follow.fitted_near && bytes < limit / 4 * 3 {
             let larger = Rule {
                 near: rule.near + 1,
                 ..rule
             };
-            let grown = moved(&rule, &larger, bytes);
+            let grown = moved(&rule, &larger, bytes).0;
             if grown > limit {
+                follow.grow_failed_at = Some(bytes);
                 break;
             }
             (rule, bytes) = (larger, grown);
+            follow.grow_failed_at = None;
+            changed_near = true;
         }
         follow.bytes = bytes;
-        self.retarget(sub, rule);
+        // The plan from the old rule is the one computed first unless `near` changed.
+        if changed_near {
+            wanted = plan(dims, Some(&old), &rule);
+        }
+        self.retarget_with(sub, rule, wanted);
     }
 
     /// Moves a following session to `rule`: a `Follow`, and what it now lacks added to what is
     /// still owed and still wanted (the two never overlap: the plan lists only what the old
     /// rule did not want at that level).
     fn retarget(&self, sub: &mut Subscriber, rule: Rule) {
+        let old = sub.follow.as_ref().and_then(|f| f.rule);
+        let wanted = plan(self.map.region_dims(), old.as_ref(), &rule);
+        self.retarget_with(sub, rule, wanted);
+    }
+
+    /// [`Owner::retarget`] with the plan from the session's rule to `rule` already made.
+    fn retarget_with(
+        &self,
+        sub: &mut Subscriber,
+        rule: Rule,
+        wanted: brickcast_protocol::held::Plan,
+    ) {
         let Some(follow) = &mut sub.follow else {
             return;
         };
@@ -225,7 +260,6 @@ impl Owner {
         }
         let dims = self.map.region_dims();
         let old = follow.rule.replace(rule);
-        let wanted = plan(dims, old.as_ref(), &rule);
         follow.coarse_first = old.is_some();
         follow.regions.retain(|&r| rule.level_of(r) == 0);
         follow.coarse.retain(|&(k, c)| rule.holds(dims, k, c));

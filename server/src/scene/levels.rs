@@ -35,6 +35,8 @@ pub(super) struct Levels {
     building: Option<(u32, std::time::Instant)>,
     /// Slots folded in per turn ([`BUILD_SLOTS_PER_TURN`]; tests take smaller steps).
     step: Option<u32>,
+    /// Level-0 regions' bytes in a working set, remembered for following cameras.
+    costs: Option<brickcast_protocol::working_set::RegionCosts>,
 }
 
 impl Levels {
@@ -43,6 +45,9 @@ impl Levels {
     /// fresh levels know no earlier removals).
     pub(super) fn start(&mut self, map: &BrickMap, seq: u64) -> Result<(), MapError> {
         if self.pyramid.is_none() {
+            self.costs = Some(brickcast_protocol::working_set::RegionCosts::new(
+                map.region_dims(),
+            ));
             let mut pyramid = Pyramid::empty(map.size())?;
             pyramid.prune_tombstones(seq);
             self.pyramid = Some(pyramid);
@@ -96,6 +101,11 @@ impl Levels {
         Ok(())
     }
 
+    /// Level-0 regions' bytes, remembered (`None` before the levels were asked for).
+    pub(super) fn costs(&self) -> Option<&brickcast_protocol::working_set::RegionCosts> {
+        self.costs.as_ref()
+    }
+
     /// The pyramid, once it is complete and current.
     pub(super) fn pyramid(&self) -> Option<&Pyramid> {
         self.pyramid.as_ref().filter(|_| self.ready())
@@ -113,6 +123,9 @@ impl Levels {
     /// Brings the levels (as far as they are built) up to date with the level-0 cells a turn
     /// touched; what changed per level (empty when there are no levels).
     pub(super) fn update(&mut self, map: &BrickMap, touched: &[u32]) -> Result<Changed, MapError> {
+        if let Some(costs) = &self.costs {
+            costs.forget_cells(map, touched);
+        }
         match &mut self.pyramid {
             Some(pyramid) if !touched.is_empty() => pyramid.update(map, touched),
             _ => Ok(Changed::new()),

@@ -533,9 +533,11 @@ impl Owner {
             self.released.extend(released);
             self.publish(&mut log, &mut acks, clock)?;
         }
+        clock.mark(&self.metrics, OwnerPhase::Snapshot);
         for (session, eye) in cameras {
             self.camera(session, eye);
         }
+        clock.mark(&self.metrics, OwnerPhase::Follow);
         for done in snapshot_requests {
             let result = self.maybe_snapshot(true).map_err(|e| e.to_string());
             let _ = done.send(result);
