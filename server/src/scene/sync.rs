@@ -17,6 +17,9 @@ use crate::metrics::Metrics;
 
 /// Sync frames queued per subscriber per turn.
 const FRAMES_PER_TURN: usize = 4;
+/// How long one turn streams syncs and working sets before it lets the next turn take the
+/// commands waiting (edits among them); the sessions not reached go first next turn.
+const PUMP_TIME: std::time::Duration = std::time::Duration::from_millis(4);
 
 /// A sync (initial, resume, resync) is queued at most this far ahead of its session's writer:
 /// the next frames are encoded when the writer takes what was queued (it wakes the owner), not
@@ -380,7 +383,8 @@ impl Owner {
 
     /// Advances syncs (initial, resume, resync) by a bounded amount per turn, so edits keep
     /// flowing while a large scene streams out: at most `max_syncs_per_turn` sessions get
-    /// frames, in turn (the next turn starts after the last one served), and none while the
+    /// frames, for at most [`PUMP_TIME`], in turn (the next turn starts after the last one
+    /// served), and none while the
     /// server's queues together hold more than `max_queued_total`.
     pub(super) fn pump_syncs(&mut self) {
         let after = self.sync_cursor;
@@ -392,8 +396,13 @@ impl Owner {
             .map(|(&id, _)| id)
             .collect();
         let mut served = 0;
+        let started = (self.clock)();
         for id in ids {
-            if served == self.config.max_syncs_per_turn {
+            // Edits wait while a turn streams: a turn streams to a few sessions, for a few
+            // milliseconds at most (the next turn goes on with the sessions after them).
+            if served == self.config.max_syncs_per_turn
+                || (self.clock)().saturating_duration_since(started) > PUMP_TIME
+            {
                 break;
             }
             let Some(mut sub) = self.subs.remove(&id) else {
