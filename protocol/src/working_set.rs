@@ -255,20 +255,23 @@ pub fn plan_bytes_with(
     plan: &crate::held::Plan,
     costs: &RegionCosts,
 ) -> u64 {
-    let regions: u64 = plan.regions.iter().map(|&r| costs.get(base, r)).sum();
-    let coarse: u64 = plan
-        .coarse
-        .iter()
-        .map(|&(k, cell)| coarse_bytes(pyramid, k, cell))
-        .sum();
-    regions + coarse
+    plan_bytes_by(pyramid, plan, |r| costs.get(base, r))
 }
 
 /// Bytes of everything `plan` brings. The cost of a rule `new` is the cost of `old` plus the
 /// bytes of `held::plan(old, new)` minus those of `held::plan(new, old)` (what `new` lets go
 /// of): a move costs what its shells cost, not a pass over the world.
 pub fn plan_bytes(base: &BrickMap, pyramid: &Pyramid, plan: &crate::held::Plan) -> u64 {
-    let regions: u64 = plan.regions.iter().map(|&r| region_bytes(base, r)).sum();
+    plan_bytes_by(pyramid, plan, |r| region_bytes(base, r))
+}
+
+/// A plan's bytes with each region's from `region`.
+fn plan_bytes_by(
+    pyramid: &Pyramid,
+    plan: &crate::held::Plan,
+    region: impl Fn([u32; 3]) -> u64,
+) -> u64 {
+    let regions: u64 = plan.regions.iter().map(|&r| region(r)).sum();
     let coarse: u64 = plan
         .coarse
         .iter()

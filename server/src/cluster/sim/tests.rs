@@ -73,6 +73,25 @@ fn the_cluster_survives_random_faults() {
     }
 }
 
+/// A simulated NATS server (its RNG from `seed`), a paused single-threaded runtime to call it
+/// from, and that runtime's time at the start (a process clock's base).
+fn simulated_jet(
+    seed: u64,
+) -> (
+    Arc<Mutex<jet::World>>,
+    tokio::runtime::Runtime,
+    tokio::time::Instant,
+) {
+    let world = Arc::new(Mutex::new(jet::World::new(ChaCha8Rng::seed_from_u64(seed))));
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_time()
+        .start_paused(true)
+        .build()
+        .unwrap();
+    let base = rt.block_on(async { tokio::time::Instant::now() });
+    (world, rt, base)
+}
+
 /// A node starting while NATS does not answer waits for it; a create that landed with its
 /// answer lost is found again, not taken for another process's name. (Before, the first
 /// unanswered request ended the start.)
@@ -81,13 +100,7 @@ fn a_starting_node_waits_for_nats_and_finds_its_own_name() {
     use crate::cluster::jet::{Bucket, Jet};
     use crate::cluster::name;
 
-    let world = Arc::new(Mutex::new(jet::World::new(ChaCha8Rng::seed_from_u64(2))));
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_time()
-        .start_paused(true)
-        .build()
-        .unwrap();
-    let base = rt.block_on(async { tokio::time::Instant::now() });
+    let (world, rt, base) = simulated_jet(2);
     let jet = |process| jet::SimJet {
         world: world.clone(),
         process,
@@ -138,13 +151,7 @@ fn a_scene_from_before_heads_loads_and_its_next_snapshot_starts_one() {
     use crate::scene::Turn;
     use crate::scene::history::History;
 
-    let world = Arc::new(Mutex::new(jet::World::new(ChaCha8Rng::seed_from_u64(1))));
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_time()
-        .start_paused(true)
-        .build()
-        .unwrap();
-    let base = rt.block_on(async { tokio::time::Instant::now() });
+    let (world, rt, base) = simulated_jet(1);
     let jet = jet::SimJet {
         world,
         process: 1,
