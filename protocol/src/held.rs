@@ -305,9 +305,9 @@ impl Held {
     /// ([`plan`]).
     pub fn retarget(&mut self, map: &mut BrickMap, rule: Rule) -> Result<Plan, MapError> {
         let plan = plan(self.region_dims, self.rule.as_ref(), &rule);
+        let jump = self.is_jump(&rule);
         let old = self.rule.replace(rule);
         // Only regions whose level changed can switch now; the others wait for their data.
-        let jump = old.is_none_or(|o| chebyshev(o.eye, rule.eye) > SHELL_MOVE);
         let mut switch = Vec::new();
         let mut release = Vec::new();
         each_candidate(self.region_dims, old.as_ref(), &rule, |r| {
