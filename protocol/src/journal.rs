@@ -30,13 +30,19 @@ impl Hasher for CellHasher {
     }
 }
 
-/// One journaled cell: its mask before (empty when it had no brick) and where its colours are.
+/// One journaled cell. A cell only single-voxel edits touched keeps the before-value of each
+/// voxel they touched (`Journal::voxels`); any other change keeps the whole brick as it was
+/// (`whole`: its mask here, its colours in `Journal::colours`).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Entry {
     pub(crate) cell: u32,
+    pub(crate) whole: bool,
+    /// The brick's mask before (empty when it had no brick); only when `whole`.
     pub(crate) mask: Mask,
     pub(crate) start: u32,
     pub(crate) len: u32,
+    /// Voxels with a before-value in `Journal::voxels` (not `whole`).
+    pub(crate) touched: Mask,
 }
 
 /// The journal's buffers.
@@ -46,6 +52,8 @@ pub(crate) struct Journal {
     index: HashMap<u32, u32, BuildHasherDefault<CellHasher>>,
     pub(crate) entries: Vec<Entry>,
     pub(crate) colours: Vec<Colour>,
+    /// (entry, voxel bit, before) of single voxels, in the order first touched.
+    pub(crate) voxels: Vec<(u32, u16, Option<Colour>)>,
 }
 
 impl Journal {
@@ -54,24 +62,87 @@ impl Journal {
         self.index.clear();
         self.entries.clear();
         self.colours.clear();
+        self.voxels.clear();
         self.on = true;
     }
 
-    pub(crate) fn has(&self, cell: u32) -> bool {
-        self.index.contains_key(&cell)
+    /// The entry of `cell`, if journaled.
+    pub(crate) fn entry(&self, cell: u32) -> Option<usize> {
+        self.index.get(&cell).map(|&e| e as usize)
     }
 
-    /// Records `cell`'s brick before its first change.
+    /// Records `cell`'s whole brick before its first change.
     pub(crate) fn record(&mut self, cell: u32, mask: Mask, colours: &[Colour]) {
         let start = self.colours.len() as u32;
         self.colours.extend_from_slice(colours);
         self.index.insert(cell, self.entries.len() as u32);
         self.entries.push(Entry {
             cell,
+            whole: true,
             mask,
             start,
             len: colours.len() as u32,
+            touched: [0; 8],
         });
+    }
+
+    /// Records one voxel's value before its first change (`cell` new to the journal or
+    /// journaled voxel by voxel).
+    pub(crate) fn record_voxel(&mut self, cell: u32, bit: u16, before: Option<Colour>) {
+        let e = match self.entry(cell) {
+            Some(e) => e,
+            None => {
+                self.index.insert(cell, self.entries.len() as u32);
+                self.entries.push(Entry {
+                    cell,
+                    whole: false,
+                    mask: [0; 8],
+                    start: 0,
+                    len: 0,
+                    touched: [0; 8],
+                });
+                self.entries.len() - 1
+            }
+        };
+        let entry = &mut self.entries[e];
+        let (w, b) = (usize::from(bit / 64), bit % 64);
+        if entry.whole || entry.touched[w] >> b & 1 == 1 {
+            return;
+        }
+        entry.touched[w] |= 1 << b;
+        self.voxels.push((e as u32, bit, before));
+    }
+
+    /// Turns a cell journaled voxel by voxel into a whole before-image, given the brick as it
+    /// is now (`mask`, `colours`): the touched voxels go back to their recorded values.
+    pub(crate) fn make_whole(&mut self, e: usize, mask: &Mask, colours: &[Colour]) {
+        if self.entries[e].whole {
+            return;
+        }
+        let mut values = [None; 512];
+        let mut next = colours.iter();
+        for (bit, value) in values.iter_mut().enumerate() {
+            if mask[bit / 64] >> (bit % 64) & 1 == 1 {
+                *value = next.next().copied();
+            }
+        }
+        for v in self.voxels.iter_mut().filter(|v| v.0 == e as u32) {
+            values[usize::from(v.1)] = v.2;
+            v.0 = u32::MAX;
+        }
+        let mut before = [0u64; 8];
+        let start = self.colours.len() as u32;
+        for (bit, value) in values.iter().enumerate() {
+            if let Some(c) = value {
+                before[bit / 64] |= 1 << (bit % 64);
+                self.colours.push(*c);
+            }
+        }
+        let entry = &mut self.entries[e];
+        entry.whole = true;
+        entry.mask = before;
+        entry.start = start;
+        entry.len = self.colours.len() as u32 - start;
     }
 }
 

@@ -393,53 +393,99 @@ impl BrickMap {
         self.journal.begin();
     }
 
-    /// Stops journaling and calls `f(cell, before, after)` for each cell changed since
-    /// [`BrickMap::begin_journal`] (linear index, in the order first changed) with its brick
-    /// before and now as (mask, colours); an empty mask means no brick. A cell may appear whose
-    /// brick ended as it began.
-    pub fn end_journal(&mut self, mut f: impl FnMut(u32, (&Mask, &[Colour]), (&Mask, &[Colour]))) {
-        let journal = std::mem::take(&mut self.journal);
+    /// Stops journaling and calls `f(cell, bit, before, after)` for each voxel changed since
+    /// [`BrickMap::begin_journal`] (`None`: empty), cells in the order first changed (linear
+    /// index) and voxels in bit order within a cell. A voxel changed and changed back is not
+    /// named.
+    pub fn end_journal(&mut self, mut f: impl FnMut(u32, u16, Option<Colour>, Option<Colour>)) {
+        let mut journal = std::mem::take(&mut self.journal);
         let mut scratch = [Colour::BLACK; VOXELS];
-        for e in &journal.entries {
-            let before = (
-                &e.mask,
-                &journal.colours[e.start as usize..(e.start + e.len) as usize],
-            );
+        // Single voxels by cell, then bit: each cell's run in the order cells were first changed.
+        journal.voxels.retain(|v| v.0 != u32::MAX);
+        journal.voxels.sort_unstable_by_key(|v| (v.0, v.1));
+        let mut voxels = journal.voxels.iter().peekable();
+        for (i, e) in journal.entries.iter().enumerate() {
             let coords = self.cell_coords(e.cell);
-            match self.slot_of_cell(coords) {
-                Some(slot) => f(
-                    e.cell,
-                    before,
-                    (
+            let slot = self.slot_of_cell(coords);
+            if e.whole {
+                let before = (
+                    &e.mask,
+                    &journal.colours[e.start as usize..(e.start + e.len) as usize],
+                );
+                let after = match slot {
+                    Some(slot) => (
                         &self.masks[slot as usize],
                         self.slot_colours(slot, &mut scratch),
                     ),
-                ),
-                None => f(e.cell, before, (&EMPTY_MASK, &[])),
+                    None => (&EMPTY_MASK, &[][..]),
+                };
+                crate::journal::diff_bricks(before, after, |bit, b, a| f(e.cell, bit, b, a));
+                continue;
+            }
+            while let Some(&(_, bit, before)) = voxels.next_if(|v| v.0 == i as u32) {
+                let after = slot.and_then(|slot| {
+                    let mask = &self.masks[slot as usize];
+                    let bit = u32::from(bit);
+                    mask_get(mask, bit)
+                        .then(|| {
+                            crate::palette::colour_at_words(
+                                self.block(slot),
+                                rank(mask, bit) as usize,
+                            )
+                        })
+                        .flatten()
+                });
+                if before != after {
+                    f(e.cell, bit, before, after);
+                }
             }
         }
         self.journal = journal;
         self.journal.on = false;
     }
 
-    /// Journals the cell's brick before a change, once per journal.
+    /// Journals the cell's whole brick before a change, once per journal (a cell journaled
+    /// voxel by voxel so far gets its whole before-image now).
     fn note_before(&mut self, cell: [u32; 3]) {
         if !self.journal.on {
             return;
         }
         let index = self.cell_index(cell);
-        if self.journal.has(index) {
+        let entry = self.journal.entry(index);
+        if entry.is_some_and(|e| self.journal.entries[e].whole) {
             return;
         }
-        match self.slot_of_cell(cell) {
-            Some(slot) => {
-                let mask = self.masks[slot as usize];
-                let mut scratch = [Colour::BLACK; VOXELS];
-                let colours = self.slot_colours(slot, &mut scratch);
-                self.journal.record(index, mask, colours);
-            }
-            None => self.journal.record(index, EMPTY_MASK, &[]),
+        let mut scratch = [Colour::BLACK; VOXELS];
+        let (mask, colours) = match self.slot_of_cell(cell) {
+            Some(slot) => (
+                self.masks[slot as usize],
+                self.slot_colours(slot, &mut scratch),
+            ),
+            None => (EMPTY_MASK, &[][..]),
+        };
+        match entry {
+            Some(e) => self.journal.make_whole(e, &mask, colours),
+            None => self.journal.record(index, mask, colours),
         }
+    }
+
+    /// Journals one voxel's value before a single-voxel edit changes it. In a map that codes
+    /// colours within a bound a re-coded block may move other voxels' colours: the whole brick
+    /// is journaled there.
+    fn note_voxel(&mut self, cell: [u32; 3], bit: u32) {
+        if self.colour_bound.is_some() {
+            return self.note_before(cell);
+        }
+        let index = self.cell_index(cell);
+        let before = self.slot_of_cell(cell).and_then(|slot| {
+            let mask = &self.masks[slot as usize];
+            mask_get(mask, bit)
+                .then(|| {
+                    crate::palette::colour_at_words(self.block(slot), rank(mask, bit) as usize)
+                })
+                .flatten()
+        });
+        self.journal.record_voxel(index, bit as u16, before);
     }
 
     /// Starts (or stops) recording which cells edits touch, for delta streaming.
@@ -614,7 +660,7 @@ impl BrickMap {
         let cell = pos.map(|p| p / BRICK_EDGE);
         let bit = voxel_bit(pos[0], pos[1], pos[2]);
         if self.journal.on {
-            self.note_before(cell);
+            self.note_voxel(cell, bit);
         }
         let Some(slot) = self.slot_of_cell(cell) else {
             if mode != BrushMode::Fill {

@@ -7,6 +7,15 @@
 //! hold a bare bincode `Vec<EditOp>`; those are read as [`LogRecord::Ops`] with no user. They
 //! never start with a 0 byte followed by more bytes (a 0 length prefix is an empty list, and
 //! only batches that applied something were logged), so the two cannot be confused.
+//!
+//! **A turn in one row** (issue #31): a redb row costs about a microsecond to insert, so a turn
+//! of a thousand one-voxel messages spent more on rows than on the edits. Since store format 3
+//! a turn's records (consecutive sequences) are one row keyed by the *last* sequence:
+//! `[0, BATCH]`, the count (u32 LE), then the bincode of the records in order. A row keyed by a
+//! turn's last sequence keeps every rule of the log as it was: snapshots happen between turns,
+//! so trimming `..=seq` never splits a row, and "the log holds an entry past the snapshot" is
+//! still a look at the last key. Rows of one record are written as before ([`read_row`] reads
+//! both).
 
 use brickcast_protocol::BrickMap;
 use brickcast_protocol::wire::{EditOp, Limits, UserId};
@@ -23,6 +32,8 @@ pub const REVERT_BRICK_OPS: u64 = 16;
 const VERSION: u8 = 3;
 /// The oldest version read (an older `[0, v]` prefix is not a record of this format).
 const FIRST_VERSION: u8 = 2;
+/// The prefix of a row holding a turn's records.
+const BATCH: u8 = 4;
 
 /// What one logged sequence did.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -78,6 +89,60 @@ impl LogRecord {
                 Ok(LogRecord::Ops { user: 0, ops })
             }
         }
+    }
+
+    /// One row of the log: `records` (consecutive sequences, at least one) as one batch, keyed
+    /// by the last sequence. A single record is written as itself.
+    pub fn encode_batch(records: &[(u64, LogRecord)], out: &mut Vec<u8>) -> Result<(), String> {
+        if let [(_, only)] = records {
+            return only.encode(out);
+        }
+        if records.windows(2).any(|w| w[1].0 != w[0].0.wrapping_add(1)) || records.is_empty() {
+            return Err("a log row holds consecutive sequences".into());
+        }
+        let count = u32::try_from(records.len()).map_err(|_| "too many records for one row")?;
+        out.clear();
+        out.extend_from_slice(&[0, BATCH]);
+        out.extend_from_slice(&count.to_le_bytes());
+        let config = bincode::config::standard();
+        for (_, record) in records {
+            bincode::serde::encode_into_std_write(record, out, config)
+                .map_err(|e| e.to_string())?;
+        }
+        Ok(())
+    }
+
+    /// How many sequences the row holds (1 for a single record), without decoding it.
+    pub fn row_len(bytes: &[u8]) -> u64 {
+        match bytes {
+            [0, BATCH, a, b, c, d, ..] => u64::from(u32::from_le_bytes([*a, *b, *c, *d])),
+            _ => 1,
+        }
+    }
+
+    /// The records of the log row keyed `key`, with their sequences, in order.
+    pub fn read_row(key: u64, bytes: &[u8]) -> Result<Vec<(u64, LogRecord)>, String> {
+        let [0, BATCH, a, b, c, d, body @ ..] = bytes else {
+            return Ok(vec![(key, LogRecord::decode(bytes)?)]);
+        };
+        let mut body: &[u8] = body;
+        let count = u64::from(u32::from_le_bytes([*a, *b, *c, *d]));
+        if count == 0 || count > key {
+            return Err(format!("a row of {count} records keyed {key}"));
+        }
+        let config = bincode::config::standard();
+        let mut out = Vec::with_capacity(count.min(1 << 16) as usize);
+        for seq in key + 1 - count..=key {
+            let (record, read): (LogRecord, usize) =
+                bincode::serde::decode_from_slice(body, config)
+                    .map_err(|e| format!("record {seq} of the row: {e}"))?;
+            body = &body[read..];
+            out.push((seq, record));
+        }
+        if !body.is_empty() {
+            return Err(format!("{} bytes after the row's records", body.len()));
+        }
+        Ok(out)
     }
 
     /// The limits a replay runs with: no brush limits, since every logged op was validated
@@ -161,11 +226,43 @@ mod tests {
             LogRecord::Ops { user: 0, ops }
         );
         assert!(
-            LogRecord::decode(&[0, 4, 1])
+            LogRecord::decode(&[0, 5, 1])
                 .unwrap_err()
-                .contains("version 4")
+                .contains("version 5")
         );
         assert!(LogRecord::decode(&[0, VERSION, 7, 7, 7]).is_err());
         assert!(LogRecord::decode(&[]).is_err());
+    }
+
+    #[test]
+    fn a_turn_is_one_row_and_single_records_read_as_before() {
+        let set = |x| LogRecord::Ops {
+            user: 2,
+            ops: vec![EditOp::Set {
+                pos: [x, 0, 0],
+                colour: Colour::WHITE,
+            }],
+        };
+        let turn: Vec<(u64, LogRecord)> = (0..5).map(|i| (41 + i, set(i as u32))).collect();
+        let mut row = Vec::new();
+        LogRecord::encode_batch(&turn, &mut row).unwrap();
+        assert_eq!(LogRecord::row_len(&row), 5);
+        assert_eq!(LogRecord::read_row(45, &row).unwrap(), turn);
+        // A single record is the record itself, as rows were before.
+        LogRecord::encode_batch(&turn[..1], &mut row).unwrap();
+        assert_eq!(LogRecord::decode(&row).unwrap(), turn[0].1);
+        assert_eq!(LogRecord::read_row(41, &row).unwrap(), turn[..1].to_vec());
+        assert_eq!(LogRecord::row_len(&row), 1);
+        // Gaps, an empty turn, a truncated or padded row, a count past the key: errors.
+        let gap = vec![turn[0].clone(), turn[2].clone()];
+        assert!(LogRecord::encode_batch(&gap, &mut row).is_err());
+        assert!(LogRecord::encode_batch(&[], &mut row).is_err());
+        LogRecord::encode_batch(&turn, &mut row).unwrap();
+        assert!(LogRecord::read_row(45, &row[..row.len() - 1]).is_err());
+        let mut padded = row.clone();
+        padded.push(0);
+        assert!(LogRecord::read_row(45, &padded).is_err());
+        assert!(LogRecord::read_row(3, &row).is_err());
+        assert!(LogRecord::read_row(45, &[0, BATCH, 0, 0, 0, 0]).is_err());
     }
 }

@@ -7,9 +7,11 @@
 //! snapshot are rewritten, in the same transaction that trims the log, so a crash at any point
 //! leaves either the old snapshot + full log or the new snapshot + trimmed log.
 //!
-//! Each scene also has its undo history (`history/` step bodies, `undo/` each user's stacks; see
+//! Each scene also has its undo history (step bodies in one pack per turn, each user's stacks
+//! as index rows and the changes since the last snapshot; see `history_rows.rs` and
 //! `scene::history`), written in the same transaction as the log entries of the turn that
-//! changed it and never trimmed by snapshots.
+//! changed it and never trimmed by snapshots. A turn's log records are one row too
+//! (`record.rs`): a turn writes a handful of rows whatever number of messages it holds.
 //!
 //! Every commit uses `Durability::Immediate` (fsync before `commit` returns); the scene owner
 //! batches many edits per commit (group commit) because commits, not records, are what cost.
@@ -20,9 +22,7 @@ use std::path::{Path, PathBuf};
 use brickcast_protocol::brick::BrickData;
 use brickcast_protocol::wire::UserId;
 use brickcast_protocol::{BrickMap, Colour};
-use redb::{
-    Database, Durability, ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition,
-};
+use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
 
 use crate::record::LogRecord;
@@ -30,6 +30,7 @@ use crate::scene::history::{HistoryWrites, Stacks, StepMeta};
 use crate::scene::{AnsweredEntry, LogError, SceneLog, SnapshotOf, TurnWrite};
 use crate::store_rows::{self, decode_row, encode_row};
 
+mod history_rows;
 mod streamed;
 pub use streamed::SceneWriter;
 
@@ -214,6 +215,9 @@ pub(crate) fn decode_brick(cell: [u32; 3], bytes: &[u8]) -> Option<BrickData> {
 pub struct Store {
     db: Database,
     path: PathBuf,
+    /// Per scene, the live steps of each history pack (built from the tables at a scene's
+    /// first append, kept only for transactions that commit).
+    packs: std::sync::Mutex<std::collections::HashMap<String, history_rows::PackState>>,
 }
 
 /// A scene as recovered from the store.
@@ -285,7 +289,11 @@ impl Store {
             }
         }
         txn.commit()?;
-        Ok(Store { db, path })
+        Ok(Store {
+            db,
+            path,
+            packs: Default::default(),
+        })
     }
 
     pub fn path(&self) -> &Path {
@@ -372,9 +380,9 @@ impl Store {
         if existed {
             txn.delete_table(TableDefinition::<u32, &[u8]>::new(&bricks_table(name)))?;
             txn.delete_table(TableDefinition::<u64, &[u8]>::new(&log_table(name)))?;
-            txn.delete_table(TableDefinition::<u64, &[u8]>::new(&history_table(name)))?;
-            txn.delete_table(UndoIndex::new(&undo_table(name)))?;
+            history_rows::delete_all(&txn, name)?;
         }
+        self.forget_packs(name);
         txn.commit()?;
         Ok(existed)
     }
@@ -441,69 +449,62 @@ impl Store {
         let mut replayed = 0;
         map.record_touched(true);
         for row in log.iter()? {
-            let (s, bytes) = row?;
-            let s = s.value();
-            if replayed == 0 && s <= meta.snapshot_seq {
-                if !repair {
+            let (key, bytes) = row?;
+            let key = key.value();
+            let entries = LogRecord::read_row(key, bytes.value())
+                .map_err(|e| corrupt(format!("log row {key}: {e}")))?;
+            for (s, record) in entries {
+                if replayed == 0 && s <= meta.snapshot_seq {
+                    if !repair {
+                        return Err(inconsistent(format!(
+                            "log entry {s} is at or below the snapshot's sequence {} but was written after it \
+                             (a store written by brickcast-server 0.1 after a fully rejected edit); serving the scene \
+                             would lose that edit. Stop the server and run `brickcast-server snapshot --scene {name} --repair` \
+                             to replay every logged entry into a new snapshot",
+                            meta.snapshot_seq
+                        )));
+                    }
+                } else if replayed == 0 {
+                    if s != meta.snapshot_seq.saturating_add(1) {
+                        return Err(inconsistent(format!(
+                            "the snapshot is at sequence {} but the log starts at {s}: entries {}..={} are missing",
+                            meta.snapshot_seq,
+                            meta.snapshot_seq.saturating_add(1),
+                            s - 1
+                        )));
+                    }
+                } else if s != seq.saturating_add(1) {
                     return Err(inconsistent(format!(
-                        "log entry {s} is at or below the snapshot's sequence {} but was written after it \
-                         (a store written by brickcast-server 0.1 after a fully rejected edit); serving the scene \
-                         would lose that edit. Stop the server and run `brickcast-server snapshot --scene {name} --repair` \
-                         to replay every logged entry into a new snapshot",
-                        meta.snapshot_seq
-                    )));
-                }
-            } else if replayed == 0 {
-                if s != meta.snapshot_seq.saturating_add(1) {
-                    return Err(inconsistent(format!(
-                        "the snapshot is at sequence {} but the log starts at {s}: entries {}..={} are missing",
-                        meta.snapshot_seq,
-                        meta.snapshot_seq.saturating_add(1),
+                        "the log jumps from entry {seq} to {s}: entries {}..={} are missing",
+                        seq.saturating_add(1),
                         s - 1
                     )));
                 }
-            } else if s != seq.saturating_add(1) {
-                return Err(inconsistent(format!(
-                    "the log jumps from entry {seq} to {s}: entries {}..={} are missing",
-                    seq.saturating_add(1),
-                    s - 1
-                )));
+                // Only a repair replays entries at or below the snapshot's stamp.
+                map.set_sequence(s.max(map.sequence()));
+                // An op that applied when logged applies again: the map is in the same state.
+                // A failure here means the log does not match the snapshot.
+                record
+                    .replay(&mut map, &unlimited)
+                    .map_err(|e| corrupt(format!("log entry {s} no longer applies: {e}")))?;
+                seq = s;
+                replayed += 1;
             }
-            let record = LogRecord::decode(bytes.value())
-                .map_err(|e| corrupt(format!("log entry {s}: {e}")))?;
-            // Only a repair replays entries at or below the snapshot's stamp.
-            map.set_sequence(s.max(map.sequence()));
-            // An op that applied when logged applies again: the map is in the same state.
-            // A failure here means the log does not match the snapshot.
-            record
-                .replay(&mut map, &unlimited)
-                .map_err(|e| corrupt(format!("log entry {s} no longer applies: {e}")))?;
-            seq = s;
-            replayed += 1;
         }
         let seq = seq.max(meta.snapshot_seq);
         map.rebuild_clearance();
         let replay_touched = map.take_touched();
         map.record_touched(false);
+        let live = history_rows::live_index(&txn, name)?;
+        let last_step_id = history_rows::last_id(&txn, name, &live)?;
         let mut rows: BTreeMap<u64, Vec<(u64, StepMeta)>> = BTreeMap::new();
-        if let Some(index) = open_optional::<(u64, u64), &[u8]>(&txn, &undo_table(name))? {
-            for row in index.iter()? {
-                let (key, bytes) = row?;
-                let (user, id) = key.value();
-                let (meta, _): (StepMeta, usize) =
-                    bincode::serde::decode_from_slice(bytes.value(), bincode_config())
-                        .map_err(|e| corrupt(format!("undo step {id} of user {user}: {e}")))?;
-                rows.entry(user).or_default().push((id, meta));
-            }
+        for ((user, id), meta) in live {
+            rows.entry(user).or_default().push((id, meta));
         }
         let history = rows
             .into_iter()
             .map(|(user, rows)| (user, Stacks::from_rows(rows)))
             .collect();
-        let last_step_id = match open_optional::<u64, &[u8]>(&txn, &history_table(name))? {
-            Some(steps) => steps.last()?.map_or(0, |(id, _)| id.value()),
-            None => 0,
-        };
         Ok(Loaded {
             map,
             meta,
@@ -519,10 +520,7 @@ impl Store {
     /// A stored history step's bytes.
     pub fn history_step(&self, scene: &str, id: u64) -> Result<Option<Vec<u8>>, StoreError> {
         let txn = self.db.begin_read()?;
-        let Some(steps) = open_optional::<u64, &[u8]>(&txn, &history_table(scene))? else {
-            return Ok(None);
-        };
-        Ok(steps.get(id)?.map(|v| v.value().to_vec()))
+        history_rows::step(&txn, scene, id)
     }
 
     /// Appends acknowledged records (sequence → what it did) and the turn's history changes in
@@ -533,40 +531,53 @@ impl Store {
         records: &[(u64, LogRecord)],
         history: &HistoryWrites,
     ) -> Result<(), StoreError> {
-        let mut txn = self.db.begin_write()?;
-        txn.set_durability(Durability::Immediate)?;
         let corrupt = |detail: String| StoreError::Corrupt {
             scene: scene.into(),
             detail,
         };
+        let taken = self
+            .packs
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(scene);
+        let mut packs = match taken {
+            Some(packs) => packs,
+            None => history_rows::pack_state(&self.db.begin_read()?, scene)?,
+        };
+        let mut txn = self.db.begin_write()?;
+        txn.set_durability(Durability::Immediate)?;
         {
             let log_name = log_table(scene);
             let mut log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
             let mut buf = Vec::new();
-            for (seq, record) in records {
-                record.encode(&mut buf).map_err(corrupt)?;
-                log.insert(*seq, buf.as_slice())?;
+            // The turn's records in one row when their sequences follow each other (they do:
+            // the owner numbers a turn's batches in order); one row each otherwise.
+            let rows: Vec<&[(u64, LogRecord)]> =
+                if records.windows(2).all(|w| w[1].0 == w[0].0.wrapping_add(1)) {
+                    vec![records]
+                } else {
+                    records.chunks(1).collect()
+                };
+            for row in rows.into_iter().filter(|r| !r.is_empty()) {
+                LogRecord::encode_batch(row, &mut buf).map_err(corrupt)?;
+                log.insert(row[row.len() - 1].0, buf.as_slice())?;
             }
-            if !history.is_empty() {
-                let steps_name = history_table(scene);
-                let mut steps = txn.open_table(TableDefinition::<u64, &[u8]>::new(&steps_name))?;
-                let index_name = undo_table(scene);
-                let mut index = txn.open_table(UndoIndex::new(&index_name))?;
-                for (id, user) in &history.removed {
-                    steps.remove(*id)?;
-                    index.remove((*user, *id))?;
-                }
-                for (id, (user, meta, bytes)) in &history.steps {
-                    steps.insert(*id, bytes.as_slice())?;
-                    buf.clear();
-                    bincode::serde::encode_into_std_write(meta, &mut buf, bincode_config())
-                        .map_err(|e| corrupt(e.to_string()))?;
-                    index.insert((*user, *id), buf.as_slice())?;
-                }
-            }
+            history_rows::write(&txn, scene, &mut packs, history)?;
         }
         txn.commit()?;
+        self.packs
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(scene.to_string(), packs);
         Ok(())
+    }
+
+    /// Drops what the store remembers of a scene's history packs (its tables are going).
+    pub(crate) fn forget_packs(&self, scene: &str) {
+        self.packs
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(scene);
     }
 
     /// [`Store::append`] of plain edit batches with no history (tests).
@@ -668,12 +679,16 @@ impl Store {
         Ok(())
     }
 
-    /// Number of log entries after the snapshot.
+    /// Number of log entries (sequences) after the snapshot.
     pub fn log_len(&self, scene: &str) -> Result<u64, StoreError> {
         let txn = self.db.begin_read()?;
         let log_name = log_table(scene);
         let log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
-        Ok(log.len()?)
+        let mut entries = 0;
+        for row in log.iter()? {
+            entries += LogRecord::row_len(row?.1.value());
+        }
+        Ok(entries)
     }
 }
 
@@ -764,6 +779,16 @@ mod tests {
                 &HistoryWrites::default(),
             )
             .unwrap();
+        // The turn is one row (keyed by its last sequence) holding two entries.
+        assert_eq!(store.log_len("s").unwrap(), 2);
+        {
+            let txn = store.db.begin_read().unwrap();
+            let log = txn
+                .open_table(TableDefinition::<u64, &[u8]>::new(&log_table("s")))
+                .unwrap();
+            let keys: Vec<u64> = log.iter().unwrap().map(|r| r.unwrap().0.value()).collect();
+            assert_eq!(keys, vec![2]);
+        }
         let loaded = store.load_scene("s").unwrap();
         assert_eq!((loaded.seq, loaded.replayed), (2, 2));
         assert_eq!(loaded.map.content_hash(), map.content_hash());

@@ -17,8 +17,9 @@ use brickcast_protocol::{Colour, palette};
 use crate::store::decode_brick;
 
 /// The store format this build writes and the newest it reads: 1 had raw rows only (and no
-/// record of its format); 2 adds palette-coded rows.
-pub const FORMAT: u32 = 2;
+/// record of its format); 2 adds palette-coded rows; 3 adds log rows holding a turn's records
+/// (`record.rs`) and history steps in packs with an index journal (`store/history_rows.rs`).
+pub const FORMAT: u32 = 3;
 
 /// The byte after the mask of a palette-coded row.
 const CODED: u8 = 2;

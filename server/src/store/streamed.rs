@@ -14,8 +14,7 @@ use brickcast_protocol::brick::BrickData;
 use redb::{Durability, ReadableTable, TableDefinition, WriteTransaction};
 
 use super::{
-    SCENES, SceneMeta, Store, StoreError, UndoIndex, bricks_table, encode_row, history_table,
-    log_table, undo_table, valid_scene_name,
+    SCENES, SceneMeta, Store, StoreError, bricks_table, encode_row, log_table, valid_scene_name,
 };
 
 /// Rows per intermediate commit: bounds what one transaction holds in memory.
@@ -56,8 +55,8 @@ impl Store {
         }
         txn.delete_table(TableDefinition::<u32, &[u8]>::new(&bricks_table(name)))?;
         txn.delete_table(TableDefinition::<u64, &[u8]>::new(&log_table(name)))?;
-        txn.delete_table(TableDefinition::<u64, &[u8]>::new(&history_table(name)))?;
-        txn.delete_table(UndoIndex::new(&undo_table(name)))?;
+        super::history_rows::delete_all(&txn, name)?;
+        self.forget_packs(name);
         txn.commit()?;
         Ok(SceneWriter {
             store: self,
