@@ -30,6 +30,7 @@ use crate::scene::history::{HistoryWrites, Stacks, StepMeta};
 use crate::scene::{AnsweredEntry, LogError, SceneLog, SnapshotOf, TurnWrite};
 use crate::store_rows::{self, decode_row, encode_row};
 
+mod committer;
 mod history_rows;
 mod streamed;
 pub use streamed::SceneWriter;
@@ -82,6 +83,10 @@ pub enum StoreError {
     /// reorder acknowledged edits, so the scene is not served until someone looks.
     #[error("scene {scene}: the edit log does not fit the snapshot: {detail}")]
     Inconsistent { scene: String, detail: String },
+    /// A commit running on the scene's commit thread failed earlier (its error was reported
+    /// then); nothing more is written.
+    #[error("scene {scene}: an earlier commit failed: {detail}")]
+    CommitFailed { scene: String, detail: String },
 }
 
 impl StoreError {
@@ -531,6 +536,16 @@ impl Store {
         records: &[(u64, LogRecord)],
         history: &HistoryWrites,
     ) -> Result<(), StoreError> {
+        self.append_turns(scene, &[(records, history)])
+    }
+
+    /// [`Store::append`] of several turns, in order, in one durable commit (group commit: the
+    /// turns a pipelined log was handed while the previous commit ran).
+    pub fn append_turns(
+        &self,
+        scene: &str,
+        turns: &[(&[(u64, LogRecord)], &HistoryWrites)],
+    ) -> Result<(), StoreError> {
         let corrupt = |detail: String| StoreError::Corrupt {
             scene: scene.into(),
             detail,
@@ -550,19 +565,21 @@ impl Store {
             let log_name = log_table(scene);
             let mut log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
             let mut buf = Vec::new();
-            // The turn's records in one row when their sequences follow each other (they do:
+            // Each turn's records in one row when their sequences follow each other (they do:
             // the owner numbers a turn's batches in order); one row each otherwise.
-            let rows: Vec<&[(u64, LogRecord)]> =
-                if records.windows(2).all(|w| w[1].0 == w[0].0.wrapping_add(1)) {
-                    vec![records]
-                } else {
-                    records.chunks(1).collect()
-                };
-            for row in rows.into_iter().filter(|r| !r.is_empty()) {
-                LogRecord::encode_batch(row, &mut buf).map_err(corrupt)?;
-                log.insert(row[row.len() - 1].0, buf.as_slice())?;
+            for (records, history) in turns {
+                let rows: Vec<&[(u64, LogRecord)]> =
+                    if records.windows(2).all(|w| w[1].0 == w[0].0.wrapping_add(1)) {
+                        vec![records]
+                    } else {
+                        records.chunks(1).collect()
+                    };
+                for row in rows.into_iter().filter(|r| !r.is_empty()) {
+                    LogRecord::encode_batch(row, &mut buf).map_err(corrupt)?;
+                    log.insert(row[row.len() - 1].0, buf.as_slice())?;
+                }
+                history_rows::write(&txn, scene, &mut packs, history)?;
             }
-            history_rows::write(&txn, scene, &mut packs, history)?;
         }
         txn.commit()?;
         self.packs
@@ -697,24 +714,90 @@ impl Store {
 pub struct StoreLog {
     store: std::sync::Arc<Store>,
     scene: String,
+    /// The commit thread of a pipelined log (`committer.rs`); none: every append commits
+    /// before it returns (the simulation steps the owner turn by turn this way).
+    committer: Option<committer::Committer>,
 }
 
 impl StoreLog {
+    /// A log whose appends commit before they return.
     pub fn new(store: std::sync::Arc<Store>, scene: String) -> StoreLog {
-        StoreLog { store, scene }
+        StoreLog {
+            store,
+            scene,
+            committer: None,
+        }
+    }
+
+    /// A log that commits on a thread of its own while the owner goes on (the server's).
+    pub fn pipelined(
+        store: std::sync::Arc<Store>,
+        scene: String,
+        metrics: std::sync::Arc<crate::metrics::Metrics>,
+    ) -> std::io::Result<StoreLog> {
+        let committer = committer::Committer::start(store.clone(), scene.clone(), metrics)?;
+        Ok(StoreLog {
+            store,
+            scene,
+            committer: Some(committer),
+        })
+    }
+
+    /// Waits for the turns handed to the commit thread.
+    fn settle(&self) -> Result<(), StoreError> {
+        match &self.committer {
+            Some(c) => c.flush(),
+            None => Ok(()),
+        }
     }
 }
 
 impl SceneLog for StoreLog {
     fn append(&mut self, turn: TurnWrite<'_>) -> Result<(), LogError> {
+        self.settle()?;
         Ok(self.store.append(&self.scene, turn.records, turn.history)?)
     }
 
+    fn submit(
+        &mut self,
+        turn: crate::scene::OwnedTurn,
+        ticket: u64,
+        done: &std::sync::Arc<crate::scene::Durability>,
+    ) -> Result<bool, LogError> {
+        match &mut self.committer {
+            Some(c) => {
+                c.submit(turn, ticket, done)?;
+                Ok(false)
+            }
+            None => {
+                self.store
+                    .append(&self.scene, &turn.records, &turn.history)?;
+                done.durable_to(ticket);
+                Ok(true)
+            }
+        }
+    }
+
+    fn flush(&mut self) -> Result<(), LogError> {
+        Ok(self.settle()?)
+    }
+
+    fn failed(&mut self) -> Result<(), LogError> {
+        match &self.committer {
+            Some(c) => Ok(c.check()?),
+            None => Ok(()),
+        }
+    }
+
     fn history_step(&self, id: u64) -> Result<Option<Vec<u8>>, LogError> {
+        // A step of a turn still being committed is not in the store yet.
+        self.settle()?;
         Ok(self.store.history_step(&self.scene, id)?)
     }
 
     fn snapshot(&mut self, at: SnapshotOf<'_>) -> Result<bool, LogError> {
+        // The log must hold every entry up to the snapshot's sequence before it is trimmed.
+        self.settle()?;
         self.store.snapshot(&self.scene, at.map, at.cells, at.seq)?;
         Ok(true)
     }
@@ -724,7 +807,14 @@ impl SceneLog for StoreLog {
     }
 
     fn reload(&mut self) -> Result<Loaded, LogError> {
+        self.settle()?;
         Ok(self.store.load_scene(&self.scene)?)
+    }
+
+    fn close(&mut self) {
+        if let Some(mut c) = self.committer.take() {
+            c.close();
+        }
     }
 }
 

@@ -18,6 +18,7 @@ use brickcast_protocol::BrickMap;
 use serde::{Deserialize, Serialize};
 
 use super::answered::{Answered, AnsweredEntry};
+use super::durable::Durability;
 use super::history::{History, HistoryWrites};
 use crate::record::LogRecord;
 use crate::store::{Loaded, StoreError};
@@ -97,11 +98,54 @@ impl LogError {
     }
 }
 
+/// A turn the owner hands over to be made durable while it goes on ([`SceneLog::submit`]).
+#[derive(Debug, Default)]
+pub struct OwnedTurn {
+    pub records: Vec<(u64, LogRecord)>,
+    pub history: HistoryWrites,
+    pub answered: Vec<AnsweredEntry>,
+}
+
+impl OwnedTurn {
+    pub fn as_write(&self) -> TurnWrite<'_> {
+        TurnWrite {
+            records: &self.records,
+            history: &self.history,
+            answered: &self.answered,
+        }
+    }
+}
+
 /// Where a scene's owner makes its turns durable (see the module doc).
 pub trait SceneLog: Send {
     /// Makes one turn durable; only then does the owner acknowledge it. A shared log refuses
     /// ([`LogError::Deposed`]) an owner that may not order.
     fn append(&mut self, turn: TurnWrite<'_>) -> Result<(), LogError>;
+
+    /// Hands over turn `ticket` to be made durable, telling `done` once it is
+    /// (`durable.rs`): the owner goes on with the next turn meanwhile, and what it queues for
+    /// sessions waits for the ticket. Ok(true): durable already (the default appends now);
+    /// Ok(false): being written. An error of an earlier turn's commit may come back here.
+    fn submit(
+        &mut self,
+        turn: OwnedTurn,
+        ticket: u64,
+        done: &std::sync::Arc<Durability>,
+    ) -> Result<bool, LogError> {
+        self.append(turn.as_write())?;
+        done.durable_to(ticket);
+        Ok(true)
+    }
+
+    /// Waits until every turn submitted is durable; the error of a commit that failed.
+    fn flush(&mut self) -> Result<(), LogError> {
+        Ok(())
+    }
+
+    /// The error of a commit that failed since, if any, without waiting.
+    fn failed(&mut self) -> Result<(), LogError> {
+        Ok(())
+    }
 
     /// A stored undo step's bytes.
     fn history_step(&self, id: u64) -> Result<Option<Vec<u8>>, LogError>;

@@ -16,6 +16,8 @@
 //! * `owner.rs`: the owner's state and turn (apply, commit, ack, delta, snapshot).
 //! * `sync.rs`: joins, resumes and resyncs, streamed nearest-first.
 //! * `outbox.rs`: a session's byte-counted outgoing queue.
+//! * `durable.rs`: which turns are durable, so frames wait for their commit while the owner goes
+//!   on (`Durability`).
 //! * `cells.rs`: the set of bricks the next snapshot writes.
 //! * `history.rs`: per-user undo and redo stacks and what undoing a step does.
 //! * `log.rs`: the one interface to where turns are made durable ([`SceneLog`]: the redb
@@ -30,6 +32,7 @@
 
 pub mod answered;
 mod cells;
+pub mod durable;
 mod edit_job;
 mod follow;
 pub mod history;
@@ -55,7 +58,8 @@ use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
 use crate::store::{Store, StoreLog};
 
 pub use answered::{Answered, AnsweredEntry, Lookup};
-pub use log::{LogError, SceneLog, SnapshotOf, Turn, TurnWrite};
+pub use durable::Durability;
+pub use log::{LogError, OwnedTurn, SceneLog, SnapshotOf, Turn, TurnWrite};
 pub use outbox::{MAX_REPLY_BACKLOG, Outbox, OutboxReceiver};
 pub use owner::Owner;
 pub use request::{Outcome, Request, RequestItem};
@@ -374,7 +378,7 @@ pub fn spawn(
     config: OwnerConfig,
     runtime: tokio::runtime::Handle,
 ) -> std::io::Result<(SceneHandle, std::thread::JoinHandle<()>)> {
-    let log = Box::new(StoreLog::new(store, name.clone()));
+    let log = Box::new(StoreLog::pipelined(store, name.clone(), metrics.clone())?);
     spawn_with(name, loaded, log, metrics, config, runtime)
 }
 
@@ -505,6 +509,8 @@ fn run(
         clock.mark(&metrics, OwnerPhase::Wait);
         let busy = !commands.is_empty() || owner.has_jobs() || owner.has_ready_work();
         let started = Instant::now();
+        // Commands still queued: this turn's commit may run while the next turn applies.
+        owner.set_backlog(!rx.is_empty());
         let stop = owner.step(commands, &mut clock)?;
         if busy {
             metrics.turns.observe(started.elapsed());

@@ -21,6 +21,10 @@
 //! waits (its writer cuts it off once it has taken nothing for the stall timeout). A client
 //! that reads never meets the bound: replies queue only while its socket is full.
 //!
+//! **Durability.** Frames the owner queues are stamped with its latest turn handed to the log
+//! (`durable.rs`); the writer takes a stamped frame only once that turn is durable, and the
+//! frames behind it wait with it, so nothing leaves before the commit that holds what it says.
+//!
 //! Every message goes in through [`Outbox::send`], which is where a message that cannot be
 //! encoded is noticed: it is logged, counted, and the session is closed with an `Internal`
 //! error, so the client learns that something is wrong instead of waiting for a reply forever.
@@ -32,6 +36,7 @@ use brickcast_protocol::wire::{ErrorCode, Refusal, ServerMsg, encode_server};
 use bytes::Bytes;
 use tokio::sync::{Notify, mpsc};
 
+use super::durable::Durability;
 use crate::metrics::Metrics;
 
 /// What a queued frame costs besides its bytes: the `Bytes` header and allocation, and the
@@ -50,8 +55,13 @@ pub const COALESCED_COST: usize = 64;
 
 /// One item in a session's queue.
 pub enum Outgoing {
-    /// An encoded frame; `reply` when it answers the client (it counts in the reply backlog).
-    Frame { frame: Bytes, reply: bool },
+    /// An encoded frame; `reply` when it answers the client (it counts in the reply backlog);
+    /// it may be written once turn `ticket` of its scene is durable (0: at once).
+    Frame {
+        frame: Bytes,
+        reply: bool,
+        ticket: u64,
+    },
     /// A pong carrying the latest nonce at the time it is written.
     Pong,
     /// A `Refused` carrying the latest refusal at the time it is written.
@@ -94,6 +104,8 @@ struct Shared {
     /// Woken when the writer takes a frame while the owner streams a sync: the owner queues
     /// a sync only a little ahead of the writer ([`Outbox::wake_owner_with`]).
     owner: std::sync::OnceLock<Arc<Notify>>,
+    /// The scene's turns made durable (set by the owner at join): frames are stamped with it.
+    gate: std::sync::OnceLock<Arc<Durability>>,
 }
 
 impl Shared {
@@ -112,20 +124,74 @@ impl Shared {
 pub struct OutboxReceiver {
     rx: mpsc::UnboundedReceiver<Outgoing>,
     shared: Arc<Shared>,
+    /// The next item, taken from the queue but waiting for its turn to be durable.
+    held: Option<Outgoing>,
 }
 
 impl OutboxReceiver {
-    /// Waits for the next frame (a pong is encoded here, with the latest nonce); `None` once
-    /// every [`Outbox`] is gone and the queue is empty.
+    /// Waits for the next frame that may be written (a pong is encoded here, with the latest
+    /// nonce); `None` once every [`Outbox`] is gone and the queue is empty.
     pub async fn next(&mut self) -> Option<Bytes> {
-        let item = self.rx.recv().await?;
-        Some(self.take(item))
+        loop {
+            let item = match self.held.take() {
+                Some(item) => item,
+                None => self.rx.recv().await?,
+            };
+            match self.may_send(&item) {
+                Some(true) => return Some(self.take(item)),
+                Some(false) => drop(self.take(item)),
+                None => {
+                    let (Outgoing::Frame { ticket, .. }, Some(gate)) = (&item, self.gate()) else {
+                        return Some(self.take(item));
+                    };
+                    if gate.wait(*ticket).await {
+                        return Some(self.take(item));
+                    }
+                    drop(self.take(item));
+                }
+            }
+        }
     }
 
-    /// The next frame without waiting.
+    /// The next frame that may be written, without waiting.
     pub fn try_take(&mut self) -> Option<Bytes> {
-        let item = self.rx.try_recv().ok()?;
-        Some(self.take(item))
+        loop {
+            let item = match self.held.take() {
+                Some(item) => item,
+                None => self.rx.try_recv().ok()?,
+            };
+            match self.may_send(&item) {
+                Some(true) => return Some(self.take(item)),
+                // Its turn's commit failed: it never goes.
+                Some(false) => drop(self.take(item)),
+                None => {
+                    self.held = Some(item);
+                    return None;
+                }
+            }
+        }
+    }
+
+    fn gate(&self) -> Option<Arc<Durability>> {
+        self.shared.gate.get().cloned()
+    }
+
+    /// Whether `item` may be written now (`Some(true)`), never (`Some(false)`) or later.
+    fn may_send(&self, item: &Outgoing) -> Option<bool> {
+        match (item, self.shared.gate.get()) {
+            (Outgoing::Frame { ticket, .. }, Some(gate)) if *ticket > 0 => gate.may_send(*ticket),
+            _ => Some(true),
+        }
+    }
+
+    /// Everything queued, dropped and uncounted, whether it could be written or not.
+    fn discard_all(&mut self) {
+        if let Some(item) = self.held.take() {
+            drop(self.take(item));
+        }
+        while let Ok(item) = self.rx.try_recv() {
+            drop(self.take(item));
+        }
     }
 
     fn take(&self, item: Outgoing) -> Bytes {
@@ -136,7 +202,7 @@ impl OutboxReceiver {
             owner.notify_one();
         }
         let frame = match item {
-            Outgoing::Frame { frame, reply } => {
+            Outgoing::Frame { frame, reply, .. } => {
                 let cost = frame.len() + FRAME_OVERHEAD;
                 shared.sub(cost);
                 if !reply {
@@ -176,7 +242,7 @@ impl OutboxReceiver {
     /// are refused, what is queued is dropped and uncounted, and the reader is told to stop.
     pub fn abort(&mut self) {
         self.rx.close();
-        while self.try_take().is_some() {}
+        self.discard_all();
         self.shared.closed.store(true, Relaxed);
         self.shared.notify.notify_waiters();
     }
@@ -186,7 +252,7 @@ impl Drop for OutboxReceiver {
     /// Whatever is still queued is dropped with the queue: it no longer counts.
     fn drop(&mut self) {
         self.rx.close();
-        while self.try_take().is_some() {}
+        self.discard_all();
     }
 }
 
@@ -210,13 +276,18 @@ impl Outbox {
             syncing: AtomicBool::new(false),
             following: AtomicBool::new(false),
             owner: std::sync::OnceLock::new(),
+            gate: std::sync::OnceLock::new(),
         });
         (
             Outbox {
                 tx,
                 shared: shared.clone(),
             },
-            OutboxReceiver { rx, shared },
+            OutboxReceiver {
+                rx,
+                shared,
+                held: None,
+            },
         )
     }
 
@@ -226,13 +297,24 @@ impl Outbox {
         self.enqueue(frame, false)
     }
 
+    /// Queues a frame stamped with the scene's latest turn handed to its log.
     fn enqueue(&self, frame: Bytes, reply: bool) -> bool {
+        let ticket = self.shared.gate.get().map_or(0, |g| g.stamp());
+        self.enqueue_at(frame, reply, ticket)
+    }
+
+    fn enqueue_at(&self, frame: Bytes, reply: bool, ticket: u64) -> bool {
         let cost = frame.len() + FRAME_OVERHEAD;
         self.shared.add(cost);
         if reply {
             self.shared.replies.fetch_add(cost, Relaxed);
         }
-        if self.tx.send(Outgoing::Frame { frame, reply }).is_err() {
+        let item = Outgoing::Frame {
+            frame,
+            reply,
+            ticket,
+        };
+        if self.tx.send(item).is_err() {
             self.shared.sub(cost);
             if reply {
                 self.shared.replies.fetch_sub(cost, Relaxed);
@@ -335,12 +417,14 @@ impl Outbox {
         }
     }
 
-    /// Queues an `Error` frame and asks the session to end once it is written.
+    /// Queues an `Error` frame and asks the session to end once it is written. The frame is not
+    /// stamped: it says nothing about the scene, and must reach the client even when the
+    /// scene stopped because a commit failed.
     pub fn close(&self, code: ErrorCode, text: impl Into<String>) {
         if !self.shared.closed.swap(true, Relaxed) {
             // `ServerMsg::error` cuts the text to the bound, so this always encodes.
             if let Ok(frame) = encode_server(&ServerMsg::error(code, text)) {
-                self.push(Bytes::from(frame));
+                self.enqueue_at(Bytes::from(frame), false, 0);
             }
         }
         self.shared.notify.notify_waiters();
@@ -366,6 +450,13 @@ impl Outbox {
     /// the owner at join; the first one set stays).
     pub fn wake_owner_with(&self, owner: Arc<Notify>) {
         let _ = self.shared.owner.set(owner);
+    }
+
+    /// Stamps every frame queued from now on with the scene's latest turn handed to its log,
+    /// and holds it until that turn is durable (set by the owner at join; the first one set
+    /// stays).
+    pub fn gate_with(&self, durability: Arc<Durability>) {
+        let _ = self.shared.gate.set(durability);
     }
 
     /// Marks whether the owner is streaming this session a sync (set by the owner).
@@ -442,6 +533,40 @@ mod tests {
         // Closing twice queues one error.
         out.close(ErrorCode::RateLimited, "again");
         assert!(rx.try_take().is_none());
+    }
+
+    /// Frames queued after a turn was handed to the log wait for its commit, in order, and are
+    /// dropped (and uncounted) if it fails; the closing error still goes.
+    #[tokio::test]
+    async fn frames_wait_for_their_turn_to_be_durable() {
+        let (out, mut rx, total) = outbox();
+        let gate = Arc::new(Durability::default());
+        assert!(out.push(Bytes::from_static(b"before")), "not stamped yet");
+        out.gate_with(gate.clone());
+        let one = gate.next();
+        assert!(out.push(Bytes::from_static(b"one")));
+        out.pong(7);
+        assert_eq!(rx.try_take().unwrap().as_ref(), b"before");
+        assert!(rx.try_take().is_none(), "turn one is not durable");
+        assert!(rx.try_take().is_none(), "the pong waits behind it");
+        let writer = tokio::spawn(async move {
+            let first = rx.next().await.unwrap();
+            (first, rx)
+        });
+        tokio::task::yield_now().await;
+        gate.durable_to(one);
+        let (first, mut rx) = writer.await.unwrap();
+        assert_eq!(first.as_ref(), b"one");
+        assert!(rx.try_take().is_some(), "then the pong");
+        let two = gate.next();
+        assert!(out.push(Bytes::from_static(b"two")));
+        assert!(rx.try_take().is_none());
+        gate.fail();
+        out.close(ErrorCode::Internal, "scene stopped");
+        let frames: Vec<Bytes> = std::iter::from_fn(|| rx.try_take()).collect();
+        assert_eq!(frames.len(), 1, "turn two never goes; the error does");
+        assert!(gate.may_send(two) == Some(false));
+        assert_eq!((out.queued(), total.load(Relaxed)), (0, 0));
     }
 
     #[test]

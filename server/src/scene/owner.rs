@@ -27,9 +27,10 @@ use bytes::Bytes;
 
 use super::answered::Answered;
 use super::cells::CellSet;
+use super::durable::Durability;
 use super::history::{Direction, History, Image, Step, plan_revert, write_planned};
 use super::jobs::{Job, Jobs};
-use super::log::{LogError, SceneLog, SnapshotOf, TurnWrite};
+use super::log::{LogError, OwnedTurn, SceneLog, SnapshotOf};
 use super::request::Outcome;
 use super::undo_job::UndoJob;
 use super::{Clock, Command, Described, OwnerConfig, SceneInfo, SessionId, Subscriber};
@@ -117,6 +118,10 @@ pub struct Owner {
     pub(super) released: Vec<Command>,
     /// The levels of detail, once a session views one (`levels.rs`).
     pub(super) levels: super::levels::Levels,
+    /// Which turns handed to the log are durable: every session's frames wait on it.
+    pub(super) durability: Arc<Durability>,
+    /// Commands wait behind this turn ([`Owner::set_backlog`]).
+    backlog: bool,
 }
 
 /// A reply (`Ack` or `Undone`) waiting for the commit of what it reports.
@@ -309,6 +314,8 @@ impl Owner {
             jobs: Jobs::new(),
             released: Vec::new(),
             levels: super::levels::Levels::default(),
+            durability: Arc::default(),
+            backlog: false,
         };
         owner.publish_info();
         Ok(owner)
@@ -359,6 +366,11 @@ impl Owner {
             all.extend(commands);
             all
         };
+        // A commit handed over in an earlier turn that failed stops the scene.
+        if let Err(e) = self.log.failed() {
+            self.durability.fail();
+            return Err(e);
+        }
         let stop = self.turn(commands, clock)? || self.broken;
         self.advance_levels();
         self.pump_syncs();
@@ -367,6 +379,14 @@ impl Owner {
         self.publish_info();
         clock.mark(&self.metrics, OwnerPhase::Snapshot);
         Ok(stop)
+    }
+
+    /// Whether commands are waiting behind this turn (set by the owner thread before each
+    /// step): then the turn's commit is handed over to run while the next turn applies;
+    /// otherwise the owner commits it itself, as fast as a hand-over and with fewer threads
+    /// between the fsync and the ack (on two shared cores, each hop is a scheduling delay).
+    pub fn set_backlog(&mut self, backlog: bool) {
+        self.backlog = backlog;
     }
 
     /// Processes one group of commands. Returns true on shutdown.
@@ -466,6 +486,7 @@ impl Owner {
                 Command::Describe { done } => {
                     // Only what is committed is described.
                     self.publish(&mut log, &mut acks, clock)?;
+                    self.log.flush()?;
                     let _ = done.send(Described {
                         seq: self.seq,
                         hash: self.map.content_hash(),
@@ -521,6 +542,7 @@ impl Owner {
                 Command::Thumbnail { done } => {
                     // Only what is committed is shown.
                     self.publish(&mut log, &mut acks, clock)?;
+                    self.log.flush()?;
                     let _ = done.send((self.seq, Box::new(self.map.clone())));
                 }
                 Command::Shutdown => stop = true,
@@ -562,26 +584,46 @@ impl Owner {
         let answered = self.answered_entries();
         if !log.is_empty() || self.history.has_writes() || !answered.is_empty() {
             let started = Instant::now();
-            let history = self.history.take_writes();
-            let turn = TurnWrite {
-                records: log,
-                history: &history,
-                answered: &answered,
+            let entries = log.len() as u64;
+            let turn = OwnedTurn {
+                records: std::mem::take(log),
+                history: self.history.take_writes(),
+                answered,
             };
-            if let Err(e) = self.log.append(turn) {
-                if !self.log.shared() {
+            // What is queued for sessions from here on waits for this turn's commit
+            // (`durable.rs`), so the next turn need not.
+            let ticket = self.durability.next();
+            let handed = if self.backlog {
+                self.log.submit(turn, ticket, &self.durability)
+            } else {
+                // After what is still being committed, in this thread.
+                self.log.flush().and_then(|()| {
+                    self.log.append(turn.as_write())?;
+                    self.durability.durable_to(ticket);
+                    Ok(true)
+                })
+            };
+            match handed {
+                Ok(committed) => {
+                    if committed {
+                        self.metrics.observe_commit(started.elapsed());
+                    }
+                }
+                Err(e) if !self.log.shared() => {
+                    self.durability.fail();
                     return Err(e);
                 }
-                // An owner that lost the scene: nothing of this turn is acknowledged, and the
-                // map goes back to what the log holds.
-                log.clear();
-                acks.clear();
-                self.lost_lead(&e);
-                return Ok(());
+                Err(e) => {
+                    // An owner that lost the scene: nothing of this turn is acknowledged (and
+                    // nothing was queued under its ticket), and the map goes back to what the
+                    // log holds.
+                    self.durability.durable_to(ticket);
+                    acks.clear();
+                    self.lost_lead(&e);
+                    return Ok(());
+                }
             }
-            self.metrics.observe_commit(started.elapsed());
-            self.log_entries += log.len() as u64;
-            log.clear();
+            self.log_entries += entries;
         }
         clock.mark(&self.metrics, OwnerPhase::Commit);
         for ack in acks.drain(..) {

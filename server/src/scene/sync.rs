@@ -98,6 +98,7 @@ impl Owner {
             size[2] as f32 * 0.5,
         ]);
         out.wake_owner_with(self.wake.clone());
+        out.gate_with(self.durability.clone());
         out.set_following(budget.is_some());
         let mut sub = Subscriber {
             out,

@@ -26,7 +26,7 @@
 //! default), `BRICKCAST_SIM_SECONDS` runs seeds for that long instead (a soak), and
 //! `BRICKCAST_SIM_FIRST` the first seed.
 
-mod disk;
+pub(crate) mod disk;
 mod model;
 mod ops;
 pub(crate) mod seeds;

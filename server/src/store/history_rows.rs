@@ -23,7 +23,9 @@
 //! read as before and are deleted as their steps are dropped, so an old store needs no upgrade
 //! pass.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
+
+use rustc_hash::FxHashMap;
 
 use brickcast_protocol::wire::UserId;
 use redb::{ReadTransaction, ReadableTable, TableDefinition, WriteTransaction};
@@ -119,7 +121,7 @@ pub(super) struct PackState {
     /// Entries in the index changes not folded yet.
     unfolded: u64,
     /// What folding them would write: per step, `Some` added (and live), `None` dropped.
-    net: HashMap<(UserId, u64), Option<StepMeta>>,
+    net: FxHashMap<(UserId, u64), Option<StepMeta>>,
 }
 
 impl PackState {
