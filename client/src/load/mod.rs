@@ -853,6 +853,33 @@ impl LoadOutcome {
                 ),
             );
             row("server sessions s", list(&server.session));
+            // Per acknowledged op, and how much of the window the owners were busy (not
+            // waiting for commands): the largest phase is where the next gain is, and a busy
+            // share well under 100% says the owner is not what limits the run.
+            let busy: f64 = server
+                .owner
+                .iter()
+                .filter(|(p, _)| p != "wait")
+                .map(|(_, s)| s)
+                .sum();
+            if r.ops_acked > 0 && busy > 0.0 {
+                let ops = r.ops_acked as f64;
+                let per_op = server
+                    .owner
+                    .iter()
+                    .filter(|(p, _)| p != "wait")
+                    .map(|(p, s)| format!("{p} {:.2}", s * 1e6 / ops))
+                    .collect::<Vec<_>>()
+                    .join("  ");
+                row(
+                    "server owner µs/op",
+                    format!(
+                        "{per_op}  (busy {busy:.2} s of {:.2} s: ~{:.0} ops/s if always busy)",
+                        r.duration_s,
+                        ops / busy
+                    ),
+                );
+            }
         }
         if let Some(p) = &r.presence {
             row(
