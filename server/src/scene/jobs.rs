@@ -180,7 +180,7 @@ impl Owner {
 }
 
 #[cfg(test)]
-pub(super) mod testing {
+pub(crate) mod testing {
     use std::sync::Arc;
     use std::sync::atomic::AtomicUsize;
     use std::time::Instant;

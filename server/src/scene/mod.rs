@@ -59,6 +59,9 @@ use crate::store::{Store, StoreLog};
 
 pub use answered::{Answered, AnsweredEntry, Lookup};
 pub use durable::Durability;
+/// Owners and sessions for unit tests of other modules (`jobs.rs`).
+#[cfg(test)]
+pub(crate) use jobs::testing;
 pub use log::{LogError, OwnedTurn, SceneLog, SnapshotOf, Turn, TurnWrite};
 pub use outbox::{MAX_REPLY_BACKLOG, Outbox, OutboxReceiver};
 pub use owner::Owner;

@@ -1102,8 +1102,11 @@ impl Owner {
         Ok(())
     }
 
-    /// Tells every session the scene is gone (after a storage failure) and closes it.
+    /// Tells every session the scene is gone (after a storage failure) and closes it. Frames
+    /// still waiting for a commit never go (that commit may not have happened); the closing
+    /// error is not stamped, so it goes.
     pub fn fail_all(&mut self, reason: &str) {
+        self.durability.fail();
         for sub in self.subs.values() {
             sub.out.close(
                 brickcast_protocol::wire::ErrorCode::Internal,

@@ -198,17 +198,14 @@ fn run(
 #[cfg(test)]
 mod tests {
     use std::sync::Arc;
-    use std::sync::atomic::AtomicUsize;
     use std::time::Instant;
 
-    use brickcast_protocol::wire::{EditOp, Limits, Role, ServerMsg, decode_server};
+    use brickcast_protocol::wire::{EditOp, Limits, ServerMsg, decode_server};
     use brickcast_protocol::{BrickMap, Colour};
 
     use crate::metrics::{Metrics, PhaseClock};
     use crate::record::LogRecord;
-    use crate::scene::{
-        Command, Durability, Joiner, Outbox, OwnedTurn, Owner, OwnerConfig, SceneLog,
-    };
+    use crate::scene::{Command, Durability, OwnedTurn, Owner, OwnerConfig, SceneLog};
     use crate::sim::disk::SimDisk;
     use crate::store::{Store, StoreLog};
 
@@ -286,19 +283,7 @@ mod tests {
             Arc::new(Instant::now),
         )
         .unwrap();
-        let (out, mut rx) = Outbox::new(Arc::new(AtomicUsize::new(0)));
-        let (joined, _) = tokio::sync::oneshot::channel();
-        let join = Command::Join {
-            session: 1,
-            out,
-            role: Role::Editor,
-            resume_from: None,
-            level: 0,
-            budget: None,
-            who: Joiner::solo(1, 7, Role::Editor),
-            joined,
-        };
-        owner.step(vec![join], &mut PhaseClock::start()).unwrap();
+        let mut rx = crate::scene::testing::join(&mut owner, 1, 7);
         owner.set_backlog(true);
         for n in 1..=40u64 {
             let edit = Command::Edit {
