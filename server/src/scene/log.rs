@@ -118,8 +118,9 @@ impl OwnedTurn {
 
 /// Where a scene's owner makes its turns durable (see the module doc).
 pub trait SceneLog: Send {
-    /// Makes one turn durable; only then does the owner acknowledge it. A shared log refuses
-    /// ([`LogError::Deposed`]) an owner that may not order.
+    /// Makes one turn durable, after every turn handed over before it; only then does the
+    /// owner acknowledge it. A shared log refuses ([`LogError::Deposed`]) an owner that may
+    /// not order.
     fn append(&mut self, turn: TurnWrite<'_>) -> Result<(), LogError>;
 
     /// Hands over turn `ticket` to be made durable, telling `done` once it is

@@ -596,11 +596,10 @@ impl Owner {
             let handed = if self.backlog {
                 self.log.submit(turn, ticket, &self.durability)
             } else {
-                // After what is still being committed, in this thread.
-                self.log.flush().and_then(|()| {
-                    self.log.append(turn.as_write())?;
+                // In this thread (after what is still being committed).
+                self.log.append(turn.as_write()).map(|()| {
                     self.durability.durable_to(ticket);
-                    Ok(true)
+                    true
                 })
             };
             match handed {
