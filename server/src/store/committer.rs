@@ -145,8 +145,11 @@ impl Committer {
 }
 
 impl Drop for Committer {
+    /// Closes it unless [`Committer::close`] already did (which reported any failure).
     fn drop(&mut self) {
-        self.close();
+        if self.thread.is_some() {
+            self.close();
+        }
     }
 }
 
