@@ -152,6 +152,15 @@ pub(super) fn live_index(
     txn: &ReadTransaction,
     scene: &str,
 ) -> Result<BTreeMap<(UserId, u64), StepMeta>, StoreError> {
+    live_index_noting(txn, scene, |_| {})
+}
+
+/// [`live_index`], showing `each` every change after the index rows, in order.
+fn live_index_noting(
+    txn: &ReadTransaction,
+    scene: &str,
+    mut each: impl FnMut(&IndexChange),
+) -> Result<BTreeMap<(UserId, u64), StepMeta>, StoreError> {
     let corrupt = |detail: String| StoreError::Corrupt {
         scene: scene.into(),
         detail,
@@ -172,6 +181,7 @@ pub(super) fn live_index(
             let (n, bytes) = row?;
             let change = decode_change(bytes.value())
                 .map_err(|e| corrupt(format!("undo index change {}: {e}", n.value())))?;
+            each(&change);
             for key in change.removed {
                 live.remove(&key);
             }
@@ -222,7 +232,9 @@ pub(super) fn pack_state(txn: &ReadTransaction, scene: &str) -> Result<PackState
             state.live.insert(first.value(), (last.value(), 0));
         }
     }
-    for (_, id) in live_index(txn, scene)?.keys() {
+    // The changes since the last fold are noted as the index is read: one pass over them.
+    let live = live_index_noting(txn, scene, |change| state.note(change))?;
+    for (_, id) in live.keys() {
         if let Some((_, (last, live))) = state.live.range_mut(..=*id).next_back()
             && *id <= *last
         {
@@ -234,18 +246,10 @@ pub(super) fn pack_state(txn: &ReadTransaction, scene: &str) -> Result<PackState
     {
         state.legacy_last = id.value();
     }
-    if let Some(journal) = open_optional::<u64, &[u8]>(txn, &journal_table(scene))? {
-        if let Some((n, _)) = journal.last()? {
-            state.next_change = n.value() + 1;
-        }
-        for row in journal.iter()? {
-            let (n, bytes) = row?;
-            let change = decode_change(bytes.value()).map_err(|e| StoreError::Corrupt {
-                scene: scene.into(),
-                detail: format!("undo index change {}: {e}", n.value()),
-            })?;
-            state.note(&change);
-        }
+    if let Some(journal) = open_optional::<u64, &[u8]>(txn, &journal_table(scene))?
+        && let Some((n, _)) = journal.last()?
+    {
+        state.next_change = n.value() + 1;
     }
     Ok(state)
 }
