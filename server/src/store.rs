@@ -19,9 +19,9 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use brickcast_protocol::brick::BrickData;
+use brickcast_protocol::brick::{BrickData, popcount};
 use brickcast_protocol::wire::UserId;
-use brickcast_protocol::{BrickMap, Colour};
+use brickcast_protocol::{BrickMap, Colour, palette};
 use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
 
@@ -431,12 +431,25 @@ impl Store {
         let bricks_name = bricks_table(name);
         let bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
         map.set_sequence(meta.snapshot_seq);
+        let (mut words, mut colours) = (Vec::new(), [Colour::BLACK; 512]);
         for row in bricks.iter()? {
             let (cell, bytes) = row?;
             let cell = cell.value();
             let coords = map.cell_coords(cell);
-            let brick = decode_row(coords, bytes.value())
-                .ok_or_else(|| corrupt(format!("brick row {cell}")))?;
+            let bytes = bytes.value();
+            // A coded row's block goes into the map as it is (decoded once, to check it).
+            if let Some(mask) = store_rows::coded_row(bytes, &mut words) {
+                let n = popcount(&mask) as usize;
+                let colours = match palette::decode_words(&words, &mut colours[..n]) {
+                    Ok(used) if used == words.len() => &colours[..n],
+                    _ => return Err(corrupt(format!("brick row {cell}"))),
+                };
+                map.put_coded(coords, mask, colours, &words)
+                    .map_err(|e| corrupt(e.to_string()))?;
+                continue;
+            }
+            let brick =
+                decode_row(coords, bytes).ok_or_else(|| corrupt(format!("brick row {cell}")))?;
             map.put_brick(&brick).map_err(|e| corrupt(e.to_string()))?;
         }
         // The snapshot keeps bricks, not the tombstones of bricks removed before it: a client

@@ -57,6 +57,28 @@ pub fn decode_row(cell: [u32; 3], bytes: &[u8]) -> Option<BrickData> {
     })
 }
 
+/// A palette-coded row's mask and colour block, the block written to `words` as the map
+/// stores it, so loading a scene need not choose and code every brick's colours again;
+/// `None` for an older raw row or a row that is not a brick (read those with [`decode_row`]).
+/// The block is not checked here: [`BrickMap::put_coded`](brickcast_protocol::BrickMap::put_coded)
+/// takes it only with the colours it decodes to.
+pub fn coded_row(bytes: &[u8], words: &mut Vec<u16>) -> Option<Mask> {
+    if bytes.len() < 67 || bytes[64] != CODED || bytes.len().is_multiple_of(2) {
+        return None;
+    }
+    let mut mask = [0u64; 8];
+    for (word, chunk) in mask.iter_mut().zip(bytes[..64].chunks_exact(8)) {
+        *word = u64::from_le_bytes(chunk.try_into().ok()?);
+    }
+    words.clear();
+    words.extend(
+        bytes[65..]
+            .chunks_exact(2)
+            .map(|pair| u16::from_le_bytes([pair[0], pair[1]])),
+    );
+    Some(mask)
+}
+
 fn solid(mask: &Mask) -> usize {
     mask.iter().map(|w| w.count_ones() as usize).sum()
 }
@@ -88,12 +110,20 @@ mod tests {
             assert_eq!(row.len(), len, "{solid} voxels");
             let back = decode_row([1, 2, 3], &row).unwrap();
             assert_eq!(
-                (back.cell, back.mask, back.colours),
+                (back.cell, back.mask, back.colours.clone()),
                 ([1, 2, 3], mask, colours.clone())
             );
+            // Its block as the map stores it: the words the map would code.
+            let mut words = Vec::new();
+            assert_eq!(coded_row(&row, &mut words), Some(mask));
+            let mut map = brickcast_protocol::BrickMap::new([64, 64, 64]).unwrap();
+            map.put_brick(&back).unwrap();
+            let slot = map.slot_of_cell([1, 2, 3]).unwrap();
+            assert_eq!(&map.block(slot)[..words.len()], &words[..]);
             // The row a format-1 store holds.
             encode_brick(&mask, &colours, &mut row);
             assert_eq!(decode_row([1, 2, 3], &row).unwrap().colours, colours);
+            assert_eq!(coded_row(&row, &mut words), None, "a raw row is read whole");
         }
     }
 

@@ -225,6 +225,11 @@ pub(crate) mod testing {
             slice_bricks: slice,
             ..OwnerConfig::default()
         };
+        open_with(store, metrics, config)
+    }
+
+    /// An owner of scene "s" with `config`.
+    pub fn open_with(store: &Arc<Store>, metrics: &Arc<Metrics>, config: OwnerConfig) -> Owner {
         let loaded = store.load_scene("s").unwrap();
         Owner::new(
             "s".into(),

@@ -5,11 +5,14 @@
 //! level 0's, made from the level's own `BrickMap`, so every client (native, browser,
 //! `render`) can open a world too large for it at a level it can hold.
 //!
-//! The pyramid is built when a session first asks for a level, **a part per turn**
-//! ([`BUILD_SLOTS_PER_TURN`] of the map's brick slots, ~0.1 s), so edits and other clients go
-//! on meanwhile: a 16384×512×16384 world takes a few hundred turns. Edits during the build
-//! update what is built so far like any other turn, and the parts not yet folded in are read
-//! as they are when their turn comes, so the finished pyramid is exactly the map's. Sessions
+//! The pyramid is built when a scene larger than a browser viewer's default budget loads
+//! ([`EAGER_ABOVE_BYTES`]), or else when a session first asks for a level or a working set,
+//! **a part per turn** ([`BUILD_SLOTS_PER_TURN`] brick slots of the level below), level 1
+//! from level 0, then level 2 from level 1, and so on, so edits and other clients go on
+//! meanwhile: a 16384×512×16384 world takes a few hundred turns. Edits during the build
+//! update what is built so far like any other turn (climbing into levels not yet built,
+//! which their own pass recomputes), and the parts not yet folded in are read as they are
+//! when their turn comes, so the finished pyramid is exactly the map's. Sessions
 //! that asked meanwhile are welcomed at once and get their level's sync when it is done. The
 //! pyramid is then kept for the scene's life, updated every turn from the cells the turn
 //! touched, only where a coarse brick changes, before the turn's deltas go out. Scenes nobody
@@ -27,16 +30,31 @@ pub fn levels_of(size: [u32; 3]) -> u32 {
     level_count(size)
 }
 
+/// A scene laid out larger than this gets its levels built as soon as it loads, before anyone
+/// asks: a 256 MiB browser viewer (the page's default budget) holds only a working set of it,
+/// and a working set needs the levels. Smaller scenes pay nothing until a level is asked for.
+pub const EAGER_ABOVE_BYTES: u64 = 128 << 20;
+
 /// The pyramid once someone asked for it.
 #[derive(Default)]
 pub(super) struct Levels {
     pyramid: Option<Pyramid>,
-    /// While it is being built: the next level-0 slot to fold in, and when the build began.
-    building: Option<(u32, std::time::Instant)>,
+    /// While it is being built: the level being folded in, its next slot of the level below,
+    /// and when the build began.
+    building: Option<Build>,
     /// Slots folded in per turn ([`BUILD_SLOTS_PER_TURN`]; tests take smaller steps).
     step: Option<u32>,
     /// Level-0 regions' bytes in a working set, remembered for following cameras.
     costs: Option<brickcast_protocol::working_set::RegionCosts>,
+}
+
+/// How far a build is: level `level` (1 ..) is being made from the slots of the level below,
+/// `next` the first not folded in yet.
+#[derive(Clone, Copy)]
+struct Build {
+    level: u32,
+    next: u32,
+    started: std::time::Instant,
 }
 
 impl Levels {
@@ -51,7 +69,11 @@ impl Levels {
             let mut pyramid = Pyramid::empty(map.size())?;
             pyramid.prune_tombstones(seq);
             self.pyramid = Some(pyramid);
-            self.building = Some((0, std::time::Instant::now()));
+            self.building = Some(Build {
+                level: 1,
+                next: 0,
+                started: std::time::Instant::now(),
+            });
         }
         Ok(())
     }
@@ -67,23 +89,51 @@ impl Levels {
     }
 
     /// One turn's part of the build (the scene at sequence `seq`); true when this part finished
-    /// it. A finished pyramid's tombstone horizon is `seq`: a coarse brick emptied during the
-    /// build before it was folded in left no tombstone, so a client resuming a level from
-    /// before the build finished must get a full resync.
+    /// it. Levels are made one after another, each from the finished level below (edits
+    /// meanwhile keep what is built current through [`Levels::update`]), so each coarse brick
+    /// is computed about once. A finished pyramid's tombstone horizon is `seq`: a coarse brick
+    /// emptied during the build before it was folded in left no tombstone, so a client
+    /// resuming a level from before the build finished must get a full resync.
     pub(super) fn advance(
         &mut self,
         map: &BrickMap,
         seq: u64,
         scene: &str,
     ) -> Result<bool, MapError> {
-        let (Some(pyramid), Some((next, started))) = (&mut self.pyramid, self.building) else {
+        let (Some(pyramid), Some(build)) = (&mut self.pyramid, self.building) else {
             return Ok(false);
         };
-        let end = next.saturating_add(self.step.unwrap_or(BUILD_SLOTS_PER_TURN));
-        let cells: Vec<u32> = map.slot_cells(next..end).collect();
-        pyramid.update(map, &cells)?;
-        if end < map.slot_count() {
-            self.building = Some((end, started));
+        let Build {
+            level,
+            next,
+            started,
+        } = build;
+        let mut left = self.step.unwrap_or(BUILD_SLOTS_PER_TURN);
+        let (mut level, mut next) = (level, next);
+        // Small upper levels share a turn with the end of the one below.
+        while left > 0 && level <= pyramid.level_count() {
+            let below = if level == 1 {
+                map
+            } else {
+                pyramid.level(level - 1).unwrap_or(map)
+            };
+            let slots = below.slot_count();
+            let end = next.saturating_add(left).min(slots);
+            let cells: Vec<u32> = below.slot_cells(next..end).collect();
+            left -= end - next;
+            pyramid.fold(map, level, &cells)?;
+            if end < slots {
+                next = end;
+                break;
+            }
+            (level, next) = (level + 1, 0);
+        }
+        if level <= pyramid.level_count() {
+            self.building = Some(Build {
+                level,
+                next,
+                started,
+            });
             return Ok(false);
         }
         self.building = None;
@@ -194,6 +244,57 @@ mod tests {
             let got = levels.map_at(&map, k).unwrap();
             assert_eq!(got.content_hash(), want.content_hash(), "level {k}");
             assert_eq!(got.brick_count(), want.brick_count(), "level {k}");
+        }
+    }
+
+    /// A scene larger than `eager_levels_bytes` starts its levels when it loads and builds
+    /// them over turns nobody asked for, exactly as a build at once would; a smaller scene
+    /// builds nothing until asked.
+    #[test]
+    fn a_large_scene_builds_its_levels_at_load() {
+        use crate::scene::OwnerConfig;
+        use crate::scene::jobs::testing::{Scene, open_with};
+        let mut map = BrickMap::new([256, 32, 256]).unwrap();
+        map.fill_box([0, 0, 0], [255, 9, 255], BrushMode::Fill, Colour(0x07E0));
+        let scene = Scene::new(&map);
+        let bytes = map.memory().total_bytes;
+        let small = open_with(
+            &scene.store,
+            &scene.metrics,
+            OwnerConfig {
+                eager_levels_bytes: bytes,
+                ..OwnerConfig::default()
+            },
+        );
+        assert!(!small.levels.building() && !small.levels.ready());
+        assert!(!small.has_ready_work(), "no build, no turns");
+        drop(small);
+        let mut owner = open_with(
+            &scene.store,
+            &scene.metrics,
+            OwnerConfig {
+                eager_levels_bytes: bytes - 1,
+                ..OwnerConfig::default()
+            },
+        );
+        owner.levels.step = Some(64);
+        assert!(owner.levels.building() && owner.has_ready_work());
+        let mut turns = 0;
+        while owner.has_ready_work() {
+            owner
+                .step(Vec::new(), &mut crate::metrics::PhaseClock::start())
+                .unwrap();
+            turns += 1;
+            assert!(turns < 1000, "the build ends");
+        }
+        assert!(
+            owner.levels.ready() && turns > 2,
+            "built over {turns} turns"
+        );
+        let fresh = Pyramid::build(&map).unwrap();
+        for k in 1..=fresh.level_count() {
+            let got = owner.levels.map_at(&owner.map, k).unwrap();
+            assert_eq!(got.content_hash(), fresh.level(k).unwrap().content_hash());
         }
     }
 

@@ -283,6 +283,10 @@ pub struct OwnerConfig {
     /// least this many bricks' work (512 voxels each), is planned a frame per turn and applied
     /// in one (`jobs.rs`), so others' edits go on meanwhile.
     pub slice_bricks: u32,
+    /// A scene laid out larger than this gets its levels of detail built as soon as it loads
+    /// (`levels.rs`, [`levels::EAGER_ABOVE_BYTES`] by default), so the first viewer that needs
+    /// a working set does not wait for them.
+    pub eager_levels_bytes: u64,
 }
 
 impl Default for OwnerConfig {
@@ -298,6 +302,7 @@ impl Default for OwnerConfig {
             max_history_bytes: 256 << 20,
             // 1 M voxels compared: as heavy as a heavy edit (`fair::HEAVY_WORK`).
             slice_bricks: 2048,
+            eager_levels_bytes: levels::EAGER_ABOVE_BYTES,
         }
     }
 }

@@ -281,7 +281,7 @@ impl Owner {
         map.set_sequence(seq);
         map.record_touched(true);
         let now = clock();
-        let owner = Owner {
+        let mut owner = Owner {
             name,
             map,
             seq,
@@ -317,8 +317,23 @@ impl Owner {
             durability: Arc::default(),
             backlog: false,
         };
+        if owner.map.memory().total_bytes > owner.config.eager_levels_bytes {
+            owner.start_levels_now();
+        }
         owner.publish_info();
         Ok(owner)
+    }
+
+    /// Starts building the levels of detail before anyone asks (a scene too large for a
+    /// viewer to hold whole); a failure is logged and the levels are tried again when asked.
+    fn start_levels_now(&mut self) {
+        match self.levels.start(&self.map, self.seq) {
+            Ok(()) => tracing::info!(scene = %self.name, "building the levels of detail at load"),
+            Err(e) => {
+                tracing::error!(scene = %self.name, error = %e, "could not build the levels of detail");
+                self.levels = super::levels::Levels::default();
+            }
+        }
     }
 
     /// The scene's sequence number (the last batch that applied something).

@@ -177,6 +177,9 @@ impl Sim {
             // The model applies an undo in the turn it arrives; an undo planned across turns
             // has a test of its own (`scene::undo_job`), against the undo of one turn.
             slice_bricks: u32::MAX,
+            // Levels of detail built from the start (over turns, beside the edits) or when a
+            // working set or level view first asks.
+            eager_levels_bytes: [0, u64::MAX][rng.random_range(0..2)],
             ..OwnerConfig::default()
         };
         let now = Arc::new(Mutex::new(Instant::now()));
