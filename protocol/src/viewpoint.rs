@@ -16,8 +16,15 @@
 //!    least [`ENCLOSED_HITS`] = 29 of them (≥ 90%) hit a solid voxel; probing stops at the 4th
 //!    miss. An enclosed candidate also traces straight up and down, which gives the free vertical
 //!    span of its column.
-//! 4. **Inside or outside.** The scene is *inside* when at least one candidate is enclosed and
-//!    enclosed candidates are at least [`ENCLOSED_SHARE`] = 1/2 of the empty candidates.
+//! 4. **Inside or outside.** The scene is *inside* when at least one candidate is enclosed,
+//!    enclosed candidates are at least [`ENCLOSED_SHARE`] = 1/2 of the empty candidates, and
+//!    the enclosure holds something: at least [`INTERIOR_HITS`] = 8 of the enclosed candidates'
+//!    probe hits are *interior* — past the solid the probe hit (stepped through in quarter
+//!    voxels, at most [`WALL_DEPTH`] = 64 voxels) the same ray meets another solid before it
+//!    leaves the grid. A closed model that is only a shell (an imported cube, a ball) has no
+//!    interior hits: every probe from inside hits the shell and then escapes, so it is looked
+//!    at from outside, like any object; a room with furniture, a cathedral with pillars and
+//!    vaults, is looked at from inside.
 //! 5. **Inside camera.** The enclosed candidate with the largest median probe distance (the 17th
 //!    of its 32 sorted hit distances, a miss counting as infinitely far) wins; one in the upper
 //!    half of its column's free span counts [`UPPER_HALF_WEIGHT`] = 0.9 of its median (ties: the
@@ -42,7 +49,8 @@
 //!    (the closed-form fit of a point set in a frustum of fixed orientation); the target is on the
 //!    view axis at the depth of the occupied box's centre.
 //!
-//! Cost: at most 144 candidates × (32 + 2) probes + 18 rays (≤ 4,914 rays); one pass over the
+//! Cost: at most 144 candidates × (32 + 2) probes, as many rays past the hits of enclosed
+//! candidates (until [`INTERIOR_HITS`] are found), and 18 rays (≤ 9,522 rays); one pass over the
 //! region array; the cells of each non-empty region (up to [`HULL_CELL_REGIONS`] of them) and the
 //! bricks on the occupied box's faces; twice 13³ voxel reads. Deterministic: no randomness, no
 //! clock. Nothing in the map can make it panic, and the camera it returns always projects
@@ -63,6 +71,10 @@ pub const PROBES: usize = 32;
 pub const ENCLOSED_HITS: usize = 29;
 /// Share of empty candidates that must be enclosed for the scene to be viewed from inside.
 pub const ENCLOSED_SHARE: f32 = 0.5;
+/// Probe hits on something inside an enclosure (not its shell) it takes to view it from inside.
+pub const INTERIOR_HITS: u32 = 8;
+/// Deepest solid a probe steps through, in voxels, to see whether something lies beyond it.
+pub const WALL_DEPTH: f32 = 64.0;
 /// Weight of a candidate in the upper half of its column's free span, against 1 below.
 pub const UPPER_HALF_WEIGHT: f32 = 0.9;
 /// Eye height inside, as a fraction of the free vertical span above the solid below.
@@ -107,6 +119,9 @@ pub struct Viewpoint {
     pub enclosed: u32,
     /// `enclosed / candidates` (0 when there were none).
     pub enclosed_fraction: f32,
+    /// Enclosed candidates' probe hits with more solid beyond them, counted up to
+    /// [`INTERIOR_HITS`]: fewer means the enclosure is an empty shell.
+    pub interior: u32,
     /// Rays traced in all.
     pub rays: u32,
 }
@@ -131,14 +146,16 @@ pub fn find(map: &BrickMap, fov_y: f32) -> Viewpoint {
             candidates: 0,
             enclosed: 0,
             enclosed_fraction: 0.0,
+            interior: 0,
             rays: 0,
         };
     };
     let (lo, hi) = (occupancy.lo, occupancy.hi);
     let survey = survey(map, lo, hi);
     let mut rays = survey.rays;
-    let inside =
-        survey.enclosed > 0 && survey.enclosed as f32 >= ENCLOSED_SHARE * survey.candidates as f32;
+    let inside = survey.enclosed > 0
+        && survey.enclosed as f32 >= ENCLOSED_SHARE * survey.candidates as f32
+        && survey.interior >= INTERIOR_HITS;
     let (camera, placement) = match survey.best.filter(|_| inside) {
         Some(best) => (
             inside_camera(map, &best, fov_y, &mut rays),
@@ -164,6 +181,7 @@ pub fn find(map: &BrickMap, fov_y: f32) -> Viewpoint {
         } else {
             survey.enclosed as f32 / survey.candidates as f32
         },
+        interior: survey.interior,
         rays,
     }
 }
@@ -418,6 +436,8 @@ struct Candidate {
 struct Survey {
     candidates: u32,
     enclosed: u32,
+    /// Interior hits found, up to [`INTERIOR_HITS`].
+    interior: u32,
     rays: u32,
     best: Option<Candidate>,
 }
@@ -443,6 +463,26 @@ fn spread(lo: u32, hi: u32, n: u32) -> Vec<u32> {
     out
 }
 
+/// Whether the ray from `origin` along `dir` (unit), which first meets a solid at `t`, meets
+/// another solid past it: it steps through the solid in quarter voxels (at most
+/// [`WALL_DEPTH`]; a thicker solid counts as the shell) and traces on from the first empty
+/// voxel. Leaving the grid first means nothing is beyond.
+fn solid_beyond(map: &BrickMap, origin: [f32; 3], dir: [f32; 3], t: f32) -> bool {
+    let size = map.size();
+    let mut d = t;
+    while d < t + WALL_DEPTH {
+        d += 0.25;
+        let p: [f32; 3] = std::array::from_fn(|a| origin[a] + dir[a] * d);
+        if (0..3).any(|a| !(p[a] >= 0.0 && p[a] < size[a] as f32)) {
+            return false;
+        }
+        if !map.is_solid(p.map(|c| c as u32)) {
+            return trace(map, &Ray { origin: p, dir }).is_some();
+        }
+    }
+    false
+}
+
 fn centre(v: [u32; 3]) -> [f32; 3] {
     v.map(|c| c as f32 + 0.5)
 }
@@ -454,6 +494,7 @@ fn survey(map: &BrickMap, lo: [u32; 3], hi: [u32; 3]) -> Survey {
     let mut s = Survey {
         candidates: 0,
         enclosed: 0,
+        interior: 0,
         rays: 0,
         best: None,
     };
@@ -486,6 +527,15 @@ fn survey(map: &BrickMap, lo: [u32; 3], hi: [u32; 3]) -> Survey {
                     continue;
                 }
                 s.enclosed += 1;
+                for (dir, &t) in dirs.iter().zip(&distances) {
+                    if s.interior >= INTERIOR_HITS {
+                        break;
+                    }
+                    if t.is_finite() {
+                        s.rays += 1;
+                        s.interior += u32::from(solid_beyond(map, origin, *dir, t));
+                    }
+                }
                 distances.sort_by(f32::total_cmp);
                 let median = distances[PROBES / 2];
                 let vertical = |dy: f32| {
@@ -865,13 +915,33 @@ mod tests {
     }
 
     #[test]
-    fn hollow_box_seen_from_inside_and_a_shell_with_holes_from_outside() {
-        // A closed box: inside. The same box with its lid off: its candidates see the sky.
+    fn a_furnished_box_is_seen_from_inside_an_empty_shell_or_an_open_one_from_outside() {
         let mut map = BrickMap::new([64, 48, 64]).unwrap();
         let grey = Colour::from_rgb8(200, 200, 200);
         map.fill_box([4, 4, 4], [59, 43, 59], BrushMode::Fill, grey);
         map.fill_box([6, 6, 6], [57, 41, 57], BrushMode::Erase, grey);
-        assert_eq!(find(&map, 60.0).placement, Placement::Inside);
+        // A closed, empty shell (an imported cube): an object, seen from outside, whole.
+        let view = find(&map, 60.0);
+        assert_eq!(view.placement, Placement::Outside, "{view:?}");
+        assert_eq!(view.interior, 0);
+        assert!(view.enclosed_fraction >= ENCLOSED_SHARE, "{view:?}");
+        let (hits, _) = look(&map, &view.camera);
+        assert!(hits > 0, "the shell is in view");
+        assert!(
+            map.size()
+                .iter()
+                .zip(view.camera.eye)
+                .any(|(&s, e)| e < 4.0 || e > s as f32 - 4.0),
+            "the eye is outside the shell: {view:?}"
+        );
+        // Something inside (two pillars and a table): a room, seen from inside.
+        map.fill_box([20, 6, 20], [23, 41, 23], BrushMode::Fill, grey);
+        map.fill_box([40, 6, 40], [43, 41, 43], BrushMode::Fill, grey);
+        map.fill_box([26, 14, 34], [44, 15, 48], BrushMode::Fill, grey);
+        let view = find(&map, 60.0);
+        assert_eq!(view.placement, Placement::Inside, "{view:?}");
+        assert_eq!(view.interior, INTERIOR_HITS);
+        // The same box with its lid off: its candidates see the sky.
         map.fill_box([6, 42, 6], [57, 43, 57], BrushMode::Erase, grey);
         assert_eq!(find(&map, 60.0).placement, Placement::Outside);
     }

@@ -154,6 +154,14 @@ fn textured_cube_is_a_one_voxel_shell_with_sampled_colours() {
         assert_eq!(map.get([r / 2, r / 2, r - 1]), Some(plain));
         // Inside is empty.
         assert_eq!(map.get([r / 2, r / 2, r / 2]), None);
+        // A closed model is an object: its first view (and thumbnail) looks at it from
+        // outside, not at the inside of its shell.
+        let view = brickcast_protocol::viewpoint::find(map, 60.0);
+        assert_eq!(
+            view.placement,
+            brickcast_protocol::viewpoint::Placement::Outside,
+            "{view:?}"
+        );
     }
 }
 

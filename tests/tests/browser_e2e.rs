@@ -344,9 +344,12 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
 fn the_page_explains_what_is_wrong() -> Result<()> {
     let dir = tempfile::tempdir()?;
     let server = TestServer::start_with(dir.path(), local(), |c| {
-        c.auth = brickcast_server::auth::Auth::parse("ed-token editor alice\n").expect("auth");
+        c.auth = brickcast_server::auth::Auth::parse("ed-token editor alice\nv-token viewer bob\n")
+            .expect("auth");
     })?;
     let mut browser = Browser::start(320, 180)?;
+    let tools_shown =
+        "(() => { const t = document.getElementById('tools'); return !!t && !t.hidden; })()";
 
     browser.goto(&format!("{}#token=wrong", viewer_url(&server, "demo")))?;
     let message = browser.wait(
@@ -361,6 +364,11 @@ fn the_page_explains_what_is_wrong() -> Result<()> {
     );
     let form = browser.eval("!document.getElementById('token-form').hidden")?;
     assert_eq!(form, serde_json::json!(true), "the token form is offered");
+    assert_eq!(
+        browser.eval(tools_shown)?,
+        serde_json::json!(false),
+        "no editing tools over the message"
+    );
 
     // The right token, typed into the form, makes an editor.
     browser.eval(
@@ -368,6 +376,45 @@ fn the_page_explains_what_is_wrong() -> Result<()> {
     )?;
     let state = browser.wait_state("s.status === 'live'", 60_000)?;
     assert_eq!(state["role"], "Editor", "{state}");
+    browser.wait(tools_shown, 10_000)?;
+
+    // A viewer's link: no editing tools, a note that fits the page when a click is ignored,
+    // the resolution from `?scale=` and the bar's menu.
+    let url = viewer_url(&server, "demo");
+    browser.goto(&format!("{url}?scale=2#token=v-token"))?;
+    let state = browser.wait_state("s.status === 'live'", 60_000)?;
+    assert_eq!(state["role"], "Viewer", "{state}");
+    let status = "document.getElementById('status').textContent";
+    let line = browser.wait(
+        &format!(
+            "{status}.includes('1/2 resolution') && {status}.includes('watching') && {status}"
+        ),
+        10_000,
+    )?;
+    assert!(
+        !line.as_str().is_some_and(|l| l.contains("brush")),
+        "{line}"
+    );
+    assert_eq!(browser.eval("document.getElementById('scale').value")?, "2");
+    assert_eq!(
+        browser.eval(tools_shown)?,
+        serde_json::json!(false),
+        "a viewer has no tools"
+    );
+    browser.eval(
+        "(() => { const p = document.getElementById('scale'); p.value = '4'; p.dispatchEvent(new Event('change')); })()",
+    )?;
+    browser.wait(&format!("{status}.includes('1/4 resolution')"), 10_000)?;
+    browser.click(160.0, 90.0, "left")?;
+    let note = browser.wait(
+        "(() => { const n = document.getElementById('note'); const r = n.getBoundingClientRect(); return n.textContent && [r.left, r.right, r.top, window.innerWidth]; })()",
+        10_000,
+    )?;
+    let [left, right, top, width] = [0, 1, 2, 3].map(|i| note[i].as_f64().unwrap_or(f64::NAN));
+    assert!(
+        left >= 0.0 && right <= width && top >= 0.0,
+        "the whole note is on the page: {note}"
+    );
 
     browser.goto(&viewer_url(&server, "nowhere"))?;
     let text = browser.eval("document.getElementById('message').textContent")?;
@@ -375,6 +422,7 @@ fn the_page_explains_what_is_wrong() -> Result<()> {
         text.as_str().is_some_and(|t| t.contains("no scene called")),
         "{text}"
     );
+    assert_eq!(browser.eval(tools_shown)?, serde_json::json!(false));
     drop(browser);
 
     let mut plain = Browser::without_webgpu()?;

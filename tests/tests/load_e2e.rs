@@ -47,7 +47,7 @@ fn num(report: &Value, path: &[&str]) -> f64 {
 
 /// Runs `brickcast load URL ARGS --json`, demands success, and checks the report's shape.
 fn load_ok(url: &str, args: &[&str]) -> (Value, String) {
-    let all = [&["load", url][..], args, &["--json"][..]].concat();
+    let all = [&["load", url][..], args, &["--overwrite", "--json"][..]].concat();
     let (status, stdout, stderr) = run_brickcast(&all, &[], RUN_LIMIT).expect("brickcast load");
     assert!(status.success(), "{all:?} failed:\n{stderr}");
     let report: Value = serde_json::from_str(stdout.trim())
@@ -206,7 +206,7 @@ fn tokens_bad_addresses_and_bad_options_are_refused_with_reasons() {
     let server =
         TestServer::start_with(data.path(), local(), |config| config.auth = auth).expect("server");
     let url = format!("ws://{}/scenes/demo", server.addr);
-    let short = ["--duration", "0.5", "--clients", "1"];
+    let short = ["--duration", "0.5", "--clients", "1", "--overwrite"];
     let cases: Vec<(Vec<&str>, &str)> = vec![
         (vec!["--token", "look"], "editor --token"),
         (vec![], "editor --token"),
@@ -234,6 +234,21 @@ fn tokens_bad_addresses_and_bad_options_are_refused_with_reasons() {
         ),
         (vec!["--token", "ed", "--clients", "0"], "--clients"),
     ];
+    // Without --overwrite a scene that holds voxels is refused before any edit is sent.
+    let seq = || brickcast_tests::scene_info(server.addr, "demo").expect("/scenes")["seq"].clone();
+    let before = seq();
+    let (status, _, stderr) = run_brickcast(
+        &["load", &url, "--token", "ed", "--duration", "0.5"],
+        &[],
+        RUN_LIMIT,
+    )
+    .expect("brickcast");
+    assert!(!status.success(), "a scene with voxels needs --overwrite");
+    assert!(
+        stderr.contains("holds") && stderr.contains("--overwrite"),
+        "{stderr}"
+    );
+    assert_eq!(seq(), before, "nothing was written");
     for (extra, expect) in cases {
         let args = [&["load", &url][..], &short[..], &extra[..]].concat();
         let (status, stdout, stderr) = run_brickcast(&args, &[], RUN_LIMIT).expect("brickcast");
@@ -273,9 +288,19 @@ fn a_run_whose_server_goes_away_fails_loudly() {
     let data = tempfile::tempdir().expect("tempdir");
     let server = TestServer::start(data.path(), local()).expect("server");
     let url = server.url("demo");
-    let mut child =
-        brickcast_tests::spawn_brickcast(&["load", &url, "--clients", "2", "--duration", "5"], &[])
-            .expect("brickcast load");
+    let mut child = brickcast_tests::spawn_brickcast(
+        &[
+            "load",
+            &url,
+            "--clients",
+            "2",
+            "--duration",
+            "5",
+            "--overwrite",
+        ],
+        &[],
+    )
+    .expect("brickcast load");
     std::thread::sleep(Duration::from_millis(1500));
     server.stop().expect("server stop");
     let status = child

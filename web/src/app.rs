@@ -506,26 +506,38 @@ impl App {
             self.fps_frames = 0;
             self.fps_at = now;
             page::set_text("status", &self.status_line());
+            // Editing tools only for an editor, and not over a message that must be read.
+            page::show(
+                "tools",
+                self.session.role == Some(Role::Editor)
+                    && self.gpu_error.is_none()
+                    && !page::shown("message"),
+            );
         }
     }
 
     fn status_line(&self) -> String {
-        let role = match self.session.role {
-            Some(Role::Editor) => "editor",
-            Some(Role::Viewer) => "watching",
-            None => "",
-        };
-        let (r, g, b) = PALETTE[self.colour];
         let mut line = format!(
-            "{} · {:.0} fps · 1/{} resolution · {role} · colour #{r:02x}{g:02x}{b:02x} · brush {}",
+            "{} · {:.0} fps · 1/{} resolution",
             self.session.status_text(),
             self.fps,
             self.scale.divisor,
-            self.radius
         );
-        let others = self.session.roster.others.len();
-        if others > 0 {
-            line.push_str(&format!(" · {others} others here"));
+        match self.session.role {
+            Some(Role::Editor) => {
+                let (r, g, b) = PALETTE[self.colour];
+                line.push_str(&format!(
+                    " · editor · colour #{r:02x}{g:02x}{b:02x} · brush {}",
+                    self.radius
+                ));
+            }
+            Some(Role::Viewer) => line.push_str(" · watching"),
+            None => {}
+        }
+        match self.session.roster.others.len() {
+            0 => {}
+            1 => line.push_str(" · 1 other here"),
+            n => line.push_str(&format!(" · {n} others here")),
         }
         line
     }

@@ -27,6 +27,11 @@ pub fn show(id: &str, visible: bool) {
     }
 }
 
+/// Whether element `id` is on the page and not hidden.
+pub fn shown(id: &str) -> bool {
+    element(id).is_some_and(|e| !e.hidden())
+}
+
 /// Shows `text` in the page's message box (errors a user must read), or hides it.
 pub fn message(text: Option<&str>) {
     match text {

@@ -54,6 +54,10 @@ pub enum LoadError {
         "the server gives this connection the {0:?} role: load clients must edit (pass an editor --token)"
     )]
     NotEditor(Role),
+    #[error(
+        "scene {scene} holds {bricks} bricks, and a load run's edits stay in it for good (nothing resets a scene while its server runs): run it on a scene you can lose (a copy of the store, an empty scene) and pass --overwrite to confirm"
+    )]
+    WouldOverwrite { scene: String, bricks: u32 },
     #[error("a load client could not connect and sync: {0}")]
     Setup(String),
     #[error("the clients did not all connect and sync within {0:?}")]
@@ -254,6 +258,12 @@ pub async fn run_on(urls: &[String], args: &LoadArgs) -> Result<LoadOutcome, Loa
     if welcome.role != Role::Editor {
         return Err(LoadError::NotEditor(welcome.role));
     }
+    if welcome.total_bricks > 0 && !args.overwrite {
+        return Err(LoadError::WouldOverwrite {
+            scene: welcome.scene.clone(),
+            bricks: welcome.total_bricks,
+        });
+    }
     let areas = args.plan(welcome.size, &welcome.limits)?;
     if args.rate > f64::from(welcome.limits.max_edits_per_second) {
         tracing::warn!(
@@ -303,6 +313,10 @@ pub async fn run_on(urls: &[String], args: &LoadArgs) -> Result<LoadOutcome, Loa
     let setup_deadline = setup_started + SETUP_TIMEOUT;
     let mut ready = 0;
     let mut setup_error = None;
+    // A line a second, however often clients report (a sleep restarted by every event
+    // would never fire while they do).
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    tick.reset();
     while ready < connections && setup_error.is_none() {
         tokio::select! {
             ev = events.recv() => match ev {
@@ -314,8 +328,13 @@ pub async fn run_on(urls: &[String], args: &LoadArgs) -> Result<LoadOutcome, Loa
             () = tokio::time::sleep_until(setup_deadline.into()) => {
                 setup_error = Some(LoadError::SetupTimeout(SETUP_TIMEOUT));
             }
-            () = tokio::time::sleep(Duration::from_secs(1)) => {
-                progress.line(&format!("connecting and syncing: {ready}/{connections} clients ready"));
+            _ = tick.tick() => {
+                let live = &shared.live;
+                progress.line(&format!(
+                    "connecting and syncing: {ready}/{connections} clients ready, {}/{} bricks received",
+                    live.sync_received.load(Relaxed),
+                    live.sync_total.load(Relaxed),
+                ));
             }
         }
     }
@@ -991,6 +1010,7 @@ mod tests {
             presence_hz: 0.0,
             viewers: 0,
             token: None,
+            overwrite: false,
             json: false,
         };
         for url in [

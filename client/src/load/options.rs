@@ -59,6 +59,11 @@ pub struct LoadArgs {
     /// Access token (servers started with --auth); it must allow editing.
     #[arg(long)]
     pub token: Option<String>,
+    /// Run on a scene that holds voxels. A run's edits stay in the scene for good (nothing
+    /// resets a scene while its server runs), so without this the tool runs only on an empty
+    /// scene and refuses any other before it sends an edit.
+    #[arg(long)]
+    pub overwrite: bool,
     /// Print one JSON object on stdout (the table goes to stderr).
     #[arg(long)]
     pub json: bool,

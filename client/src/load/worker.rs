@@ -90,6 +90,10 @@ pub enum Event {
 /// Counters the progress line reads while the run goes.
 #[derive(Default)]
 pub struct Live {
+    /// Bricks the connections' syncs will bring (their Welcomes' counts, summed) and have
+    /// brought so far: the setup's progress.
+    pub sync_total: AtomicU64,
+    pub sync_received: AtomicU64,
     pub ops_acked: AtomicU64,
     pub acks: AtomicU64,
     pub ack_ns: AtomicU64,
@@ -399,7 +403,16 @@ impl Client {
             let mut replica = Replica::new(&welcome.scene, welcome.size)?;
             replica.record_gpu_changes(false);
             replica.sync_total = welcome.total_bricks;
-            link::sync(&mut link, &mut replica, |_| {}).await?;
+            let live = &self.shared.live;
+            live.sync_total
+                .fetch_add(u64::from(welcome.total_bricks), Relaxed);
+            let mut counted = 0;
+            link::sync(&mut link, &mut replica, |r| {
+                live.sync_received
+                    .fetch_add(r.bricks_received - counted, Relaxed);
+                counted = r.bricks_received;
+            })
+            .await?;
             Ok::<_, ClientError>((link, replica))
         };
         let (link, replica) = tokio::select! {
