@@ -31,7 +31,7 @@ use winit::window::{CursorGrabMode, Window, WindowId};
 
 pub use brickcast_client_core::camera::{FirstView, FlyCamera};
 use brickcast_client_core::camera::{PALETTE, movement};
-use brickcast_client_core::shading::shading_key;
+use brickcast_client_core::shading::{NOTE_SECONDS, shading_key};
 use brickcast_client_core::tools::{Button, ray_edit, step_radius};
 
 use crate::follow::Follow;
@@ -102,6 +102,8 @@ struct App {
     first_view: FirstView,
     /// Starts from `--no-ao` and friends; the O, L and H keys switch it (`SHADING_KEYS`).
     lighting: Lighting,
+    /// What the last lighting key switched, and when: shown for `NOTE_SECONDS`.
+    lighting_note: Option<(String, Instant)>,
     keys: HashSet<KeyCode>,
     modifiers: ModifiersState,
     cursor: (f64, f64),
@@ -177,6 +179,7 @@ pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()>
         camera: None,
         first_view: FirstView::default(),
         lighting,
+        lighting_note: None,
         keys: HashSet::new(),
         modifiers: ModifiersState::empty(),
         cursor: (0.0, 0.0),
@@ -218,6 +221,14 @@ fn parse_size(text: &str) -> Result<(u32, u32)> {
 }
 
 impl App {
+    /// What the last lighting key switched, while it is recent.
+    fn lighting_note(&self) -> Option<String> {
+        self.lighting_note
+            .as_ref()
+            .filter(|(_, at)| at.elapsed().as_secs_f64() < NOTE_SECONDS)
+            .map(|(note, _)| note.clone())
+    }
+
     fn fail(&mut self, event_loop: &ActiveEventLoop, error: anyhow::Error) {
         tracing::error!("{error:#}");
         self.error = Some(error);
@@ -285,6 +296,7 @@ impl App {
         let dt = now.duration_since(self.last_frame).as_secs_f32().min(0.25);
         self.last_frame = now;
         let movement = self.movement();
+        let lighting_note = self.lighting_note();
         let Some(gpu) = &mut self.gpu else {
             return Ok(());
         };
@@ -374,6 +386,9 @@ impl App {
             if let Some(undo) = &undo {
                 notes.push(undo.clone());
             }
+            if let Some(note) = &lighting_note {
+                notes.push(note.clone());
+            }
             notes.push("Ctrl+Z undo, Ctrl+Y redo, F follow".into());
             let (r, g, b) = PALETTE[self.colour];
             draw_overlay(
@@ -449,6 +464,9 @@ impl App {
             }
             if let Some(undo) = undo {
                 title.push_str(&format!(" — {undo}"));
+            }
+            if let Some(note) = &lighting_note {
+                title.push_str(&format!(" — {note}"));
             }
             gpu.window.set_title(&title);
         }
@@ -583,7 +601,8 @@ impl ApplicationHandler for App {
                 }
                 let ctrl = self.modifiers.control_key();
                 let shift = self.modifiers.shift_key();
-                if shading_key(&mut self.lighting, &format!("{code:?}")).is_some() {
+                if let Some(note) = shading_key(&mut self.lighting, &format!("{code:?}")) {
+                    self.lighting_note = Some((note, Instant::now()));
                     return;
                 }
                 match code {

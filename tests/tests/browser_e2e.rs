@@ -377,6 +377,12 @@ fn the_page_explains_what_is_wrong() -> Result<()> {
     let state = browser.wait_state("s.status === 'live'", 60_000)?;
     assert_eq!(state["role"], "Editor", "{state}");
     browser.wait(tools_shown, 10_000)?;
+    // A lighting key says what it switched.
+    browser.eval("window.brickcast.press('KeyO', false)")?;
+    browser.wait(
+        "document.getElementById('status').textContent.includes('ambient occlusion off')",
+        10_000,
+    )?;
 
     // A viewer's link: no editing tools, a note that fits the page when a click is ignored,
     // the resolution from `?scale=` and the bar's menu.

@@ -360,6 +360,15 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
         t.contains("#3b8ed9") && t.contains("brush 2"),
         "keys did not change colour and brush; title: {t}"
     );
+    // A lighting key says what it switched (on screen, and in the title).
+    x(&["key", "o"]).expect("key");
+    assert!(
+        wait_until(Duration::from_secs(10), || title()
+            .contains("ambient occlusion off")),
+        "O gave no feedback; title: {}",
+        title()
+    );
+    x(&["key", "o"]).expect("key");
 
     // After a resize, a right click with the brush fills a sphere where the new window's
     // centre looks.

@@ -22,7 +22,7 @@ use brickcast_client_core::overlay::canvas::Canvas;
 use brickcast_client_core::overlay::{OverlayInput, draw as draw_overlay};
 use brickcast_client_core::present::{Presenter, acquire, sync_scene};
 use brickcast_client_core::session::{ClientSeq, Session, Status};
-use brickcast_client_core::shading::shading_key;
+use brickcast_client_core::shading::{NOTE_SECONDS, SHADING_KEYS, shading_key};
 use brickcast_client_core::tools::{Button, ray_edit, step_radius};
 use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, UserId, View};
 use brickcast_protocol::{Camera, Colour, Lighting, Projection};
@@ -115,6 +115,9 @@ pub struct App {
     first_view: FirstView,
     /// What the O, L and H keys switch (`shading::SHADING_KEYS`).
     lighting: Lighting,
+    /// What the last lighting key switched, and when (page clock, ms): shown for
+    /// `NOTE_SECONDS` in the overlay and the status line.
+    lighting_note: Option<(String, f64)>,
     keys: HashSet<String>,
     pub ctrl: bool,
     /// Looking around: pointer locked, or a drag in progress.
@@ -211,6 +214,7 @@ impl App {
             camera: None,
             first_view: FirstView::default(),
             lighting: Lighting::default(),
+            lighting_note: None,
             keys: HashSet::new(),
             ctrl: false,
             locked: false,
@@ -326,7 +330,16 @@ impl App {
                 self.follow.cycle(&self.session.roster);
                 true
             }
-            _ if shading_key(&mut self.lighting, code).is_some() => true,
+            _ if SHADING_KEYS.iter().any(|(key, _)| *key == code) => {
+                match shading_key(&mut self.lighting, code) {
+                    Some(note) => {
+                        self.lighting_note = Some((note, page::now_ms()));
+                        page::set_text("status", &self.status_line());
+                        true
+                    }
+                    None => false,
+                }
+            }
             "BracketLeft" | "BracketRight" => {
                 let max = self.session.max_radius;
                 self.radius = step_radius(self.radius, code == "BracketRight", max);
@@ -539,7 +552,18 @@ impl App {
             1 => line.push_str(" · 1 other here"),
             n => line.push_str(&format!(" · {n} others here")),
         }
+        if let Some(note) = self.lighting_note() {
+            line.push_str(&format!(" · {note}"));
+        }
         line
+    }
+
+    /// What the last lighting key switched, while it is recent.
+    fn lighting_note(&self) -> Option<String> {
+        self.lighting_note
+            .as_ref()
+            .filter(|(_, at)| page::now_ms() - at < NOTE_SECONDS * 1000.0)
+            .map(|(note, _)| note.clone())
     }
 
     fn draw(&mut self, now: f64) -> Result<(), String> {
@@ -559,6 +583,7 @@ impl App {
                 self.synced_ms = Some(done);
             }
         }
+        let lighting_note = self.lighting_note();
         let Some(gpu) = &mut self.gpu else {
             return Ok(());
         };
@@ -617,6 +642,7 @@ impl App {
             if let Some(undo) = &self.session.last_undo {
                 notes.push(undo.clone());
             }
+            notes.extend(lighting_note);
             let (r, g, b) = PALETTE[self.colour];
             draw_overlay(
                 &mut self.overlay,

@@ -12,6 +12,9 @@ pub const SHADING_KEYS: [(&str, &str); 3] = [
     ("KeyH", "headlight on/off"),
 ];
 
+/// How long the viewers show what a lighting key switched (on screen and in the status).
+pub const NOTE_SECONDS: f64 = 3.0;
+
 /// Headlight strength the H key turns on when the default has none.
 pub const HEADLIGHT: f32 = 0.3;
 
