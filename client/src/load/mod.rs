@@ -811,7 +811,7 @@ impl LoadOutcome {
             "voxels changed/s",
             match d.voxels_applied_per_s {
                 Some(v) => format!(
-                    "{v:.0} applied by the server, {:.0} seen by one client",
+                    "{v:.0} by the server's count (every scene it serves); one client's deltas showed {:.0}",
                     d.voxels_seen_per_s
                 ),
                 None => format!(
@@ -863,7 +863,7 @@ impl LoadOutcome {
                     .join("  ")
             };
             row(
-                "server owner s",
+                "server owner s (all scenes)",
                 format!(
                     "{}  ({:.0} turns, {:.0} ops/turn)",
                     list(&server.owner),
@@ -871,7 +871,7 @@ impl LoadOutcome {
                     r.ops_acked as f64 / server.turns.max(1.0)
                 ),
             );
-            row("server sessions s", list(&server.session));
+            row("server sessions s (all)", list(&server.session));
             // Per acknowledged op, and how much of the window the owners were busy (not
             // waiting for commands): the largest phase is where the next gain is, and a busy
             // share well under 100% says the owner is not what limits the run.
@@ -891,7 +891,7 @@ impl LoadOutcome {
                     .collect::<Vec<_>>()
                     .join("  ");
                 row(
-                    "server owner µs/op",
+                    "server owner µs/op (all)",
                     format!(
                         "{per_op}  (busy {busy:.2} s of {:.2} s: ~{:.0} ops/s if always busy)",
                         r.duration_s,
