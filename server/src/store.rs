@@ -431,6 +431,9 @@ impl Store {
         let bricks_name = bricks_table(name);
         let bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
         map.set_sequence(meta.snapshot_seq);
+        // The clearance is built once, after the snapshot's bricks: the log's ray edits are
+        // traced again as they replay, and a trace needs it.
+        map.begin_bulk_load();
         let (mut words, mut colours) = (Vec::new(), [Colour::BLACK; 512]);
         for row in bricks.iter()? {
             let (cell, bytes) = row?;
@@ -452,6 +455,7 @@ impl Store {
                 decode_row(coords, bytes).ok_or_else(|| corrupt(format!("brick row {cell}")))?;
             map.put_brick(&brick).map_err(|e| corrupt(e.to_string()))?;
         }
+        map.end_bulk_load();
         // The snapshot keeps bricks, not the tombstones of bricks removed before it: a client
         // resuming from before the snapshot cannot be told what it must delete, so it gets a
         // full resync (see `BrickMap::changes_since`).
@@ -510,7 +514,10 @@ impl Store {
             }
         }
         let seq = seq.max(meta.snapshot_seq);
-        map.rebuild_clearance();
+        if replayed > 0 {
+            // Edits only lower it: exact again.
+            map.rebuild_clearance();
+        }
         let replay_touched = map.take_touched();
         map.record_touched(false);
         let live = history_rows::live_index(&txn, name)?;
