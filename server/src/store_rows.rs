@@ -44,10 +44,7 @@ pub fn decode_row(cell: [u32; 3], bytes: &[u8]) -> Option<BrickData> {
     if bytes.len() < 65 || bytes[64] != CODED {
         return None;
     }
-    let mut mask = [0u64; 8];
-    for (word, chunk) in mask.iter_mut().zip(bytes[..64].chunks_exact(8)) {
-        *word = u64::from_le_bytes(chunk.try_into().ok()?);
-    }
+    let mask = row_mask(bytes)?;
     let mut colours = Vec::new();
     let used = palette::decode(&bytes[65..], solid(&mask), &mut colours).ok()?;
     (used == bytes.len() - 65).then_some(BrickData {
@@ -66,16 +63,22 @@ pub fn coded_row(bytes: &[u8], words: &mut Vec<u16>) -> Option<Mask> {
     if bytes.len() < 67 || bytes[64] != CODED || bytes.len().is_multiple_of(2) {
         return None;
     }
-    let mut mask = [0u64; 8];
-    for (word, chunk) in mask.iter_mut().zip(bytes[..64].chunks_exact(8)) {
-        *word = u64::from_le_bytes(chunk.try_into().ok()?);
-    }
+    let mask = row_mask(bytes)?;
     words.clear();
     words.extend(
         bytes[65..]
             .chunks_exact(2)
             .map(|pair| u16::from_le_bytes([pair[0], pair[1]])),
     );
+    Some(mask)
+}
+
+/// The mask a row starts with (64 bytes, little-endian words).
+fn row_mask(bytes: &[u8]) -> Option<Mask> {
+    let mut mask = [0u64; 8];
+    for (word, chunk) in mask.iter_mut().zip(bytes.get(..64)?.chunks_exact(8)) {
+        *word = u64::from_le_bytes(chunk.try_into().ok()?);
+    }
     Some(mask)
 }
 

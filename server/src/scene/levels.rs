@@ -104,12 +104,11 @@ impl Levels {
             return Ok(false);
         };
         let Build {
-            level,
-            next,
+            mut level,
+            mut next,
             started,
         } = build;
         let mut left = self.step.unwrap_or(BUILD_SLOTS_PER_TURN);
-        let (mut level, mut next) = (level, next);
         // Small upper levels share a turn with the end of the one below.
         while left > 0 && level <= pyramid.level_count() {
             let below = if level == 1 {
