@@ -229,6 +229,10 @@ impl VirtualDisplay {
                     "1024x768x24",
                     "-nolisten",
                     "tcp",
+                    // X servers reset when their last client leaves, and a client connecting
+                    // during the reset is refused ("Failed to open connection to X server"):
+                    // the tests poll with short-lived xdotool clients while the viewer starts.
+                    "-noreset",
                     // Key presses sent through XTEST on a loaded machine can be held long
                     // enough for X's auto-repeat (660 ms by default) to press them again.
                     "-ardelay",
@@ -400,5 +404,30 @@ impl Drop for Background {
     fn drop(&mut self) {
         let _ = self.0.kill();
         let _ = self.0.wait();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A client connecting while others come and go is let in: without `-noreset` each last
+    /// client's exit resets the server and about one connection in twelve was refused (the
+    /// window tests' "Failed to open connection to X server").
+    #[test]
+    fn a_virtual_display_lets_clients_in_while_others_come_and_go() {
+        let display = VirtualDisplay::start().expect("Xvfb");
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        let refused = std::thread::scope(|s| {
+            s.spawn(|| {
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    answers(&display.display);
+                }
+            });
+            let refused = (0..150).filter(|_| !answers(&display.display)).count();
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+            refused
+        });
+        assert_eq!(refused, 0, "{refused} of 150 connections refused");
     }
 }
