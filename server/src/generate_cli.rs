@@ -1,15 +1,12 @@
-//! `brickcast-server generate terrain`: a procedural world (`protocol::world`) made tile by
-//! tile on every core and streamed into the store as the tiles come, so a world is never held
-//! whole (`Store::begin_scene`).
+//! `brickcast-server generate terrain`: a procedural world made tile by tile on every core and
+//! streamed into the store (`brickcast_server::generate`).
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Instant;
 
 use anyhow::Context;
-use brickcast_protocol::brick::BrickData;
-use brickcast_protocol::map::MapError;
 use brickcast_protocol::world::{TILE_EDGE, World};
+use brickcast_server::generate;
 use brickcast_server::store::{Store, valid_scene_name};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
@@ -48,7 +45,7 @@ pub struct Args {
 }
 
 /// `X,Y,Z` voxels, each at least 1.
-fn parse_size(text: &str) -> Result<[u32; 3], String> {
+pub fn parse_size(text: &str) -> Result<[u32; 3], String> {
     let parts: Vec<&str> = text.split(',').map(str::trim).collect();
     let [x, y, z] = parts.as_slice() else {
         return Err(format!(
@@ -112,14 +109,11 @@ pub fn run(kind: Kind) -> anyhow::Result<()> {
         0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
         n => n,
     };
-    let mut writer = store.begin_scene(&args.scene, args.size)?;
-    let voxels = generate(&world, threads, |bricks| {
-        writer.put(&bricks)?;
+    let generated = generate::into_store(&store, &args.scene, &world, threads, |_, bricks| {
         bar.inc(1);
-        bar.set_message(format!("{} bricks", writer.written()));
-        Ok(())
+        bar.set_message(format!("{bricks} bricks"));
     })?;
-    let bricks = writer.finish()?;
+    let (bricks, voxels) = (generated.bricks, generated.solid_voxels);
     bar.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();
     if args.json {
@@ -142,44 +136,6 @@ pub fn run(kind: Kind) -> anyhow::Result<()> {
         );
     }
     Ok(())
-}
-
-/// Makes every tile of `world` on `threads` threads and hands each tile's bricks to `write`
-/// on this thread, in the order they are done. At most two tiles per thread wait to be
-/// written, so memory stays a few tiles whatever the world's size. Returns the solid voxels.
-fn generate(
-    world: &World,
-    threads: usize,
-    mut write: impl FnMut(Vec<BrickData>) -> anyhow::Result<()>,
-) -> anyhow::Result<u64> {
-    let [nx, nz] = world.tiles();
-    let next = AtomicU32::new(0);
-    let (tx, rx) = std::sync::mpsc::sync_channel::<Result<Vec<BrickData>, MapError>>(2 * threads);
-    std::thread::scope(|scope| {
-        for _ in 0..threads {
-            let (tx, next) = (tx.clone(), &next);
-            scope.spawn(move || {
-                loop {
-                    let i = next.fetch_add(1, Ordering::Relaxed);
-                    if i >= nx * nz {
-                        return;
-                    }
-                    // A send fails only once the writer stopped (an error): stop too.
-                    if tx.send(world.tile([i % nx, i / nx])).is_err() {
-                        return;
-                    }
-                }
-            });
-        }
-        drop(tx);
-        let mut voxels = 0u64;
-        for tile in rx {
-            let bricks = tile.context("generating a tile")?;
-            voxels += bricks.iter().map(|b| b.colours.len() as u64).sum::<u64>();
-            write(bricks)?;
-        }
-        Ok(voxels)
-    })
 }
 
 #[cfg(test)]

@@ -10,11 +10,13 @@
 //! Data flow of one edit: session reader → owner channel → `apply_op` on the map → durable log
 //! commit → ack to the editor → one encoded delta → every session's outbox → websocket.
 
+pub mod admin;
 pub mod auth;
 mod bucket;
 pub mod cluster;
 pub mod conns;
 pub mod fair;
+pub mod generate;
 pub mod http;
 pub mod identity;
 pub mod ids;
@@ -58,6 +60,8 @@ pub const DEMO_SIZE: [u32; 3] = [512, 512, 512];
 
 /// How often a running server looks in its spool for newly imported scenes.
 pub const SPOOL_POLL: Duration = Duration::from_millis(300);
+/// How often deleted scenes whose time is up are dropped from the store (`admin`).
+const PURGE_EVERY: Duration = Duration::from_secs(60);
 /// How often a cluster node looks for scenes added to the cluster.
 pub const CLUSTER_POLL: Duration = Duration::from_secs(1);
 
@@ -170,6 +174,8 @@ pub struct App {
     pub shares: fair::Shares,
     /// The ids each address's clients chose (see `ids`).
     pub ids: ids::Ids,
+    /// Users an administrator disconnected, refused for a while (see `admin`).
+    pub bans: admin::Bans,
 }
 
 /// Decrements the live-session count when a session ends, so shutdown can wait for sockets to
@@ -319,10 +325,31 @@ impl App {
         }
     }
 
-    /// Polls the spool until shutdown.
+    /// Polls the spool until shutdown; drops deleted scenes whose time is up (`admin`) at
+    /// start and every [`PURGE_EVERY`].
     async fn watch_spool(self: Arc<Self>) {
         let mut shutdown = self.shutdown.clone();
+        let mut purged: Option<std::time::Instant> = None;
         while wait_or_shutdown(&mut shutdown, SPOOL_POLL).await {
+            if let Some(store) = &self.store
+                && purged.is_none_or(|at| at.elapsed() >= PURGE_EVERY)
+            {
+                purged = Some(std::time::Instant::now());
+                let store = store.clone();
+                let dropped = tokio::task::spawn_blocking(move || {
+                    store.purge_deleted(store::Store::unix_seconds())
+                })
+                .await;
+                match dropped {
+                    Ok(Ok(dropped)) => {
+                        for d in dropped {
+                            tracing::info!(scene = %d.name, key = %d.key, "dropped a deleted scene whose time was up");
+                        }
+                    }
+                    Ok(Err(e)) => tracing::warn!(error = %e, "cannot drop deleted scenes"),
+                    Err(e) => tracing::warn!(error = %e, "dropping deleted scenes failed"),
+                }
+            }
             let data = self.data.clone();
             let files = tokio::task::spawn_blocking(move || incoming::pending(&data))
                 .await
@@ -364,7 +391,8 @@ impl Server {
         let demo_size = config.demo_size;
         let store2 = store.clone();
         let loaded = tokio::task::spawn_blocking(move || -> anyhow::Result<Vec<(String, store::Loaded)>> {
-            if store2.scenes()?.is_empty() {
+            // Not when scenes were deleted and are still kept: the operator emptied it.
+            if store2.scenes()?.is_empty() && store2.deleted()?.is_empty() {
                 let map = brickcast_protocol::demo::demo_scene(demo_size)?;
                 store2.create_scene("demo", &map)?;
                 tracing::info!(bricks = map.brick_count(), voxels = map.solid_voxels(), "created the built-in demo scene");
@@ -412,6 +440,7 @@ impl Server {
             thumbnails: web::Thumbnails::default(),
             shares: fair::Shares::default(),
             ids: ids::Ids::new(config.ids_per_address),
+            bans: admin::Bans::default(),
         });
         Server {
             listener,
@@ -583,6 +612,7 @@ pub fn router(app: Arc<App>) -> Router {
         .route("/scenes", get(scene_list))
         .route("/scenes/{name}/ws", get(websocket))
         .merge(web::routes())
+        .merge(admin::routes())
         .with_state(app)
 }
 

@@ -10,6 +10,7 @@ use brickcast_server::store::Store;
 use brickcast_server::{Server, ServerConfig};
 use clap::{Parser, Subcommand};
 
+mod admin_cli;
 mod generate_cli;
 mod import_cli;
 
@@ -71,6 +72,9 @@ enum Cmd {
     /// to build whole first).
     #[command(subcommand)]
     Generate(generate_cli::Kind),
+    /// Administer a running server: list, create, delete, restore, rename and reset scenes,
+    /// disconnect a user (the admin API; see README "Running a server without stopping it").
+    Admin(admin_cli::Args),
     /// Ask a cluster what it holds.
     Cluster {
         #[command(subcommand)]
@@ -142,6 +146,7 @@ fn run() -> anyhow::Result<()> {
         .init();
     match Cli::parse().command {
         Cmd::Serve(args) => serve(args),
+        Cmd::Admin(args) => admin_cli::run(args),
         Cmd::Scenes { data } => {
             let store = open_store(&data)?;
             for (name, meta) in store.scenes()? {

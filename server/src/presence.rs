@@ -482,6 +482,34 @@ impl Hub {
         self.roster().peers().map(|p| p.name.clone()).collect()
     }
 
+    /// Everyone present: each peer and whether it is connected to this node.
+    pub fn peers(&self) -> Vec<(Peer, bool)> {
+        let roster = self.roster();
+        let here = roster.members.values().map(|m| (m.peer.clone(), true));
+        let away = roster.remote.values().map(|r| (r.peer.clone(), false));
+        here.chain(away).collect()
+    }
+
+    /// Closes the connections to this node of the peers `which` picks, telling them why
+    /// (`crate::admin`'s kick). Returns those closed.
+    pub fn disconnect(
+        &self,
+        which: impl Fn(&Peer) -> bool,
+        code: brickcast_protocol::wire::ErrorCode,
+        text: &str,
+    ) -> Vec<Peer> {
+        let roster = self.roster();
+        roster
+            .members
+            .values()
+            .filter(|m| which(&m.peer))
+            .map(|m| {
+                m.out.close(code, text);
+                m.peer.clone()
+            })
+            .collect()
+    }
+
     /// Peers connected to this node.
     pub fn len(&self) -> usize {
         self.roster().members.len()

@@ -55,6 +55,12 @@ pub(crate) struct Entry {
     close: Option<Arc<signal::Sender<bool>>>,
 }
 
+impl Entry {
+    pub(crate) fn handle(&self) -> &SceneHandle {
+        &self.handle
+    }
+}
+
 /// Who uses a scene on this node now, and since when nobody does.
 struct Uses {
     count: AtomicUsize,
@@ -198,6 +204,12 @@ impl Served {
             );
         }
         all.into_values().collect()
+    }
+
+    /// Takes one scene out of service, whatever kind it is (the admin API deletes or renames
+    /// it). A session that has it keeps its handle until the owner closes it.
+    pub(crate) fn remove(&self, name: &str) -> Option<Entry> {
+        self.write().remove(name)
     }
 
     /// Takes every scene out of service (shutdown).
@@ -405,6 +417,7 @@ pub(crate) async fn close(
             tracing::info!(scene = %name, "took a scene whose owner stopped out of service; it opens again (from the cluster) when someone asks")
         }
         Closing::Shutdown => tracing::debug!(scene = %name, "closed a scene for the shutdown"),
+        Closing::Admin => tracing::info!(scene = %name, "closed a scene for an administrator"),
     }
 }
 
@@ -417,6 +430,8 @@ pub(crate) enum Closing {
     Stopped,
     /// The server is shutting down.
     Shutdown,
+    /// An administrator deletes, renames or resets it (`crate::admin`).
+    Admin,
 }
 
 /// Returns freed memory (of closed scenes, of a crowd that left: `conns.rs`) to the system.

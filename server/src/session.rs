@@ -246,6 +246,9 @@ async fn handshake(
                     tracing::info!(scene = %scene.name, %from, user = who.user, "user id over the address's allowance: history kept for this connection only");
                     who = identify(open, None, 0, &name, id, reserved);
                 }
+                if let Some(why) = app.bans.refusal(who.user, &who.name, &scene.name) {
+                    return fail(ErrorCode::Unauthorized, why);
+                }
                 let role = grant.role;
                 tracing::info!(scene = %scene.name, client = %who.name, user = who.user, ?role, ?resume_from, ?budget, "client joined");
                 Some((role, resume_from, budget, who))

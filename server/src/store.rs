@@ -33,7 +33,9 @@ use crate::store_rows::{self, decode_row, encode_row};
 mod committer;
 mod history_rows;
 mod streamed;
+mod trash;
 pub use streamed::SceneWriter;
+pub use trash::Deleted;
 
 /// `undo/<scene>`: (user, step id) → bincode [`StepMeta`].
 type UndoIndex<'a> = TableDefinition<'a, (u64, u64), &'static [u8]>;

@@ -101,6 +101,15 @@ impl Thumbnails {
             .then(|| t.png.clone())
     }
 
+    /// Drops the picture of a scene that was deleted or renamed: a new scene of that name
+    /// must not show it.
+    pub fn forget(&self, name: &str) {
+        self.cache
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(name);
+    }
+
     fn flight(&self, name: &str) -> &tokio::sync::Mutex<()> {
         let mut h = DefaultHasher::new();
         h.write(name.as_bytes());

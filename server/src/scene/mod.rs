@@ -136,6 +136,12 @@ pub enum Command {
     },
     /// Apply what is queued, commit, snapshot, and stop.
     Shutdown,
+    /// Commit what is applied, then close every session with this error (the scene is being
+    /// deleted or renamed: `crate::admin`). The scene goes on until [`Command::Shutdown`].
+    Farewell {
+        code: brickcast_protocol::wire::ErrorCode,
+        text: String,
+    },
     /// A request from another origin (in a cluster: a session of any node, forwarded), answered
     /// on `reply` after the commit, or at once with [`Outcome::NotOwner`] when this owner does
     /// not order edits. `reply: None`: nobody waits for an answer (a history drop).

@@ -561,6 +561,13 @@ impl Owner {
                     let _ = done.send((self.seq, Box::new(self.map.clone())));
                 }
                 Command::Shutdown => stop = true,
+                Command::Farewell { code, text } => {
+                    self.publish(&mut log, &mut acks, clock)?;
+                    self.log.flush()?;
+                    for sub in self.subs.values() {
+                        sub.out.close(code, text.clone());
+                    }
+                }
             }
         }
         self.publish(&mut log, &mut acks, clock)?;

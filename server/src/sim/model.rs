@@ -102,9 +102,10 @@ impl Model {
                     self.users.remove(session);
                 }
                 // Both publish what is queued before they are served.
-                Command::Resume { .. } | Command::Thumbnail { .. } | Command::Describe { .. } => {
-                    self.commit_point()
-                }
+                Command::Resume { .. }
+                | Command::Thumbnail { .. }
+                | Command::Describe { .. }
+                | Command::Farewell { .. } => self.commit_point(),
                 // Commands of a shared log: this simulation runs one owner on redb.
                 Command::Request { .. }
                 | Command::Apply { .. }

@@ -1,0 +1,363 @@
+//! `brickcast-server admin …`: the admin API (`brickcast_server::admin`) from the command line,
+//! against a running server.
+
+use std::io::{BufRead, IsTerminal, Write};
+
+use anyhow::{Context, bail};
+use serde_json::{Value, json};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// The server: its address (`127.0.0.1:7878`) or URL (`http://…`, `ws://…/scenes/x`).
+    #[arg(long, default_value = "http://127.0.0.1:7878")]
+    server: String,
+    /// An admin token of the server's auth file (default: $BRICKCAST_TOKEN). A server without
+    /// an auth file takes admin commands from its own machine without one.
+    #[arg(long)]
+    token: Option<String>,
+    /// Print the server's JSON answer instead of lines for people.
+    #[arg(long)]
+    json: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(clap::Subcommand)]
+enum Command {
+    /// Scenes with their size and who is there, and the deleted scenes still kept.
+    List,
+    /// A new scene, served at once.
+    Create {
+        name: String,
+        #[command(flatten)]
+        spec: Spec,
+    },
+    /// Close a scene for everyone on it and delete it; it is kept for `--keep` so that
+    /// `restore` can bring it back.
+    Delete {
+        name: String,
+        /// Do not ask: the scene's name was checked.
+        #[arg(long)]
+        yes: bool,
+        /// How long the deleted scene is kept (90s, 10m, 24h, 7d).
+        #[arg(long, default_value = "24h")]
+        keep: String,
+    },
+    /// Serve a deleted scene again (`list` shows the keys of those kept).
+    Restore {
+        key: String,
+        /// Under this name (default: its name when it was deleted).
+        #[arg(long = "as")]
+        name: Option<String>,
+    },
+    /// Rename a scene (its users are told the new name).
+    Rename { name: String, to: String },
+    /// Make a scene anew (empty by default, at its size by default); the old one is kept like
+    /// a deleted scene.
+    Reset {
+        name: String,
+        #[command(flatten)]
+        spec: Spec,
+        /// Do not ask.
+        #[arg(long)]
+        yes: bool,
+    },
+    /// Disconnect a user and refuse them for a while.
+    Kick {
+        /// Their display name (look-alikes match too).
+        #[arg(long, required_unless_present = "user")]
+        name: Option<String>,
+        /// Or their user id (`list` shows it).
+        #[arg(long)]
+        user: Option<u64>,
+        /// Only from this scene (default: every scene).
+        #[arg(long)]
+        scene: Option<String>,
+        /// How long they are refused after (0s: they may come back at once).
+        #[arg(long = "for", default_value = "10m")]
+        refuse_for: String,
+    },
+}
+
+#[derive(clap::Args)]
+struct Spec {
+    /// What the scene holds: empty, terrain (a procedural world, any size) or demo.
+    #[arg(long, default_value = "empty", value_parser = ["empty", "terrain", "demo"])]
+    kind: String,
+    /// Voxels along x, y (up) and z, e.g. 1024,256,1024.
+    #[arg(long)]
+    size: Option<String>,
+    /// Terrain: another seed, another world.
+    #[arg(long, default_value_t = 1)]
+    seed: u32,
+}
+
+impl Spec {
+    fn body(&self) -> anyhow::Result<Value> {
+        let mut body = json!({ "kind": self.kind, "seed": self.seed });
+        if let Some(size) = &self.size {
+            body["size"] =
+                json!(crate::generate_cli::parse_size(size).map_err(anyhow::Error::msg)?);
+        }
+        Ok(body)
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let base = base_url(&args.server)?;
+    let token = args
+        .token
+        .clone()
+        .or_else(|| std::env::var("BRICKCAST_TOKEN").ok());
+    let api = Api { base, token };
+    let answer = match &args.command {
+        Command::List => api.call("GET", "/admin/scenes", None)?,
+        Command::Create { name, spec } => {
+            api.call("POST", &format!("/admin/scenes/{name}"), Some(spec.body()?))?
+        }
+        Command::Delete { name, yes, keep } => {
+            confirm(*yes, name, "delete")?;
+            let path = format!("/admin/scenes/{name}?confirm={name}&keep={keep}");
+            api.call("DELETE", &path, None)?
+        }
+        Command::Restore { key, name } => {
+            let body = name.as_ref().map_or(json!({}), |n| json!({ "as": n }));
+            api.call("POST", &format!("/admin/deleted/{key}/restore"), Some(body))?
+        }
+        Command::Rename { name, to } => api.call(
+            "POST",
+            &format!("/admin/scenes/{name}/rename"),
+            Some(json!({ "to": to })),
+        )?,
+        Command::Reset { name, spec, yes } => {
+            confirm(*yes, name, "reset")?;
+            let path = format!("/admin/scenes/{name}/reset");
+            api.call("POST", &path, Some(spec.body()?))?
+        }
+        Command::Kick {
+            name,
+            user,
+            scene,
+            refuse_for,
+        } => {
+            let mut body = json!({ "for": refuse_for });
+            if let Some(name) = name {
+                body["name"] = json!(name);
+            }
+            if let Some(user) = user {
+                body["user"] = json!(user);
+            }
+            if let Some(scene) = scene {
+                body["scene"] = json!(scene);
+            }
+            api.call("POST", "/admin/kick", Some(body))?
+        }
+    };
+    if args.json {
+        println!("{answer}");
+    } else {
+        print!("{}", for_people(&args.command, &answer));
+    }
+    Ok(())
+}
+
+/// `http://HOST:PORT` from an address or a URL of the server.
+fn base_url(server: &str) -> anyhow::Result<String> {
+    let (scheme, rest) = match server.split_once("://") {
+        Some(("http" | "ws", rest)) => ("http", rest),
+        Some(("https" | "wss", rest)) => ("https", rest),
+        Some((other, _)) => {
+            bail!("--server {server:?}: {other}:// is not a server's URL (http, https, ws or wss)")
+        }
+        None => ("http", server),
+    };
+    let host = rest.split(['/', '#', '?']).next().unwrap_or("");
+    if host.is_empty() {
+        bail!("--server {server:?} names no host");
+    }
+    Ok(format!("{scheme}://{host}"))
+}
+
+/// Asks for the scene's name on a terminal; without one, `--yes` is needed.
+fn confirm(yes: bool, name: &str, what: &str) -> anyhow::Result<()> {
+    if yes {
+        return Ok(());
+    }
+    if !std::io::stdin().is_terminal() {
+        bail!("{what} closes scene {name} for everyone on it: add --yes to confirm");
+    }
+    eprint!("{what} closes scene {name} for everyone on it; type its name to go on: ");
+    std::io::stderr().flush()?;
+    let mut line = String::new();
+    std::io::stdin().lock().read_line(&mut line)?;
+    if line.trim() != name {
+        bail!("not confirmed: nothing changed");
+    }
+    Ok(())
+}
+
+struct Api {
+    base: String,
+    token: Option<String>,
+}
+
+impl Api {
+    /// One request; the server's `{"error": …}` becomes this command's error.
+    fn call(&self, method: &str, path: &str, body: Option<Value>) -> anyhow::Result<Value> {
+        let url = format!("{}{path}", self.base);
+        let agent: ureq::Agent = ureq::Agent::config_builder()
+            .http_status_as_error(false)
+            .build()
+            .into();
+        let auth = self.token.as_ref().map(|t| format!("Bearer {t}"));
+        let response = match (method, body) {
+            ("GET", _) => with_auth(agent.get(&url), &auth).call(),
+            ("DELETE", _) => with_auth(agent.delete(&url), &auth).call(),
+            (_, body) => with_auth(agent.post(&url), &auth)
+                .header("content-type", "application/json")
+                .send(body.unwrap_or(json!({})).to_string()),
+        };
+        let mut response = response.with_context(|| format!("{method} {url}"))?;
+        let status = response.status();
+        let text = response
+            .body_mut()
+            .read_to_string()
+            .with_context(|| format!("reading the answer to {method} {url}"))?;
+        let value: Value = serde_json::from_str(&text).unwrap_or(Value::Null);
+        if !status.is_success() {
+            match value.get("error").and_then(Value::as_str) {
+                Some(error) => bail!("{error}"),
+                None if status.as_u16() == 404 => bail!(
+                    "{url}: 404: is this a brickcast server of this version (the admin API is under /admin/)?"
+                ),
+                None => bail!("{method} {url}: {status}: {}", text.trim()),
+            }
+        }
+        Ok(value)
+    }
+}
+
+fn with_auth<B>(
+    request: ureq::RequestBuilder<B>,
+    auth: &Option<String>,
+) -> ureq::RequestBuilder<B> {
+    match auth {
+        Some(value) => request.header("authorization", value),
+        None => request,
+    }
+}
+
+/// The answer as lines for people.
+fn for_people(command: &Command, answer: &Value) -> String {
+    let s = |v: &Value| v.as_str().unwrap_or("?").to_string();
+    let size = |v: &Value| {
+        let n: Vec<String> = v
+            .as_array()
+            .map(|a| a.iter().map(|n| n.to_string()).collect())
+            .unwrap_or_default();
+        n.join("x")
+    };
+    let when = |v: &Value| {
+        v.as_u64()
+            .map(|t| {
+                humantime::format_rfc3339_seconds(
+                    std::time::UNIX_EPOCH + std::time::Duration::from_secs(t),
+                )
+                .to_string()
+            })
+            .unwrap_or_default()
+    };
+    let mut out = String::new();
+    match command {
+        Command::List => {
+            for scene in answer["scenes"].as_array().into_iter().flatten() {
+                let users: Vec<String> = scene["users"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .map(|u| format!("{} (user {})", s(&u["name"]), u["user"]))
+                    .collect();
+                out += &format!(
+                    "{}\t{}\tseq {}\t{} bricks\t{} voxels\t{:.1} MiB\t{}\n",
+                    s(&scene["name"]),
+                    size(&scene["size"]),
+                    scene["seq"],
+                    scene["bricks"],
+                    scene["voxels"],
+                    scene["gpu_bytes"].as_f64().unwrap_or(0.0) / f64::from(1 << 20),
+                    if users.is_empty() {
+                        "nobody here".to_string()
+                    } else {
+                        users.join(", ")
+                    },
+                );
+            }
+            for d in answer["deleted"].as_array().into_iter().flatten() {
+                out += &format!(
+                    "deleted: {} as {}\tkept until {}\n",
+                    s(&d["name"]),
+                    s(&d["key"]),
+                    when(&d["kept_until"])
+                );
+            }
+        }
+        Command::Delete { name, .. } => {
+            out += &format!(
+                "deleted scene {name}; kept until {}: `brickcast-server admin restore {}` brings it back\n",
+                when(&answer["kept_until"]),
+                s(&answer["key"])
+            );
+        }
+        Command::Kick { .. } => {
+            for d in answer["disconnected"].as_array().into_iter().flatten() {
+                out += &format!(
+                    "disconnected {} (user {}) from {}\n",
+                    s(&d["name"]),
+                    d["user"],
+                    s(&d["scene"])
+                );
+            }
+            if answer["refused_for_s"].as_u64().unwrap_or(0) > 0 {
+                out += &format!("refused for {} s\n", answer["refused_for_s"]);
+            }
+        }
+        Command::Create { .. }
+        | Command::Restore { .. }
+        | Command::Rename { .. }
+        | Command::Reset { .. } => {
+            out += &format!(
+                "serving scene {}: {} voxels, {} bricks, {} solid voxels, seq {}\n",
+                s(&answer["name"]),
+                size(&answer["size"]),
+                answer["bricks"],
+                answer["voxels"],
+                answer["seq"]
+            );
+            if let Some(previous) = answer.get("previous") {
+                out += &format!(
+                    "the scene before is kept as {} until {}\n",
+                    s(&previous["key"]),
+                    when(&previous["kept_until"])
+                );
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_server_is_named_by_address_or_url() {
+        assert_eq!(base_url("127.0.0.1:7878").unwrap(), "http://127.0.0.1:7878");
+        assert_eq!(
+            base_url("ws://example.org:80/scenes/demo#token=x").unwrap(),
+            "http://example.org:80"
+        );
+        assert_eq!(base_url("https://h/").unwrap(), "https://h");
+        assert!(base_url("ftp://h").is_err());
+        assert!(base_url("http://").is_err());
+    }
+}
