@@ -47,7 +47,7 @@ fn num(report: &Value, path: &[&str]) -> f64 {
 
 /// Runs `brickcast load URL ARGS --json`, demands success, and checks the report's shape.
 fn load_ok(url: &str, args: &[&str]) -> (Value, String) {
-    let all = [&["load", url][..], args, &["--overwrite", "--json"][..]].concat();
+    let all = [&["load", url][..], args, &["--in-place", "--json"][..]].concat();
     let (status, stdout, stderr) = run_brickcast(&all, &[], RUN_LIMIT).expect("brickcast load");
     assert!(status.success(), "{all:?} failed:\n{stderr}");
     let report: Value = serde_json::from_str(stdout.trim())
@@ -153,6 +153,40 @@ fn a_short_run_reports_sane_json_and_every_copy_matches_the_server() {
     server.stop().expect("clean shutdown");
 }
 
+/// A run on a scene that holds voxels, without `--in-place`, edits a scratch scene of the same
+/// size that it makes and deletes through the admin API: the scene named is left as it was.
+#[test]
+fn a_run_on_a_scene_with_voxels_edits_a_scratch_scene_and_leaves_it_alone() {
+    let data = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(data.path(), local()).expect("server");
+    let url = server.url("demo");
+    let before = fetch(&url).expect("fresh copy").map.content_hash();
+    let args = [
+        "load",
+        &url,
+        "--clients",
+        "2",
+        "--duration",
+        "0.5",
+        "--json",
+    ];
+    let (status, stdout, stderr) = run_brickcast(&args, &[], RUN_LIMIT).expect("brickcast");
+    assert!(status.success(), "{stderr}");
+    let report: Value = serde_json::from_str(&stdout).expect("one JSON report");
+    assert!(num(&report, &["ops_acked"]) > 0.0, "{report}");
+    assert!(stderr.contains("scratch"), "{stderr}");
+    assert_eq!(fetch(&url).expect("fresh copy").map.content_hash(), before);
+    let list: Value = serde_json::from_str(&http_get(server.addr, "/scenes").unwrap()).unwrap();
+    let names: Vec<&str> = list
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["demo"], "the scratch scene is gone");
+    server.stop().expect("clean shutdown");
+}
+
 #[test]
 fn every_op_kind_paced_and_disjoint() {
     let data = tempfile::tempdir().expect("tempdir");
@@ -206,7 +240,7 @@ fn tokens_bad_addresses_and_bad_options_are_refused_with_reasons() {
     let server =
         TestServer::start_with(data.path(), local(), |config| config.auth = auth).expect("server");
     let url = format!("ws://{}/scenes/demo", server.addr);
-    let short = ["--duration", "0.5", "--clients", "1", "--overwrite"];
+    let short = ["--duration", "0.5", "--clients", "1", "--in-place"];
     let cases: Vec<(Vec<&str>, &str)> = vec![
         (vec!["--token", "look"], "editor --token"),
         (vec![], "editor --token"),
@@ -234,7 +268,8 @@ fn tokens_bad_addresses_and_bad_options_are_refused_with_reasons() {
         ),
         (vec!["--token", "ed", "--clients", "0"], "--clients"),
     ];
-    // Without --overwrite a scene that holds voxels is refused before any edit is sent.
+    // Without --in-place a run on a scene that holds voxels edits a scratch scene through the
+    // admin API: an editor token is refused that, with the ways around it, before any edit.
     let seq = || brickcast_tests::scene_info(server.addr, "demo").expect("/scenes")["seq"].clone();
     let before = seq();
     let (status, _, stderr) = run_brickcast(
@@ -243,9 +278,9 @@ fn tokens_bad_addresses_and_bad_options_are_refused_with_reasons() {
         RUN_LIMIT,
     )
     .expect("brickcast");
-    assert!(!status.success(), "a scene with voxels needs --overwrite");
+    assert!(!status.success(), "an editor cannot make a scratch scene");
     assert!(
-        stderr.contains("holds") && stderr.contains("--overwrite"),
+        stderr.contains("not an admin") && stderr.contains("--in-place"),
         "{stderr}"
     );
     assert_eq!(seq(), before, "nothing was written");
@@ -296,7 +331,7 @@ fn a_run_whose_server_goes_away_fails_loudly() {
             "2",
             "--duration",
             "5",
-            "--overwrite",
+            "--in-place",
         ],
         &[],
     )

@@ -16,6 +16,7 @@ pub mod histogram;
 pub mod observe;
 pub mod ops;
 pub mod options;
+pub mod scratch;
 pub mod worker;
 
 use std::collections::BTreeMap;
@@ -55,9 +56,13 @@ pub enum LoadError {
     )]
     NotEditor(Role),
     #[error(
-        "scene {scene} holds {bricks} bricks, and a load run's edits stay in it for good (nothing resets a scene while its server runs): run it on a scene you can lose (a copy of the store, an empty scene) and pass --overwrite to confirm"
+        "scene {scene} holds {bricks} bricks and a load run's edits would stay in it, so the run edits a scratch scene it makes and deletes through the server's admin API, which refused: {why}. Give an admin --token (or run on the server's machine without --auth), or pass --in-place to edit {scene} itself"
     )]
-    WouldOverwrite { scene: String, bricks: u32 },
+    Scratch {
+        scene: String,
+        bricks: u32,
+        why: String,
+    },
     #[error("a load client could not connect and sync: {0}")]
     Setup(String),
     #[error("the clients did not all connect and sync within {0:?}")]
@@ -234,6 +239,26 @@ pub async fn run_on(urls: &[String], args: &LoadArgs) -> Result<LoadOutcome, Loa
     let Some(url) = urls.first().cloned() else {
         return Err(LoadError::Setup("no server address given".into()));
     };
+    let welcome = probe(&urls, args).await?;
+    if welcome.total_bricks == 0 || args.in_place {
+        return edit(urls, args).await;
+    }
+    if urls.len() > 1 {
+        return Err(LoadError::Scratch {
+            scene: welcome.scene,
+            bricks: welcome.total_bricks,
+            why: "a run over several servers (a cluster) cannot make one yet".into(),
+        });
+    }
+    let scratch = scratch::Scratch::create(&url, args.token.as_deref(), &welcome).await?;
+    let outcome = edit(vec![scratch.url()], args).await;
+    scratch.delete().await;
+    outcome
+}
+
+/// Checks the scene at every address: one scene, and this client may edit it.
+async fn probe(urls: &[String], args: &LoadArgs) -> Result<link::Welcome, LoadError> {
+    let url = &urls[0];
     let probe = Link::connect(&url, "brickcast load probe", 0, args.token.as_deref(), None).await?;
     let welcome = probe.welcome.clone();
     probe.close().await;
@@ -258,12 +283,13 @@ pub async fn run_on(urls: &[String], args: &LoadArgs) -> Result<LoadOutcome, Loa
     if welcome.role != Role::Editor {
         return Err(LoadError::NotEditor(welcome.role));
     }
-    if welcome.total_bricks > 0 && !args.overwrite {
-        return Err(LoadError::WouldOverwrite {
-            scene: welcome.scene.clone(),
-            bricks: welcome.total_bricks,
-        });
-    }
+    Ok(welcome)
+}
+
+/// The run itself, on the scene at `urls`.
+async fn edit(urls: Vec<String>, args: &LoadArgs) -> Result<LoadOutcome, LoadError> {
+    let url = urls[0].clone();
+    let welcome = probe(&urls, args).await?;
     let areas = args.plan(welcome.size, &welcome.limits)?;
     if args.rate > f64::from(welcome.limits.max_edits_per_second) {
         tracing::warn!(
@@ -1010,7 +1036,7 @@ mod tests {
             presence_hz: 0.0,
             viewers: 0,
             token: None,
-            overwrite: false,
+            in_place: false,
             json: false,
         };
         for url in [

@@ -59,11 +59,12 @@ pub struct LoadArgs {
     /// Access token (servers started with --auth); it must allow editing.
     #[arg(long)]
     pub token: Option<String>,
-    /// Run on a scene that holds voxels. A run's edits stay in the scene for good (nothing
-    /// resets a scene while its server runs), so without this the tool runs only on an empty
-    /// scene and refuses any other before it sends an edit.
-    #[arg(long)]
-    pub overwrite: bool,
+    /// Edit the scene itself even when it holds voxels (its edits stay in it). Without this,
+    /// a run on a scene that holds voxels edits a scratch scene of the same size that it makes
+    /// and deletes through the server's admin API (an admin --token, or the server's own
+    /// machine when it has no auth file).
+    #[arg(long, alias = "overwrite")]
+    pub in_place: bool,
     /// Print one JSON object on stdout (the table goes to stderr).
     #[arg(long)]
     pub json: bool,
