@@ -259,7 +259,7 @@ pub async fn run_on(urls: &[String], args: &LoadArgs) -> Result<LoadOutcome, Loa
 /// Checks the scene at every address: one scene, and this client may edit it.
 async fn probe(urls: &[String], args: &LoadArgs) -> Result<link::Welcome, LoadError> {
     let url = &urls[0];
-    let probe = Link::connect(&url, "brickcast load probe", 0, args.token.as_deref(), None).await?;
+    let probe = Link::connect(url, "brickcast load probe", 0, args.token.as_deref(), None).await?;
     let welcome = probe.welcome.clone();
     probe.close().await;
     for other in &urls[1..] {
