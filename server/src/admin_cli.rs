@@ -62,6 +62,21 @@ enum Command {
         #[arg(long)]
         yes: bool,
     },
+    /// Save a scene as a file (its voxels as committed now; not its undo history).
+    Backup {
+        name: String,
+        /// The file (default: NAME.scene).
+        #[arg(long)]
+        out: Option<std::path::PathBuf>,
+    },
+    /// Upload a backup (`backup`) or a MagicaVoxel .vox model as scene NAME.
+    Upload {
+        name: String,
+        file: std::path::PathBuf,
+        /// Replace a scene of that name (the one before is kept like a deleted scene).
+        #[arg(long)]
+        replace: bool,
+    },
     /// Disconnect a user and refuse them for a while.
     Kick {
         /// Their display name (look-alikes match too).
@@ -134,6 +149,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let path = format!("/admin/scenes/{name}/reset");
             api.call("POST", &path, Some(spec.body()?))?
         }
+        Command::Backup { name, out } => {
+            let out = out
+                .clone()
+                .unwrap_or_else(|| std::path::PathBuf::from(format!("{name}.scene")));
+            let bytes = api.download(&format!("/admin/scenes/{name}/backup"))?;
+            std::fs::write(&out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+            json!({ "scene": name, "file": out.display().to_string(), "bytes": bytes.len() })
+        }
+        Command::Upload {
+            name,
+            file,
+            replace,
+        } => {
+            let path = format!("/admin/scenes/{name}?replace={replace}");
+            api.upload(&path, file)?
+        }
         Command::Kick {
             name,
             user,
@@ -202,14 +233,21 @@ struct Api {
 }
 
 impl Api {
+    fn agent() -> ureq::Agent {
+        ureq::Agent::config_builder()
+            .http_status_as_error(false)
+            .build()
+            .into()
+    }
+
+    fn auth(&self) -> Option<String> {
+        self.token.as_ref().map(|t| format!("Bearer {t}"))
+    }
+
     /// One request; the server's `{"error": …}` becomes this command's error.
     fn call(&self, method: &str, path: &str, body: Option<Value>) -> anyhow::Result<Value> {
         let url = format!("{}{path}", self.base);
-        let agent: ureq::Agent = ureq::Agent::config_builder()
-            .http_status_as_error(false)
-            .build()
-            .into();
-        let auth = self.token.as_ref().map(|t| format!("Bearer {t}"));
+        let (agent, auth) = (Self::agent(), self.auth());
         let response = match (method, body) {
             ("GET", _) => with_auth(agent.get(&url), &auth).call(),
             ("DELETE", _) => with_auth(agent.delete(&url), &auth).call(),
@@ -217,23 +255,72 @@ impl Api {
                 .header("content-type", "application/json")
                 .send(body.unwrap_or(json!({})).to_string()),
         };
-        let mut response = response.with_context(|| format!("{method} {url}"))?;
-        let status = response.status();
-        let text = response
-            .body_mut()
-            .read_to_string()
-            .with_context(|| format!("reading the answer to {method} {url}"))?;
-        let value: Value = serde_json::from_str(&text).unwrap_or(Value::Null);
-        if !status.is_success() {
-            match value.get("error").and_then(Value::as_str) {
-                Some(error) => bail!("{error}"),
-                None if status.as_u16() == 404 => bail!(
-                    "{url}: 404: is this a brickcast server of this version (the admin API is under /admin/)?"
-                ),
-                None => bail!("{method} {url}: {status}: {}", text.trim()),
-            }
-        }
-        Ok(value)
+        let bytes = answer(method, &url, response)?;
+        Ok(serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+    }
+
+    /// The body of a GET.
+    fn download(&self, path: &str) -> anyhow::Result<Vec<u8>> {
+        let url = format!("{}{path}", self.base);
+        let response = with_auth(Self::agent().get(&url), &self.auth()).call();
+        answer("GET", &url, response)
+    }
+
+    /// PUTs a file, with a progress bar on a terminal.
+    fn upload(&self, path: &str, file: &std::path::Path) -> anyhow::Result<Value> {
+        let url = format!("{}{path}", self.base);
+        let opened =
+            std::fs::File::open(file).with_context(|| format!("opening {}", file.display()))?;
+        let len = opened.metadata()?.len();
+        let bar = if std::io::stderr().is_terminal() {
+            indicatif::ProgressBar::new(len)
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "uploading {bar:40} {bytes}/{total_bytes} ({eta} left)",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        let reader = bar.wrap_read(opened);
+        let response = with_auth(Self::agent().put(&url), &self.auth())
+            .header("content-type", "application/octet-stream")
+            .header("content-length", len.to_string())
+            .send(ureq::SendBody::from_owned_reader(reader));
+        bar.finish_and_clear();
+        let bytes = answer("PUT", &url, response)?;
+        Ok(serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+    }
+}
+
+/// The body of a successful answer; the server's `{"error": …}` (or the status) otherwise.
+fn answer(
+    method: &str,
+    url: &str,
+    response: Result<ureq::http::Response<ureq::Body>, ureq::Error>,
+) -> anyhow::Result<Vec<u8>> {
+    let mut response = response.with_context(|| format!("{method} {url}"))?;
+    let status = response.status();
+    let bytes = response
+        .body_mut()
+        .with_config()
+        .limit(u64::MAX)
+        .read_to_vec()
+        .with_context(|| format!("reading the answer to {method} {url}"))?;
+    if status.is_success() {
+        return Ok(bytes);
+    }
+    let value: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+    match value.get("error").and_then(Value::as_str) {
+        Some(error) => bail!("{error}"),
+        None if status.as_u16() == 404 => bail!(
+            "{url}: 404: is this a brickcast server of this version (the admin API is under /admin/)?"
+        ),
+        None => bail!(
+            "{method} {url}: {status}: {}",
+            String::from_utf8_lossy(&bytes).trim()
+        ),
     }
 }
 
@@ -321,10 +408,18 @@ fn for_people(command: &Command, answer: &Value) -> String {
                 out += &format!("refused for {} s\n", answer["refused_for_s"]);
             }
         }
+        Command::Backup { name, .. } => {
+            out += &format!(
+                "scene {name} saved to {} ({} bytes): `brickcast-server admin upload NAME FILE` makes a scene of it\n",
+                s(&answer["file"]),
+                answer["bytes"]
+            );
+        }
         Command::Create { .. }
         | Command::Restore { .. }
         | Command::Rename { .. }
-        | Command::Reset { .. } => {
+        | Command::Reset { .. }
+        | Command::Upload { .. } => {
             out += &format!(
                 "serving scene {}: {} voxels, {} bricks, {} solid voxels, seq {}\n",
                 s(&answer["name"]),

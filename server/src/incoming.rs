@@ -64,16 +64,27 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SpoolError + '_ {
 pub fn write(data: &Path, name: &str, map: &BrickMap) -> Result<PathBuf, SpoolError> {
     let dir = spool_dir(data);
     std::fs::create_dir_all(&dir).map_err(io(&dir))?;
-    let damaged = |detail: String| SpoolError::Damaged {
+    let bytes = encode(name, map).map_err(|detail| SpoolError::Damaged {
         path: dir.clone(),
         detail,
-    };
+    })?;
+    let file = dir.join(format!("{name}.{EXTENSION}"));
+    let temporary = dir.join(format!(".{name}.{}.partial", std::process::id()));
+    std::fs::write(&temporary, &bytes).map_err(io(&temporary))?;
+    let _ = std::fs::remove_file(error_path(&file));
+    std::fs::rename(&temporary, &file).map_err(io(&file))?;
+    Ok(file)
+}
+
+/// A scene file's bytes: what the spool holds and what an admin backup is
+/// (`crate::admin`).
+pub fn encode(name: &str, map: &BrickMap) -> Result<Vec<u8>, String> {
     let bricks: Vec<BrickData> = map.bricks().map(|(b, _)| b).collect();
     let blobs = bricks
         .chunks(BLOB_BRICKS)
         .map(|chunk| BrickBlob::encode(chunk, 3))
         .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| damaged(e.to_string()))?;
+        .map_err(|e| e.to_string())?;
     drop(bricks);
     let spooled = Spooled {
         name: name.into(),
@@ -83,17 +94,17 @@ pub fn write(data: &Path, name: &str, map: &BrickMap) -> Result<PathBuf, SpoolEr
     let mut bytes = MAGIC.to_vec();
     bytes.extend_from_slice(&VERSION.to_le_bytes());
     bincode::serde::encode_into_std_write(&spooled, &mut bytes, bincode::config::standard())
-        .map_err(|e| damaged(e.to_string()))?;
-    let file = dir.join(format!("{name}.{EXTENSION}"));
-    let temporary = dir.join(format!(".{name}.{}.partial", std::process::id()));
-    std::fs::write(&temporary, &bytes).map_err(io(&temporary))?;
-    let _ = std::fs::remove_file(error_path(&file));
-    std::fs::rename(&temporary, &file).map_err(io(&file))?;
-    Ok(file)
+        .map_err(|e| e.to_string())?;
+    Ok(bytes)
 }
 
-/// Largest spool file read (a 2048³ scene like Sibenik spools to about 35 MB).
-const MAX_SPOOL_BYTES: u64 = 8 << 30;
+/// Whether `bytes` begin like a scene file.
+pub fn is_scene_file(bytes: &[u8]) -> bool {
+    bytes.starts_with(MAGIC)
+}
+
+/// Largest scene file read (a 2048³ scene like Sibenik spools to about 35 MB).
+pub const MAX_SPOOL_BYTES: u64 = 8 << 30;
 
 /// Opens a spool entry the way nothing planted in the folder can misuse: never following a
 /// link, never blocking (a FIFO), and only a regular file.
@@ -119,42 +130,43 @@ fn open_regular(file: &Path) -> Result<std::fs::File, SpoolError> {
 /// Reads a spool file back into a scene name and map.
 pub fn read(file: &Path) -> Result<(String, BrickMap), SpoolError> {
     use std::io::Read;
-    let damaged = |detail: String| SpoolError::Damaged {
-        path: file.into(),
-        detail,
-    };
     let mut bytes = Vec::new();
     open_regular(file)?
         .take(MAX_SPOOL_BYTES + 1)
         .read_to_end(&mut bytes)
         .map_err(io(file))?;
+    decode(&bytes).map_err(|detail| SpoolError::Damaged {
+        path: file.into(),
+        detail,
+    })
+}
+
+/// A scene file's name and map (see [`encode`]); the error says what is wrong with it.
+pub fn decode(bytes: &[u8]) -> Result<(String, BrickMap), String> {
     if bytes.len() as u64 > MAX_SPOOL_BYTES {
-        return Err(damaged(format!("over {MAX_SPOOL_BYTES} bytes")));
+        return Err(format!("over {MAX_SPOOL_BYTES} bytes"));
     }
     if bytes.len() < MAGIC.len() + 4 || &bytes[..MAGIC.len()] != MAGIC {
-        return Err(damaged("not a brickcast scene file".into()));
+        return Err("not a brickcast scene file".into());
     }
     let version = u32::from_le_bytes(
         bytes[MAGIC.len()..MAGIC.len() + 4]
             .try_into()
-            .map_err(|_| damaged("truncated header".into()))?,
+            .map_err(|_| "truncated header".to_string())?,
     );
     if version != VERSION {
-        return Err(damaged(format!(
+        return Err(format!(
             "format version {version}, this server reads {VERSION}"
-        )));
+        ));
     }
     let config = bincode::config::standard().with_limit::<{ 1 << 30 }>();
     let (spooled, _): (Spooled, usize) =
         bincode::serde::decode_from_slice(&bytes[MAGIC.len() + 4..], config)
-            .map_err(|e| damaged(e.to_string()))?;
-    let mut map = BrickMap::new(spooled.size).map_err(|e| damaged(e.to_string()))?;
+            .map_err(|e| e.to_string())?;
+    let mut map = BrickMap::new(spooled.size).map_err(|e| e.to_string())?;
     for blob in &spooled.blobs {
-        for brick in blob
-            .decode(BLOB_BRICKS as u32)
-            .map_err(|e| damaged(e.to_string()))?
-        {
-            map.put_brick(&brick).map_err(|e| damaged(e.to_string()))?;
+        for brick in blob.decode(BLOB_BRICKS as u32).map_err(|e| e.to_string())? {
+            map.put_brick(&brick).map_err(|e| e.to_string())?;
         }
     }
     map.rebuild_clearance();

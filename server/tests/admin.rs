@@ -196,6 +196,54 @@ async fn an_admin_manages_the_scenes_of_a_running_server() {
     Client::as_user(&server.url("demo-old"), None, 9, "erin")
         .await
         .unwrap();
+
+    // Backup and upload: a scene as a file and back; a .vox model; bad uploads change nothing.
+    let files = tempfile::tempdir().unwrap();
+    let backup = files.path().join("old.scene");
+    let backup_arg = backup.display().to_string();
+    ok(&admin(addr, &["backup", "demo-old", "--out", &backup_arg], None).await);
+    let copy = ok(&admin(addr, &["upload", "copy", &backup_arg], None).await);
+    assert_eq!(copy["voxels"], demo["voxels"], "{copy}");
+    let taken = refused(&admin(addr, &["upload", "copy", &backup_arg], None).await);
+    assert!(
+        taken.contains("already exists") && taken.contains("--replace"),
+        "{taken}"
+    );
+    let mut model = brickcast_protocol::BrickMap::new([40, 20, 30]).unwrap();
+    model.fill_box(
+        [0, 0, 0],
+        [39, 4, 29],
+        brickcast_protocol::BrushMode::Fill,
+        Colour::from_rgb8(10, 200, 30),
+    );
+    let vox = files.path().join("model.vox");
+    std::fs::write(&vox, brickcast_server::import::vox::export_vox(&model).0).unwrap();
+    let vox_arg = vox.display().to_string();
+    let replaced = ok(&admin(addr, &["upload", "copy", &vox_arg, "--replace"], None).await);
+    assert_eq!(replaced["voxels"], model.solid_voxels(), "{replaced}");
+    assert!(replaced["previous"]["key"].is_string(), "{replaced}");
+    let whole = std::fs::read(&backup).unwrap();
+    let cut = files.path().join("cut.scene");
+    std::fs::write(&cut, &whole[..whole.len() / 2]).unwrap();
+    let cut_arg = cut.display().to_string();
+    let damaged = refused(&admin(addr, &["upload", "copy", &cut_arg, "--replace"], None).await);
+    assert!(damaged.contains("nothing changed"), "{damaged}");
+    let junk = files.path().join("junk.bin");
+    std::fs::write(&junk, b"hello").unwrap();
+    let junk_arg = junk.display().to_string();
+    let neither = refused(&admin(addr, &["upload", "copy", &junk_arg, "--replace"], None).await);
+    assert!(
+        neither.contains("neither a brickcast scene file"),
+        "{neither}"
+    );
+    let (status, body) = half_upload(addr, "/admin/scenes/copy?replace=true", &whole).await;
+    assert_eq!(status, 400, "{body}");
+    assert!(body.contains("did not arrive whole"), "{body}");
+    let list = ok(&admin(addr, &["list"], None).await);
+    assert_eq!(
+        scene(&list, "copy").unwrap()["voxels"],
+        model.solid_voxels()
+    );
     server.shutdown().await.unwrap();
 
     // After a restart: the scenes as the admin left them.
@@ -207,7 +255,7 @@ async fn an_admin_manages_the_scenes_of_a_running_server() {
         .iter()
         .map(|s| s["name"].as_str().unwrap())
         .collect();
-    assert_eq!(names, ["demo", "demo-old", "terrain2"]);
+    assert_eq!(names, ["copy", "demo", "demo-old", "terrain2"]);
     server.shutdown().await.unwrap();
 }
 
@@ -230,6 +278,28 @@ async fn post(addr: SocketAddr, path: &str, token: Option<&str>, body: &str) -> 
         .unwrap_or(0);
     let body = text.split_once("\r\n\r\n").map(|(_, b)| b.to_string());
     (status, body.unwrap_or_default())
+}
+
+/// A PUT that sends half its body and then stops (the sender's side closed): status and body.
+async fn half_upload(addr: SocketAddr, path: &str, body: &[u8]) -> (u16, String) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let head = format!(
+        "PUT {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    );
+    s.write_all(head.as_bytes()).await.unwrap();
+    s.write_all(&body[..body.len() / 2]).await.unwrap();
+    s.shutdown().await.unwrap();
+    let mut text = Vec::new();
+    let _ = s.read_to_end(&mut text).await;
+    let text = String::from_utf8_lossy(&text).into_owned();
+    let status = text
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    (status, text)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

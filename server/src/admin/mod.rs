@@ -16,13 +16,16 @@
 //! * `POST /admin/deleted/KEY/restore` `{"as": "NAME"}`: a kept scene back, served again.
 //! * `POST /admin/scenes/NAME/rename` `{"to": "NEW"}`; `POST /admin/scenes/NAME/reset`
 //!   (a create of the same name, the old scene kept as a delete keeps it).
+//! * `GET /admin/scenes/NAME/backup`: the scene as a file (`files.rs`); `PUT
+//!   /admin/scenes/NAME[?replace=true]` with a backup or a `.vox` model as the body: a scene.
 //! * `POST /admin/kick` `{"user": "NAME or id", "scene": "NAME"?, "for": "10m"?}`: closes the
 //!   user's connections and refuses them for a while.
 //!
 //! **Limits:** scene commands run one at a time per server (they share the lock scenes open
 //! under), and a `create` of a large terrain holds it while it generates; on a cluster node
-//! only `GET /admin/scenes` and `kick` work so far (the others answer 501).
+//! only `GET /admin/scenes`, `backup` and `kick` work so far (the others answer 501).
 
+mod files;
 mod scenes;
 mod users;
 
@@ -50,8 +53,14 @@ pub fn routes() -> Router<Arc<App>> {
         .route("/admin/scenes", get(scenes::list))
         .route(
             "/admin/scenes/{name}",
-            post(scenes::create).delete(scenes::delete),
+            post(scenes::create)
+                .delete(scenes::delete)
+                .put(files::upload)
+                .layer(axum::extract::DefaultBodyLimit::max(
+                    files::MAX_UPLOAD_BYTES,
+                )),
         )
+        .route("/admin/scenes/{name}/backup", get(files::backup))
         .route("/admin/scenes/{name}/rename", post(scenes::rename))
         .route("/admin/scenes/{name}/reset", post(scenes::reset))
         .route("/admin/deleted/{key}/restore", post(scenes::restore))

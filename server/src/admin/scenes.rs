@@ -290,22 +290,33 @@ pub async fn reset(
         return Err(AdminError::UnknownScene(name));
     };
     let size = spec.size.unwrap_or(size);
-    take_out(
-        &app,
-        &name,
-        format!("scene {name} was reset by an administrator: reconnect to see it"),
-    )
-    .await?;
+    let why = format!("scene {name} was reset by an administrator: reconnect to see it");
+    let make = move |store: &Store, name: &str| make_scene(store, name, spec.kind, size, spec.seed);
+    let described = replace(&app, &store, &name, why, make).await?;
+    tracing::info!(scene = %name, "an administrator reset a scene");
+    Ok(Json(described))
+}
+
+/// Replaces served scene `name` by what `make` writes under that name, keeping the one before
+/// for [`KEEP`] like a deleted scene (its key in the answer's `previous`). A `make` that fails
+/// puts the one before back: nothing is lost. The caller holds `served.opening`.
+pub(super) async fn replace(
+    app: &App,
+    store: &Arc<Store>,
+    name: &str,
+    why: String,
+    make: impl FnOnce(&Store, &str) -> Result<Loaded, AdminError> + Send + 'static,
+) -> Result<Value, AdminError> {
+    take_out(app, name, why).await?;
     let made = {
-        let (store, name) = (store.clone(), name.clone());
+        let (store, name) = (store.clone(), name.to_string());
         blocking(move || {
             let kept = store.delete_keeping(&name, KEEP)?;
-            match make_scene(&store, &name, spec.kind, size, spec.seed) {
+            match make(&store, &name) {
                 Ok(loaded) => Ok((kept, loaded)),
-                // The old scene goes back: a reset that cannot make the new one loses nothing.
                 Err(e) => {
                     if let Err(back) = store.restore_deleted(&kept.key, &name) {
-                        tracing::error!(scene = %name, key = %kept.key, error = %back, "a failed reset could not put the old scene back; it is kept as deleted");
+                        tracing::error!(scene = %name, key = %kept.key, error = %back, "a failed replacement could not put the old scene back; it is kept as deleted");
                     }
                     Err(e)
                 }
@@ -316,20 +327,19 @@ pub async fn reset(
     let (kept, loaded) = match made {
         Ok(made) => made,
         Err(e) => {
-            put_back(&app, &store, &name).await;
+            put_back(app, store, name).await;
             return Err(e);
         }
     };
-    let mut described = describe(&name, &loaded);
+    let mut described = describe(name, &loaded);
     described["previous"] = json!({ "key": kept.key, "kept_until": kept.kept_until });
-    app.add_scene(name.clone(), loaded)
+    app.add_scene(name.to_string(), loaded)
         .map_err(|e| AdminError::Failed(format!("{e:#}")))?;
-    tracing::info!(scene = %name, key = %kept.key, "an administrator reset a scene");
-    Ok(Json(described))
+    Ok(described)
 }
 
 /// The redb store, or the refusal of a command not built for cluster nodes yet.
-fn single_node(app: &App, what: &str) -> Result<Arc<Store>, AdminError> {
+pub(super) fn single_node(app: &App, what: &str) -> Result<Arc<Store>, AdminError> {
     app.store.clone().ok_or_else(|| {
         AdminError::NotOnCluster(format!(
             "`{what}` is not available on a cluster node yet; scenes of a cluster are made with `brickcast-server import --nats`"
@@ -337,7 +347,7 @@ fn single_node(app: &App, what: &str) -> Result<Arc<Store>, AdminError> {
     })
 }
 
-fn check_name(name: &str) -> Result<(), AdminError> {
+pub(super) fn check_name(name: &str) -> Result<(), AdminError> {
     if valid_scene_name(name) {
         Ok(())
     } else {
@@ -346,7 +356,7 @@ fn check_name(name: &str) -> Result<(), AdminError> {
 }
 
 /// Runs store work off the async threads.
-async fn blocking<T: Send + 'static>(
+pub(super) async fn blocking<T: Send + 'static>(
     work: impl FnOnce() -> Result<T, AdminError> + Send + 'static,
 ) -> Result<T, AdminError> {
     tokio::task::spawn_blocking(work)
@@ -394,7 +404,7 @@ fn make_scene(
     Ok(store.load_scene(name)?)
 }
 
-fn describe(name: &str, loaded: &Loaded) -> Value {
+pub(super) fn describe(name: &str, loaded: &Loaded) -> Value {
     json!({
         "name": name,
         "size": loaded.map.size(),
