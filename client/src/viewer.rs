@@ -374,9 +374,10 @@ impl App {
             },
             _ => false,
         };
-        // The overlay, drawn at the window's resolution.
-        if let Some(camera) = &self.camera
-            && let Some(projection) = camera.camera().project(gpu.config.width, gpu.config.height)
+        // The overlay, drawn at the window's resolution, also before there is a scene: then
+        // its notes say what the viewer waits for (connecting, retrying, and why).
+        if let Some(projection) =
+            overlay_projection(self.camera.as_ref(), gpu.config.width, gpu.config.height)
         {
             let live = self.live.lock();
             let mut notes = vec![status_line.clone()];
@@ -682,12 +683,37 @@ impl ApplicationHandler for App {
                 event_loop.set_control_flow(ControlFlow::WaitUntil(
                     Instant::now() + Duration::from_millis(100),
                 ));
+            } else if self.camera.is_none() {
+                // Nothing to trace yet (connecting, or retrying a server that is not there):
+                // the notes change a few times a second at most, so 20 frames a second do.
+                let next = self.last_frame + IDLE_FRAME;
+                if Instant::now() >= next {
+                    gpu.window.request_redraw();
+                }
+                event_loop.set_control_flow(ControlFlow::WaitUntil(next.max(Instant::now())));
             } else {
                 event_loop.set_control_flow(ControlFlow::Wait);
                 gpu.window.request_redraw();
             }
         }
     }
+}
+
+/// Time between frames while there is no scene to trace.
+const IDLE_FRAME: Duration = Duration::from_millis(50);
+
+/// The projection the overlay places markers with: the camera's, or before there is one (no
+/// scene yet) a fixed one, so the notes are drawn all the same.
+fn overlay_projection(camera: Option<&FlyCamera>, width: u32, height: u32) -> Option<Projection> {
+    let camera = camera.map_or(
+        brickcast_protocol::render::Camera {
+            eye: [0.0; 3],
+            target: [0.0, 0.0, 1.0],
+            fov_y: 60.0,
+        },
+        FlyCamera::camera,
+    );
+    camera.project(width, height)
 }
 
 /// Where a screenshot is copied before presenting, and its row pitch.
@@ -741,4 +767,36 @@ fn save_screenshot(
         }));
     }
     crate::headless::write_png(path, config.width, config.height, &pixels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Before there is a scene (connecting, or retrying a server that is not there) the window
+    /// still shows the notes that say so; it was one flat colour.
+    #[test]
+    fn the_overlay_says_what_the_viewer_waits_for_before_there_is_a_scene() {
+        let (w, h) = (320, 200);
+        let projection = overlay_projection(None, w, h).expect("a projection without a camera");
+        let mut canvas = Canvas::new(w, h);
+        let roster = Default::default();
+        draw_overlay(
+            &mut canvas,
+            &OverlayInput {
+                projection,
+                roster: &roster,
+                cursor: None,
+                colour: Colour::WHITE,
+                captured: false,
+                notes: vec!["cannot reach the server; retrying in 2 s".into()],
+                following: None,
+            },
+        );
+        let drawn = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .filter(|&(x, y)| canvas.get(x, y)[3] > 0)
+            .count();
+        assert!(drawn > 100, "{drawn} pixels of notes drawn");
+    }
 }
