@@ -27,9 +27,10 @@ pub struct Identity {
 pub const PINNED: u64 = 1 << 63;
 
 /// Colours far apart from each other, one per user by id; no greens, which the terrain of
-/// most scenes is.
+/// most scenes is, and no red: the viewers paint in red first, and a person drawn in it read
+/// as the paint colour (issue #32).
 const PALETTE: [(u8, u8, u8); 12] = [
-    (230, 40, 40),
+    (140, 140, 140),
     (30, 110, 240),
     (250, 230, 30),
     (150, 60, 210),
@@ -37,7 +38,7 @@ const PALETTE: [(u8, u8, u8); 12] = [
     (255, 130, 0),
     (240, 70, 200),
     (255, 255, 255),
-    (130, 80, 40),
+    (90, 50, 20),
     (255, 180, 200),
     (0, 130, 130),
     (20, 30, 110),
@@ -64,6 +65,11 @@ fn hash_name(name: &str) -> u64 {
 /// The colour a user is drawn in, unless someone else present has it (see [`colour_among`]).
 pub fn colour_of(user: UserId) -> Colour {
     palette_colour((mix(user) % PALETTE.len() as u64) as usize)
+}
+
+/// Every colour a user may be drawn in.
+pub fn marker_colours() -> Vec<Colour> {
+    (0..PALETTE.len()).map(palette_colour).collect()
 }
 
 fn palette_colour(i: usize) -> Colour {

@@ -411,6 +411,21 @@ impl Drop for Background {
 mod tests {
     use super::*;
 
+    /// The colour the viewers paint in first is nobody's: a person drawn in it read as the
+    /// paint colour (both were red).
+    #[test]
+    fn no_user_is_drawn_in_the_first_paint_colour() {
+        let (r, g, b) = brickcast_client::camera::PALETTE[0];
+        let paint = brickcast_protocol::Colour::from_rgb8(r, g, b);
+        for marker in brickcast_server::identity::marker_colours() {
+            assert!(
+                !brickcast_server::identity::looks_alike(marker, paint),
+                "a user is drawn in {:?}, like the first paint colour",
+                marker.to_rgb8()
+            );
+        }
+    }
+
     /// A client connecting while others come and go is let in: without `-noreset` each last
     /// client's exit resets the server and about one connection in twelve was refused (the
     /// window tests' "Failed to open connection to X server").
