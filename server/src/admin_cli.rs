@@ -420,14 +420,21 @@ fn for_people(command: &Command, answer: &Value) -> String {
         | Command::Rename { .. }
         | Command::Reset { .. }
         | Command::Upload { .. } => {
-            out += &format!(
-                "serving scene {}: {} voxels, {} bricks, {} solid voxels, seq {}\n",
-                s(&answer["name"]),
-                size(&answer["size"]),
-                answer["bricks"],
-                answer["voxels"],
-                answer["seq"]
-            );
+            out += &match answer.get("voxels") {
+                Some(voxels) => format!(
+                    "serving scene {}: {} voxels, {} bricks, {voxels} solid voxels, seq {}\n",
+                    s(&answer["name"]),
+                    size(&answer["size"]),
+                    answer["bricks"],
+                    answer["seq"]
+                ),
+                // A scene put back in a cluster's list: nodes open it when someone asks.
+                None => format!(
+                    "scene {} ({} voxels) is back in the cluster's list\n",
+                    s(&answer["name"]),
+                    size(&answer["size"])
+                ),
+            };
             if let Some(previous) = answer.get("previous") {
                 out += &format!(
                     "the scene before is kept as {} until {}\n",

@@ -87,3 +87,19 @@ fn tiles_of(
         Ok(voxels)
     })
 }
+
+/// `world` made whole in memory (a cluster stores a new scene from one map: `catalog`).
+pub fn into_map(
+    world: &World,
+    threads: usize,
+) -> Result<brickcast_protocol::BrickMap, GenerateError> {
+    let mut map = brickcast_protocol::BrickMap::new(world.size())?;
+    tiles_of(world, threads.max(1), |bricks| {
+        for brick in &bricks {
+            map.put_brick(brick)?;
+        }
+        Ok(())
+    })?;
+    map.rebuild_clearance();
+    Ok(map)
+}

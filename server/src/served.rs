@@ -31,6 +31,8 @@ use crate::{App, CLUSTER_POLL, wait_or_shutdown};
 
 /// How long a closing scene's tasks get to end (lease handed over, relay's last roster sent).
 const CLOSE_PATIENCE: Duration = Duration::from_secs(30);
+/// How often a cluster node drops deleted scenes whose time is up (`cluster::deleted`).
+const PURGE_EVERY: Duration = Duration::from_secs(60);
 
 /// The scenes being served, and (cluster) the ones that could be.
 #[derive(Default)]
@@ -165,6 +167,17 @@ impl Served {
     /// Cluster: the scene list as the cluster has it now.
     pub fn set_known(&self, known: BTreeMap<String, [u32; 3]>) {
         *self.known.write().unwrap_or_else(|e| e.into_inner()) = known;
+    }
+
+    /// Cluster: the scenes served here that the cluster's list (as of the last look) no
+    /// longer has: deleted by an administrator on some node.
+    fn served_but_unlisted(&self) -> Vec<String> {
+        let known = self.known.read().unwrap_or_else(|e| e.into_inner());
+        self.read()
+            .iter()
+            .filter(|(name, e)| e.close.is_some() && !known.contains_key(*name))
+            .map(|(name, _)| name.clone())
+            .collect()
     }
 
     /// Whether a scene is served or known to the cluster (as of the last look at its list).
@@ -337,16 +350,49 @@ impl App {
     /// until shutdown.
     pub(crate) async fn tend_cluster_scenes(self: Arc<Self>, close_idle: Duration) {
         let mut shutdown = self.shutdown.clone();
+        let mut purged: Option<Instant> = None;
         while wait_or_shutdown(&mut shutdown, CLUSTER_POLL).await {
             let Some(node) = &self.node else { return };
-            if let Err(e) = self.refresh_known(&node.cluster).await {
-                tracing::warn!(error = %e, "cannot list the cluster's scenes");
+            let listed = match self.refresh_known(&node.cluster).await {
+                Ok(()) => true,
+                Err(e) => {
+                    tracing::warn!(error = %e, "cannot list the cluster's scenes");
+                    false
+                }
+            };
+            if purged.is_none_or(|at| at.elapsed() >= PURGE_EVERY) {
+                purged = Some(Instant::now());
+                let now = crate::store::Store::unix_seconds();
+                match crate::cluster::deleted::purge(&node.cluster, now).await {
+                    Ok(dropped) => {
+                        for d in dropped {
+                            tracing::info!(scene = %d.name, key = %d.key, "dropped a deleted scene whose time was up");
+                        }
+                    }
+                    Err(e) => tracing::warn!(error = %e, "cannot drop deleted scenes"),
+                }
             }
             let _closing = self.scenes.opening.lock().await;
             if *self.shutdown.borrow() {
                 return;
             }
             let mut closed = 0;
+            // Deleted on another node (or here, by the admin API, which closed it already).
+            let unlisted = if listed {
+                self.scenes.served_but_unlisted()
+            } else {
+                Vec::new()
+            };
+            for name in unlisted {
+                // Opened since the list was read (a scene made meanwhile): still listed.
+                if !matches!(scene_entry(&node.cluster, &name).await, Ok(None)) {
+                    continue;
+                }
+                let why = format!("scene {name} was deleted by an administrator");
+                if crate::admin::take_out(&self, &name, why).await.is_ok() {
+                    closed += 1;
+                }
+            }
             for (name, entry) in self.scenes.take_stopped() {
                 close(&name, entry, Closing::Stopped, &self.scenes.still_closing).await;
                 closed += 1;

@@ -19,7 +19,7 @@ use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
 use serde_json::Value;
 
-use super::scenes::{blocking, check_name, describe, replace, single_node};
+use super::scenes::{blocking, check_name, create_in_cluster, describe, replace, single_node};
 use super::{Admin, AdminError};
 use crate::App;
 use crate::incoming;
@@ -81,8 +81,12 @@ pub async fn upload(
     Query(query): Query<UploadQuery>,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<(StatusCode, Json<Value>), AdminError> {
-    let store = single_node(&app, "upload")?;
     check_name(&name)?;
+    if app.node.is_some() && query.replace {
+        return Err(AdminError::NotOnCluster(
+            "`upload --replace` is not available on a cluster node yet: delete the scene, then upload".into(),
+        ));
+    }
     let body = body.map_err(|e| {
         AdminError::BadInput(format!(
             "the upload did not arrive whole ({e}); nothing changed"
@@ -95,6 +99,17 @@ pub async fn upload(
     };
     let _turn = app.scenes.opening.lock().await;
     let exists = app.has_scene(&name).await;
+    if let Some(node) = &app.node {
+        if exists {
+            return Err(AdminError::Conflict(format!(
+                "scene {name} already exists in the cluster"
+            )));
+        }
+        let described = create_in_cluster(&node.cluster, &name, map).await?;
+        tracing::info!(scene = %name, "an administrator uploaded a scene into the cluster");
+        return Ok((StatusCode::CREATED, Json(described)));
+    }
+    let store = single_node(&app, "upload")?;
     if exists && !query.replace {
         return Err(AdminError::Conflict(format!(
             "scene {name} already exists: upload under another name, or replace it (?replace=true, `--replace`; the scene before is kept like a deleted one)"

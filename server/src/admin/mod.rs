@@ -41,6 +41,7 @@ use axum::routing::{get, post};
 
 use crate::App;
 
+pub(crate) use scenes::take_out;
 pub use users::Bans;
 
 /// How long a deleted scene is kept when the delete does not say.

@@ -14,6 +14,7 @@ use serde_json::{Value, json};
 
 use super::{Admin, AdminError, Body, KEEP, parse_duration};
 use crate::App;
+use crate::cluster::{ClusterError, catalog, deleted};
 use crate::scene::Command;
 use crate::served::Closing;
 use crate::store::{Loaded, Store, valid_scene_name};
@@ -58,12 +59,30 @@ pub async fn list(_: Admin, State(app): State<Arc<App>>) -> Result<Json<Value>, 
             None => json!({ "name": listed.name, "size": listed.size, "open": false }),
         })
         .collect();
-    let deleted = match &app.store {
-        Some(store) => {
+    let deleted: Vec<Value> = match (&app.store, &app.node) {
+        (Some(store), _) => {
             let store = store.clone();
-            blocking(move || store.deleted().map_err(AdminError::from)).await?
+            blocking(move || store.deleted().map_err(AdminError::from))
+                .await?
+                .into_iter()
+                .map(|d| {
+                    json!({
+                        "key": d.key,
+                        "name": d.name,
+                        "size": d.meta.size,
+                        "deleted_at": d.deleted_at,
+                        "kept_until": d.kept_until,
+                    })
+                })
+                .collect()
         }
-        None => Vec::new(),
+        (None, Some(node)) => deleted::list(&node.cluster)
+            .await
+            .map_err(from_cluster)?
+            .into_iter()
+            .map(|d| json!(d))
+            .collect(),
+        (None, None) => Vec::new(),
     };
     Ok(Json(json!({
         "node": app.node_name(),
@@ -109,7 +128,6 @@ pub async fn create(
     Path(name): Path<String>,
     Body(spec): Body<Create>,
 ) -> Result<(StatusCode, Json<Value>), AdminError> {
-    let store = single_node(&app, "create")?;
     check_name(&name)?;
     let _turn = app.scenes.opening.lock().await;
     if app.has_scene(&name).await {
@@ -118,6 +136,13 @@ pub async fn create(
         )));
     }
     let size = spec.size.unwrap_or(crate::DEMO_SIZE);
+    if let Some(node) = &app.node {
+        let map = blocking(move || map_of(spec.kind, size, spec.seed)).await?;
+        let described = create_in_cluster(&node.cluster, &name, map).await?;
+        tracing::info!(scene = %name, kind = ?spec.kind, ?size, "an administrator created a scene in the cluster");
+        return Ok((StatusCode::CREATED, Json(described)));
+    }
+    let store = single_node(&app, "create")?;
     let loaded = {
         let name = name.clone();
         blocking(move || make_scene(&store, &name, spec.kind, size, spec.seed)).await?
@@ -142,7 +167,6 @@ pub async fn delete(
     Path(name): Path<String>,
     Query(query): Query<DeleteQuery>,
 ) -> Result<Json<Value>, AdminError> {
-    let store = single_node(&app, "delete")?;
     if query.confirm.as_deref() != Some(name.as_str()) {
         return Err(AdminError::BadInput(format!(
             "deleting scene {name} closes it for everyone on it: confirm with ?confirm={name} (`--yes` on the command line)"
@@ -153,12 +177,29 @@ pub async fn delete(
         None => KEEP,
     };
     let _turn = app.scenes.opening.lock().await;
-    take_out(
-        &app,
-        &name,
-        format!("scene {name} was deleted by an administrator"),
-    )
-    .await?;
+    let why = format!("scene {name} was deleted by an administrator");
+    if let Some(node) = &app.node {
+        // Out of the list first, so no node opens it again; the others close it when they see.
+        let now_ms = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default()
+            .as_millis() as u64;
+        let deleted = deleted::delete_keeping(&node.cluster, &name, now_ms, keep.as_secs())
+            .await
+            .map_err(from_cluster)?;
+        match take_out(&app, &name, why).await {
+            Ok(()) | Err(AdminError::UnknownScene(_)) => {}
+            Err(e) => return Err(e),
+        }
+        tracing::info!(scene = %name, key = %deleted.key, kept_until = deleted.kept_until, "an administrator deleted a scene of the cluster");
+        return Ok(Json(json!({
+            "deleted": name,
+            "key": deleted.key,
+            "kept_until": deleted.kept_until,
+        })));
+    }
+    let store = single_node(&app, "delete")?;
+    take_out(&app, &name, why).await?;
     let deleted = {
         let (store, name) = (store.clone(), name.clone());
         blocking(move || store.delete_keeping(&name, keep).map_err(AdminError::from)).await
@@ -193,15 +234,38 @@ pub async fn restore(
     Path(key): Path<String>,
     Body(body): Body<Restore>,
 ) -> Result<Json<Value>, AdminError> {
+    if let Some(node) = &app.node {
+        let _turn = app.scenes.opening.lock().await;
+        let kept = deleted::list(&node.cluster).await.map_err(from_cluster)?;
+        let Some(kept) = kept.into_iter().find(|d| d.key == key) else {
+            return Err(not_kept(&key));
+        };
+        if body.name.as_ref().is_some_and(|n| *n != kept.name) {
+            return Err(AdminError::BadInput(format!(
+                "on a cluster a deleted scene comes back under its own name ({}): its log is named after it",
+                kept.name
+            )));
+        }
+        let restored = deleted::restore(&node.cluster, &key)
+            .await
+            .map_err(|e| match e {
+                ClusterError::SceneExists(name) => AdminError::Conflict(format!(
+                    "scene {name} exists: delete it first to restore the one kept"
+                )),
+                e => from_cluster(e),
+            })?;
+        tracing::info!(scene = %restored.name, "an administrator restored a deleted scene of the cluster");
+        return Ok(Json(
+            json!({ "name": restored.name, "size": restored.size }),
+        ));
+    }
     let store = single_node(&app, "restore")?;
     let kept = {
         let store = store.clone();
         blocking(move || store.deleted().map_err(AdminError::from)).await?
     };
     let Some(kept) = kept.into_iter().find(|d| d.key == key) else {
-        return Err(AdminError::BadInput(format!(
-            "no deleted scene is kept as {key:?} (GET /admin/scenes lists them; they are dropped when their time is up)"
-        )));
+        return Err(not_kept(&key));
     };
     let name = body.name.unwrap_or(kept.name);
     check_name(&name)?;
@@ -338,11 +402,100 @@ pub(super) async fn replace(
     Ok(described)
 }
 
+fn not_kept(key: &str) -> AdminError {
+    AdminError::BadInput(format!(
+        "no deleted scene is kept as {key:?} (GET /admin/scenes lists them; they are dropped when their time is up)"
+    ))
+}
+
+pub(super) fn from_cluster(e: ClusterError) -> AdminError {
+    match e {
+        ClusterError::SceneExists(name) => {
+            AdminError::Conflict(format!("scene {name} already exists in the cluster"))
+        }
+        ClusterError::UnknownScene(name) => AdminError::UnknownScene(name),
+        e => AdminError::TryAgain(e.to_string()),
+    }
+}
+
+/// Largest horizontal edge of a terrain made on a cluster node (made whole in memory first).
+const MAX_CLUSTER_TERRAIN_EDGE: u32 = 4096;
+
+/// A new scene's map, whole (for a cluster).
+fn map_of(kind: Kind, size: [u32; 3], seed: u32) -> Result<BrickMap, AdminError> {
+    let bad = |e: brickcast_protocol::map::MapError| {
+        AdminError::BadInput(format!(
+            "a scene of {}x{}x{} voxels: {e}",
+            size[0], size[1], size[2]
+        ))
+    };
+    match kind {
+        Kind::Empty => BrickMap::new(size).map_err(bad),
+        Kind::Demo => {
+            check_demo(size)?;
+            brickcast_protocol::demo::demo_scene(size).map_err(bad)
+        }
+        Kind::Terrain => {
+            if size[0].max(size[2]) > MAX_CLUSTER_TERRAIN_EDGE {
+                return Err(AdminError::BadInput(format!(
+                    "a cluster node makes a terrain whole in memory first: at most {MAX_CLUSTER_TERRAIN_EDGE} voxels along x and z"
+                )));
+            }
+            let world = brickcast_protocol::world::World::new(size, seed).map_err(bad)?;
+            crate::generate::into_map(&world, threads()).map_err(|e| match e {
+                crate::generate::GenerateError::Tile(e) => bad(e),
+                e => AdminError::Failed(e.to_string()),
+            })
+        }
+    }
+}
+
+fn check_demo(size: [u32; 3]) -> Result<(), AdminError> {
+    if size.iter().any(|&e| e > MAX_DEMO_EDGE) {
+        return Err(AdminError::BadInput(format!(
+            "a demo scene is at most {MAX_DEMO_EDGE} voxels a side (it is built whole in memory); use \"kind\": \"terrain\" for larger worlds"
+        )));
+    }
+    Ok(())
+}
+
+/// Generating threads on a serving node: half the cores, the scenes being served keep the rest.
+fn threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| (n.get() / 2).max(1))
+}
+
+/// Adds `map` to the cluster as scene `name` (nodes open it when someone asks).
+pub(super) async fn create_in_cluster(
+    cluster: &crate::cluster::Cluster,
+    name: &str,
+    map: BrickMap,
+) -> Result<Value, AdminError> {
+    if let Some(kept) = deleted::kept_as(cluster, name)
+        .await
+        .map_err(from_cluster)?
+    {
+        return Err(AdminError::Conflict(format!(
+            "a deleted scene named {name} is kept (as {}) until unix time {}: restore it, or use another name until then",
+            kept.key, kept.kept_until
+        )));
+    }
+    catalog::create_scene(cluster, name, &map, false)
+        .await
+        .map_err(from_cluster)?;
+    Ok(json!({
+        "name": name,
+        "size": map.size(),
+        "seq": map.sequence(),
+        "bricks": map.brick_count(),
+        "voxels": map.solid_voxels(),
+    }))
+}
+
 /// The redb store, or the refusal of a command not built for cluster nodes yet.
 pub(super) fn single_node(app: &App, what: &str) -> Result<Arc<Store>, AdminError> {
     app.store.clone().ok_or_else(|| {
         AdminError::NotOnCluster(format!(
-            "`{what}` is not available on a cluster node yet; scenes of a cluster are made with `brickcast-server import --nats`"
+            "`{what}` is not available on a cluster node yet (a scene's log is named after it, so it cannot move)"
         ))
     })
 }
@@ -381,19 +534,13 @@ fn make_scene(
     match kind {
         Kind::Empty => store.create_scene(name, &BrickMap::new(size).map_err(bad)?)?,
         Kind::Demo => {
-            if size.iter().any(|&e| e > MAX_DEMO_EDGE) {
-                return Err(AdminError::BadInput(format!(
-                    "a demo scene is at most {MAX_DEMO_EDGE} voxels a side (it is built whole in memory); use \"kind\": \"terrain\" for larger worlds"
-                )));
-            }
+            check_demo(size)?;
             let map = brickcast_protocol::demo::demo_scene(size).map_err(bad)?;
             store.create_scene(name, &map)?;
         }
         Kind::Terrain => {
             let world = brickcast_protocol::world::World::new(size, seed).map_err(bad)?;
-            // Half the cores: the scenes being served keep the rest.
-            let threads = std::thread::available_parallelism().map_or(1, |n| n.get() / 2);
-            crate::generate::into_store(store, name, &world, threads.max(1), |_, _| {}).map_err(
+            crate::generate::into_store(store, name, &world, threads(), |_, _| {}).map_err(
                 |e| match e {
                     crate::generate::GenerateError::Store(e) => e.into(),
                     e => AdminError::Failed(e.to_string()),
@@ -417,7 +564,7 @@ pub(super) fn describe(name: &str, loaded: &Loaded) -> Value {
 /// Takes a served scene out of service: its sessions are told `why` and closed, its owner
 /// commits what it has, writes a snapshot and stops. Waits until it has stopped, so the
 /// store's rows of the scene are nobody's when this returns.
-async fn take_out(app: &App, name: &str, why: String) -> Result<(), AdminError> {
+pub(crate) async fn take_out(app: &App, name: &str, why: String) -> Result<(), AdminError> {
     let Some(entry) = app.scenes.remove(name) else {
         return Err(AdminError::UnknownScene(name.to_string()));
     };

@@ -12,6 +12,8 @@ pub async fn scene_names(jet: &impl Jet) -> Result<Vec<String>, ClusterError> {
         .kv_keys(Bucket::Scenes)
         .await
         .map_err(|e| ClusterError::Nats(format!("listing scenes: {e}")))?;
+    // Deleted scenes kept for a while share the bucket under keys no scene name can be.
+    names.retain(|n| !super::deleted::is_deleted_key(n));
     names.sort();
     Ok(names)
 }
@@ -45,6 +47,13 @@ pub async fn create_scene(
     if !crate::store::valid_scene_name(name) {
         return Err(ClusterError::Nats(format!(
             "scene name {name:?} is invalid"
+        )));
+    }
+    // A deleted scene kept under this name still has its log and snapshots here.
+    if let Some(kept) = super::deleted::kept_as(jet, name).await? {
+        return Err(ClusterError::Nats(format!(
+            "a deleted scene named {name} is kept until unix time {} (key {}): restore it, or use another name until then",
+            kept.kept_until, kept.key
         )));
     }
     let exists = scene_entry(jet, name).await?.is_some();

@@ -38,6 +38,7 @@
 //! presence and `brickcast.status.<node>` for `cluster status`.
 
 pub mod catalog;
+pub mod deleted;
 pub mod forward;
 pub mod jet;
 mod lease;

@@ -1,0 +1,142 @@
+//! The admin API against a three-node cluster (a real `nats-server`, three `serve --nats`
+//! processes): a scene made through one node is served by the others; deleted through one,
+//! every node closes it and tells its people; it is kept, refused as a new scene's name, and
+//! restored through a third node with every acknowledged edit; an uploaded model is served
+//! everywhere; what a cluster cannot do yet is refused with the reason.
+
+mod common;
+mod nodes;
+
+use std::net::SocketAddr;
+use std::process::Output;
+use std::time::Duration;
+
+use brickcast_protocol::wire::{EditOp, ErrorCode, ServerMsg};
+use common::{Client, colour};
+use nodes::*;
+use serde_json::Value;
+
+async fn admin(addr: SocketAddr, args: &[&str]) -> Output {
+    let mut all = vec![
+        "admin".to_string(),
+        "--server".into(),
+        addr.to_string(),
+        "--json".into(),
+    ];
+    all.extend(args.iter().map(|s| s.to_string()));
+    tokio::task::spawn_blocking(move || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_brickcast-server"))
+            .args(&all)
+            .env("RUST_LOG", "warn")
+            .env_remove("BRICKCAST_TOKEN")
+            .stdin(std::process::Stdio::null())
+            .output()
+            .expect("the CLI runs")
+    })
+    .await
+    .unwrap()
+}
+
+fn ok(out: &Output) -> Value {
+    assert!(
+        out.status.success(),
+        "admin failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("one JSON answer")
+}
+
+fn refused(out: &Output) -> String {
+    assert!(!out.status.success(), "expected a refusal");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn url(node: &Node, scene: &str) -> String {
+    format!("ws://{}/scenes/{scene}/ws", node.addr)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
+    let nats = Nats::start(true);
+    let a = Node::start(&nats.url(), "a", &[]).await;
+    let b = Node::start(&nats.url(), "b", &[]).await;
+    let c = Node::start(&nats.url(), "c", &[]).await;
+
+    let made = ok(&admin(
+        a.addr,
+        &["create", "isle", "--kind", "terrain", "--size", "64,32,64"],
+    )
+    .await);
+    assert!(made["voxels"].as_u64().unwrap() > 0, "{made}");
+    let mut on_b = Client::connect(&url(&b, "isle"), None).await.unwrap();
+    on_b.sync().await;
+    let ack = on_b
+        .edit(vec![EditOp::Set {
+            pos: [5, 30, 5],
+            colour: colour(3),
+        }])
+        .await;
+    assert!(matches!(ack, ServerMsg::Ack { .. }), "{ack:?}");
+    let mut on_c = Client::connect(&url(&c, "isle"), None).await.unwrap();
+    on_c.sync().await;
+    on_c.until(|cl, _| cl.map.content_hash() == on_b.map.content_hash())
+        .await;
+    let hash = on_b.map.content_hash();
+
+    // Deleted through a: the people on b and c are told, by their own nodes.
+    let deleted = ok(&admin(a.addr, &["delete", "isle", "--yes", "--keep", "1h"]).await);
+    let key = deleted["key"].as_str().unwrap().to_string();
+    for client in [&mut on_b, &mut on_c] {
+        let errors = tokio::time::timeout(Duration::from_secs(30), client.until_closed())
+            .await
+            .expect("closed within 30 s");
+        let (code, text) = errors.last().cloned().expect("told why");
+        assert_eq!(code, ErrorCode::UnknownScene);
+        assert!(text.contains("deleted by an administrator"), "{text}");
+    }
+    let list = ok(&admin(c.addr, &["list"]).await);
+    assert!(
+        !list["scenes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|s| s["name"] == "isle"),
+        "{list}"
+    );
+    assert_eq!(list["deleted"][0]["key"], key.as_str(), "{list}");
+    let reuse = refused(&admin(b.addr, &["create", "isle"]).await);
+    assert!(
+        reuse.contains("deleted scene named isle is kept"),
+        "{reuse}"
+    );
+    let rename = refused(&admin(b.addr, &["rename", "demo", "other"]).await);
+    assert!(
+        rename.contains("not available on a cluster node"),
+        "{rename}"
+    );
+    let elsewhere = refused(&admin(c.addr, &["restore", &key, "--as", "isle2"]).await);
+    assert!(elsewhere.contains("its own name"), "{elsewhere}");
+
+    // Restored through c: served again with the edit acknowledged before the delete.
+    ok(&admin(c.addr, &["restore", &key]).await);
+    let mut back = Client::connect(&url(&a, "isle"), None).await.unwrap();
+    back.sync().await;
+    assert_eq!(back.map.content_hash(), hash, "the scene as it was deleted");
+
+    // An uploaded model is served by every node.
+    let mut model = brickcast_protocol::BrickMap::new([24, 16, 24]).unwrap();
+    model.fill_box(
+        [0, 0, 0],
+        [23, 2, 23],
+        brickcast_protocol::BrushMode::Fill,
+        colour(5),
+    );
+    let files = tempfile::tempdir().unwrap();
+    let vox = files.path().join("m.vox");
+    std::fs::write(&vox, brickcast_server::import::vox::export_vox(&model).0).unwrap();
+    let up = ok(&admin(b.addr, &["upload", "carved", &vox.display().to_string()]).await);
+    assert_eq!(up["voxels"], model.solid_voxels(), "{up}");
+    let mut seen = Client::connect(&url(&c, "carved"), None).await.unwrap();
+    seen.sync().await;
+    assert_eq!(seen.map.solid_voxels(), model.solid_voxels());
+}
