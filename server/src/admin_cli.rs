@@ -300,7 +300,14 @@ fn answer(
     url: &str,
     response: Result<ureq::http::Response<ureq::Body>, ureq::Error>,
 ) -> anyhow::Result<Vec<u8>> {
-    let mut response = response.with_context(|| format!("{method} {url}"))?;
+    let mut response = response.map_err(|e| match &e {
+        ureq::Error::Io(io) if io.kind() == std::io::ErrorKind::ConnectionRefused => {
+            anyhow::anyhow!(
+                "no server answers at {url}: is `brickcast-server serve` running there? (--server names another)"
+            )
+        }
+        _ => anyhow::Error::new(e).context(format!("{method} {url}")),
+    })?;
     let status = response.status();
     let bytes = response
         .body_mut()
@@ -357,6 +364,8 @@ fn for_people(command: &Command, answer: &Value) -> String {
     let mut out = String::new();
     match command {
         Command::List => {
+            out += "scene	size	sequence	bricks	solid voxels	memory	who is here
+";
             for scene in answer["scenes"].as_array().into_iter().flatten() {
                 let users: Vec<String> = scene["users"]
                     .as_array()

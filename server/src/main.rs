@@ -298,7 +298,7 @@ fn open_store(data: &std::path::Path) -> anyhow::Result<Store> {
     Store::open(data).map_err(|e| {
         if e.is_locked() {
             anyhow::anyhow!(
-                "{e}: a running server holds the store; stop it first (only `import` can hand a scene to a running server)"
+                "{e}: a running server holds the store: ask it instead (`brickcast-server admin list`, `admin backup`, ...: see `admin --help`), or stop it first"
             )
         } else {
             e.into()

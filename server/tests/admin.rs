@@ -245,6 +245,8 @@ async fn an_admin_manages_the_scenes_of_a_running_server() {
         model.solid_voxels()
     );
     server.shutdown().await.unwrap();
+    let gone = refused(&admin(addr, &["list"], None).await);
+    assert!(gone.contains("no server answers at"), "{gone}");
 
     // After a restart: the scenes as the admin left them.
     let server = TestServer::start(data.path(), |_| {}).await;

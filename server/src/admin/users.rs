@@ -148,7 +148,7 @@ pub async fn kick(
     }
     if closed.is_empty() {
         return Err(AdminError::BadInput(format!(
-            "nobody like that is connected to {}: GET /admin/scenes lists who is",
+            "nobody like that is connected to {}: `admin list` (GET /admin/scenes) lists who is",
             kick.scene.as_deref().unwrap_or("any scene of this server")
         )));
     }

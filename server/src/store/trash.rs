@@ -5,7 +5,8 @@
 //! transaction: no row is copied, so a world of gigabytes renames as fast as the demo.
 //!
 //! Deleting a scene through the admin API does not drop its tables: it renames them under a
-//! key that no scene name can take (`~<unix ms>~<name>`, `~` is not allowed in scene names)
+//! key that no scene name can take (`deleted=<unix ms>=<name>`: scene names have no `=`; the
+//! cluster's keys look the same, `crate::cluster::deleted`)
 //! and records the scene's metadata and how long it is kept in the `deleted` table. Until
 //! then it can be restored under its name or another; afterwards
 //! [`Store::purge_deleted`] drops its tables. Stores written before this table existed have
@@ -25,7 +26,7 @@ const DELETED: TableDefinition<&str, &[u8]> = TableDefinition::new("deleted");
 /// A deleted scene kept for restoring.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Deleted {
-    /// What restoring it is called by (`~<unix ms>~<name>`).
+    /// What restoring it is called by (`deleted=<unix ms>=<name>`).
     pub key: String,
     /// The scene's name when it was deleted.
     pub name: String,
@@ -86,10 +87,10 @@ impl Store {
             let mut table = txn.open_table(DELETED)?;
             // Two deletes of one name in one millisecond get different keys.
             let mut ms = now.as_millis();
-            let mut key = format!("~{ms}~{name}");
+            let mut key = format!("deleted={ms}={name}");
             while table.get(key.as_str())?.is_some() {
                 ms += 1;
-                key = format!("~{ms}~{name}");
+                key = format!("deleted={ms}={name}");
             }
             let deleted = Deleted {
                 key,
@@ -305,7 +306,7 @@ mod tests {
             .delete_keeping("c", Duration::from_secs(3600))
             .unwrap();
         assert_eq!(kept.name, "c");
-        assert!(kept.key.starts_with('~') && kept.kept_until >= kept.deleted_at + 3600);
+        assert!(kept.key.starts_with("deleted=") && kept.kept_until >= kept.deleted_at + 3600);
         let names: Vec<String> = store
             .scenes()
             .unwrap()
@@ -322,7 +323,7 @@ mod tests {
             Err(StoreError::SceneExists(_))
         ));
         assert!(matches!(
-            store.restore_deleted("~1~zz", "d"),
+            store.restore_deleted("deleted=1=zz", "d"),
             Err(StoreError::UnknownScene(_))
         ));
         store.restore_deleted(&kept.key, "d").unwrap();
