@@ -677,18 +677,12 @@ async fn scene_list(State(app): State<Arc<App>>) -> Response {
         .catalog()
         .into_iter()
         .map(|listed| match listed.handle {
-            Some(s) => serde_json::json!({
-                "name": listed.name,
-                "size": s.size,
-                "open": true,
-                "seq": s.info.seq.load(Relaxed),
-                "bricks": s.info.bricks.load(Relaxed),
-                "voxels": s.info.voxels.load(Relaxed),
-                "clients": s.info.clients.load(Relaxed),
-                "gpu_bytes": s.info.gpu_bytes.load(Relaxed),
-                "node": app.node_name(),
-                "owned_here": s.info.leading.load(Relaxed),
-            }),
+            Some(s) => {
+                let mut value = open_scene_json(&listed.name, &s);
+                value["node"] = app.node_name().into();
+                value["owned_here"] = s.info.leading.load(Relaxed).into();
+                value
+            }
             // Cluster: a scene nobody uses on this node (it opens when someone does).
             None => serde_json::json!({
                 "name": listed.name,
@@ -700,6 +694,20 @@ async fn scene_list(State(app): State<Arc<App>>) -> Response {
         })
         .collect();
     axum::Json(list).into_response()
+}
+
+/// What the scene lists (`/scenes`, `/admin/scenes`) say of a scene served here.
+pub(crate) fn open_scene_json(name: &str, s: &SceneHandle) -> serde_json::Value {
+    serde_json::json!({
+        "name": name,
+        "size": s.size,
+        "open": true,
+        "seq": s.info.seq.load(Relaxed),
+        "bricks": s.info.bricks.load(Relaxed),
+        "voxels": s.info.voxels.load(Relaxed),
+        "clients": s.info.clients.load(Relaxed),
+        "gpu_bytes": s.info.gpu_bytes.load(Relaxed),
+    })
 }
 
 async fn websocket(

@@ -7,49 +7,12 @@
 mod common;
 mod nodes;
 
-use std::net::SocketAddr;
-use std::process::Output;
 use std::time::Duration;
 
 use brickcast_protocol::wire::{EditOp, ErrorCode, ServerMsg};
+use common::admin_cli::{admin, ok, refused};
 use common::{Client, colour};
 use nodes::*;
-use serde_json::Value;
-
-async fn admin(addr: SocketAddr, args: &[&str]) -> Output {
-    let mut all = vec![
-        "admin".to_string(),
-        "--server".into(),
-        addr.to_string(),
-        "--json".into(),
-    ];
-    all.extend(args.iter().map(|s| s.to_string()));
-    tokio::task::spawn_blocking(move || {
-        std::process::Command::new(env!("CARGO_BIN_EXE_brickcast-server"))
-            .args(&all)
-            .env("RUST_LOG", "warn")
-            .env_remove("BRICKCAST_TOKEN")
-            .stdin(std::process::Stdio::null())
-            .output()
-            .expect("the CLI runs")
-    })
-    .await
-    .unwrap()
-}
-
-fn ok(out: &Output) -> Value {
-    assert!(
-        out.status.success(),
-        "admin failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).expect("one JSON answer")
-}
-
-fn refused(out: &Output) -> String {
-    assert!(!out.status.success(), "expected a refusal");
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
 
 fn url(node: &Node, scene: &str) -> String {
     format!("ws://{}/scenes/{scene}/ws", node.addr)
@@ -65,6 +28,7 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     let made = ok(&admin(
         a.addr,
         &["create", "isle", "--kind", "terrain", "--size", "64,32,64"],
+        None,
     )
     .await);
     assert!(made["voxels"].as_u64().unwrap() > 0, "{made}");
@@ -84,7 +48,7 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     let hash = on_b.map.content_hash();
 
     // Deleted through a: the people on b and c are told, by their own nodes.
-    let deleted = ok(&admin(a.addr, &["delete", "isle", "--yes", "--keep", "1h"]).await);
+    let deleted = ok(&admin(a.addr, &["delete", "isle", "--yes", "--keep", "1h"], None).await);
     let key = deleted["key"].as_str().unwrap().to_string();
     for client in [&mut on_b, &mut on_c] {
         let errors = tokio::time::timeout(Duration::from_secs(30), client.until_closed())
@@ -94,7 +58,7 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
         assert_eq!(code, ErrorCode::UnknownScene);
         assert!(text.contains("deleted by an administrator"), "{text}");
     }
-    let list = ok(&admin(c.addr, &["list"]).await);
+    let list = ok(&admin(c.addr, &["list"], None).await);
     assert!(
         !list["scenes"]
             .as_array()
@@ -104,21 +68,21 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
         "{list}"
     );
     assert_eq!(list["deleted"][0]["key"], key.as_str(), "{list}");
-    let reuse = refused(&admin(b.addr, &["create", "isle"]).await);
+    let reuse = refused(&admin(b.addr, &["create", "isle"], None).await);
     assert!(
         reuse.contains("deleted scene named isle is kept"),
         "{reuse}"
     );
-    let rename = refused(&admin(b.addr, &["rename", "demo", "other"]).await);
+    let rename = refused(&admin(b.addr, &["rename", "demo", "other"], None).await);
     assert!(
         rename.contains("not available on a cluster node"),
         "{rename}"
     );
-    let elsewhere = refused(&admin(c.addr, &["restore", &key, "--as", "isle2"]).await);
+    let elsewhere = refused(&admin(c.addr, &["restore", &key, "--as", "isle2"], None).await);
     assert!(elsewhere.contains("its own name"), "{elsewhere}");
 
     // Restored through c: served again with the edit acknowledged before the delete.
-    ok(&admin(c.addr, &["restore", &key]).await);
+    ok(&admin(c.addr, &["restore", &key], None).await);
     let mut back = Client::connect(&url(&a, "isle"), None).await.unwrap();
     back.sync().await;
     assert_eq!(back.map.content_hash(), hash, "the scene as it was deleted");
@@ -134,7 +98,12 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     let files = tempfile::tempdir().unwrap();
     let vox = files.path().join("m.vox");
     std::fs::write(&vox, brickcast_server::import::vox::export_vox(&model).0).unwrap();
-    let up = ok(&admin(b.addr, &["upload", "carved", &vox.display().to_string()]).await);
+    let up = ok(&admin(
+        b.addr,
+        &["upload", "carved", &vox.display().to_string()],
+        None,
+    )
+    .await);
     assert_eq!(up["voxels"], model.solid_voxels(), "{up}");
     let mut seen = Client::connect(&url(&c, "carved"), None).await.unwrap();
     seen.sync().await;

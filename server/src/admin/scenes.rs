@@ -43,18 +43,10 @@ pub async fn list(_: Admin, State(app): State<Arc<App>>) -> Result<Json<Value>, 
                         })
                     })
                     .collect();
-                json!({
-                    "name": listed.name,
-                    "size": s.size,
-                    "open": true,
-                    "seq": s.info.seq.load(Relaxed),
-                    "bricks": s.info.bricks.load(Relaxed),
-                    "voxels": s.info.voxels.load(Relaxed),
-                    "gpu_bytes": s.info.gpu_bytes.load(Relaxed),
-                    "history_bytes": s.info.history_bytes.load(Relaxed),
-                    "clients": s.info.clients.load(Relaxed),
-                    "users": users,
-                })
+                let mut value = crate::open_scene_json(&listed.name, &s);
+                value["history_bytes"] = s.info.history_bytes.load(Relaxed).into();
+                value["users"] = users.into();
+                value
             }
             None => json!({ "name": listed.name, "size": listed.size, "open": false }),
         })
