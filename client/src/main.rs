@@ -48,6 +48,10 @@ enum Command {
         width: u32,
         #[arg(long, default_value_t = 360)]
         height: u32,
+        /// The image's size as `view --size` takes it, e.g. 1280x720 (instead of --width and
+        /// --height).
+        #[arg(long, conflicts_with_all = ["width", "height"])]
+        size: Option<String>,
         /// Camera position in voxels, "x,y,z" (default: the scene's first camera, see README).
         #[arg(long, value_parser = brickcast_client::light::parse_vec3, allow_hyphen_values = true)]
         eye: Option<[f32; 3]>,
@@ -134,6 +138,16 @@ fn main() -> std::process::ExitCode {
 
 fn run() -> Result<()> {
     use std::io::IsTerminal;
+    let cli = Cli::parse();
+    // Mesa's device-select layer looks for a display to order GPUs by, and with no Wayland
+    // runtime directory prints "XDG_RUNTIME_DIR is invalid or not set" twice: a headless
+    // render has no display to ask (wgpu picks the adapter itself). Unless the user set it.
+    if matches!(cli.command, Command::Render { .. })
+        && std::env::var_os("NODEVICE_SELECT").is_none()
+    {
+        // SAFETY: nothing else runs yet: no thread has been started and no variable read.
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
+    }
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -143,7 +157,7 @@ fn run() -> Result<()> {
         // Colour codes only for a person at a terminal, not in a log file or a pipe.
         .with_ansi(std::io::stderr().is_terminal())
         .init();
-    match Cli::parse().command {
+    match cli.command {
         Command::Load { urls, args } => {
             let outcome = brickcast_client::load::run_blocking_on(&urls, &args)?;
             let table = outcome.table();
@@ -191,6 +205,7 @@ fn run() -> Result<()> {
             out,
             width,
             height,
+            size,
             eye,
             target,
             fov,
@@ -202,6 +217,10 @@ fn run() -> Result<()> {
             colours,
             gpu_budget,
         } => {
+            let (width, height) = match size {
+                Some(size) => brickcast_client::viewer::parse_size(&size)?,
+                None => (width, height),
+            };
             if width == 0 || height == 0 || width > 16384 || height > 16384 {
                 bail!("image size {width}×{height} is out of range (1..=16384 per side)");
             }
@@ -276,6 +295,34 @@ mod tests {
         };
         assert_eq!(eye, Some([-100.0, 180.0, -100.0]));
         assert_eq!(target, Some([-1.5, 0.0, -2.0]));
+        let cli = parse(&[
+            "render",
+            "ws://h:1/scenes/demo",
+            "--out",
+            "a.png",
+            "--size",
+            "320x200",
+        ])
+        .expect("--size parses");
+        let Command::Render { size, .. } = cli.command else {
+            panic!("not a render command");
+        };
+        assert_eq!(size.as_deref(), Some("320x200"));
+        assert_eq!(
+            brickcast_client::viewer::parse_size("320x200").unwrap(),
+            (320, 200)
+        );
+        let both = parse(&[
+            "render",
+            "ws://h:1/scenes/demo",
+            "--out",
+            "a.png",
+            "--size",
+            "3x2",
+            "--width",
+            "9",
+        ]);
+        assert!(both.is_err(), "--size with --width is refused");
         for bad in ["x.jpg", "x", "x.png.tmp"] {
             let e = parse(&["render", "ws://h:1/scenes/demo", "--out", bad]).err();
             let e = e.map(|e| e.to_string()).unwrap_or_default();

@@ -208,7 +208,8 @@ pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()>
     }
 }
 
-fn parse_size(text: &str) -> Result<(u32, u32)> {
+/// A window or image size, `WIDTHxHEIGHT` (1 to 16384 a side).
+pub fn parse_size(text: &str) -> Result<(u32, u32)> {
     let (w, h) = text
         .split_once('x')
         .ok_or_else(|| anyhow!("--size must look like 1280x720, not {text:?}"))?;

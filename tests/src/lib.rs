@@ -144,7 +144,22 @@ pub fn run_brickcast(
     env: &[(&str, &str)],
     timeout: Duration,
 ) -> Result<(std::process::ExitStatus, String, String)> {
-    let child = brickcast_command(args, env)
+    run_brickcast_without(args, env, &[], timeout)
+}
+
+/// [`run_brickcast`] with the variables `unset` removed from its environment (this one's and
+/// the tests' own, such as `NODEVICE_SELECT`).
+pub fn run_brickcast_without(
+    args: &[&str],
+    env: &[(&str, &str)],
+    unset: &[&str],
+    timeout: Duration,
+) -> Result<(std::process::ExitStatus, String, String)> {
+    let mut command = brickcast_command(args, env);
+    for name in unset {
+        command.env_remove(name);
+    }
+    let child = command
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
