@@ -440,6 +440,17 @@ fn the_page_explains_what_is_wrong() -> Result<()> {
         text.as_str().is_some_and(|t| t.contains("no WebGPU")),
         "{text}"
     );
+    // It stops there: no scene synced for nothing, no frame rate of nothing drawn.
+    let state = plain.wait_state("s.status === 'failed'", 10_000)?;
+    let received = state["bytes_in"].clone();
+    std::thread::sleep(Duration::from_millis(1500));
+    let later = plain.state()?.context("state")?;
+    assert_eq!(later["bytes_in"], received, "{later}");
+    let status = plain.eval("document.getElementById('status').textContent")?;
+    assert!(
+        status.as_str().is_some_and(|t| !t.contains("fps")),
+        "{status}"
+    );
     server.stop()
 }
 

@@ -530,12 +530,14 @@ impl App {
     }
 
     fn status_line(&self) -> String {
-        let mut line = format!(
-            "{} · {:.0} fps · 1/{} resolution",
-            self.session.status_text(),
-            self.fps,
-            self.scale.divisor,
-        );
+        let mut line = self.session.status_text();
+        // Frames and resolution only where something is drawn.
+        if self.gpu.is_some() {
+            line.push_str(&format!(
+                " · {:.0} fps · 1/{} resolution",
+                self.fps, self.scale.divisor
+            ));
+        }
         match self.session.role {
             Some(Role::Editor) => {
                 let (r, g, b) = PALETTE[self.colour];
@@ -835,11 +837,13 @@ fn no_gpu(app: &Rc<RefCell<App>>, why: &str) {
     let text = format!(
         "This browser cannot show the scene: no WebGPU ({why}). Try a current Chrome, Edge or Safari, or Firefox with WebGPU enabled."
     );
-    page::message(Some(&text));
     if let Some(window) = web_sys::window() {
         let _ = js_sys::Reflect::set(&window, &"brickcastFailed".into(), &"no-webgpu".into());
     }
-    app.borrow_mut().gpu_error = Some(why.to_string());
+    // Nothing can be shown: stop syncing a scene nobody will see (the message stays).
+    let mut a = app.borrow_mut();
+    a.gpu_error = Some(why.to_string());
+    a.fail(text);
 }
 
 /// Runs [`App::frame`] on every animation frame from now on.
