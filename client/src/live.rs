@@ -9,7 +9,7 @@ use brickcast_protocol::blocks::Quality;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 pub use brickcast_client_core::session::Status;
-use brickcast_client_core::session::{BACKOFF_MAX, BACKOFF_START, ClientSeq, Session};
+use brickcast_client_core::session::{ClientSeq, Session};
 use brickcast_protocol::wire::{ClientMsg, Cursor, EditOp, UserId, View};
 use tokio::sync::mpsc;
 
@@ -101,7 +101,7 @@ async fn run(
     mut inbox: mpsc::UnboundedReceiver<ClientMsg>,
 ) {
     let lock = || state.lock().unwrap_or_else(|e| e.into_inner());
-    let mut backoff = BACKOFF_START;
+    let mut backoff = brickcast_client_core::backoff::Backoff::default();
     let mut attempt = 0usize;
     loop {
         let url = &urls[attempt % urls.len().max(1)];
@@ -114,7 +114,7 @@ async fn run(
             Link::connect_within(url, &name, user, token.as_deref(), resume, budget).await;
         let reason = match connected {
             Ok(mut link) => {
-                backoff = BACKOFF_START;
+                backoff.reset();
                 if lock().welcomed(&link.welcome).is_err() {
                     return;
                 }
@@ -133,16 +133,16 @@ async fn run(
             }
             Err(e) => e.to_string(),
         };
-        tracing::warn!("connection to {url} lost: {reason}; retrying in {backoff:?}");
+        let wait = backoff.next_wait(rand::random());
+        tracing::warn!("connection to {url} lost: {reason}; retrying in {wait:.1?}");
         lock().status = Status::Reconnecting(reason);
         // Edits made while disconnected are dropped rather than replayed against a scene that
         // moved on; the window shows the state, so the user knows.
         tokio::select! {
-            _ = tokio::time::sleep(backoff) => {}
+            _ = tokio::time::sleep(wait) => {}
             msg = inbox.recv() => if msg.is_none() { return },
         }
         while inbox.try_recv().is_ok() {}
-        backoff = (backoff * 2).min(BACKOFF_MAX);
     }
 }
 

@@ -106,7 +106,7 @@ pub struct App {
     pub socket: Option<Socket>,
     /// Sockets closed from inside one of their own callbacks, dropped at the next connect.
     pub retired: Vec<Socket>,
-    pub backoff_ms: i32,
+    pub backoff: brickcast_client_core::backoff::Backoff,
     pub bytes_in: u64,
     canvas: web_sys::HtmlCanvasElement,
     gpu: Option<Gpu>,
@@ -206,7 +206,7 @@ impl App {
             seq: ClientSeq::default(),
             socket: None,
             retired: Vec::new(),
-            backoff_ms: net::BACKOFF_START_MS,
+            backoff: Default::default(),
             bytes_in: 0,
             canvas,
             gpu: None,

@@ -1,14 +1,15 @@
 //! The connection: a browser `WebSocket` carrying the same binary frames as the native client's,
 //! decoded by the protocol crate and applied by the shared [`Session`](brickcast_client_core::session::Session).
 //!
-//! Reconnects with the native client's backoff (250 ms doubling to 5 s) and resumes from the
-//! last sequence the replica holds completely; a refusal that retrying cannot fix (bad token,
+//! Reconnects with the native client's backoff (`client_core::backoff`: 250 ms doubling to
+//! 5 s, each wait drawn in the window's second half) and resumes from the last sequence the
+//! replica holds completely; a refusal that retrying cannot fix (bad token,
 //! unknown scene, other protocol version) ends it with a message for the user.
 
 use std::cell::RefCell;
 use std::rc::Rc;
 
-use brickcast_client_core::session::{self, HandshakeError, Status, hello, welcome};
+use brickcast_client_core::session::{HandshakeError, Status, hello, welcome};
 use brickcast_protocol::wire::{ClientMsg, ErrorCode, Limits, decode_server, encode_client};
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
@@ -16,10 +17,6 @@ use web_sys::{BinaryType, CloseEvent, MessageEvent, WebSocket};
 
 use crate::app::App;
 use crate::page;
-
-/// The shared backoff, in the milliseconds `setTimeout` takes.
-pub const BACKOFF_START_MS: i32 = session::BACKOFF_START.as_millis() as i32;
-const BACKOFF_MAX_MS: i32 = session::BACKOFF_MAX.as_millis() as i32;
 
 /// One open (or opening) socket and the callbacks that must live as long as it.
 pub struct Socket {
@@ -158,7 +155,7 @@ fn received(app: &Rc<RefCell<App>>, bytes: &[u8]) {
                 if let Some(s) = &mut a.socket {
                     s.welcomed = true;
                 }
-                a.backoff_ms = BACKOFF_START_MS;
+                a.backoff.reset();
                 if a.session.welcomed(&w).is_ok() {
                     a.welcomed();
                 } else {
@@ -193,9 +190,7 @@ fn closed(app: &Rc<RefCell<App>>, event: &CloseEvent) {
             _ => format!("closed (code {})", event.code()),
         };
         a.session.status = Status::Reconnecting(why);
-        let delay = a.backoff_ms;
-        a.backoff_ms = (a.backoff_ms * 2).min(BACKOFF_MAX_MS);
-        delay
+        a.backoff.next_wait(js_sys::Math::random()).as_millis() as i32
     };
     let again = app.clone();
     let retry = Closure::once_into_js(move || connect(&again));

@@ -10,6 +10,7 @@
 //! [`present::sync_scene`] (the GPU copy) → [`gpu::Tracer`] → [`present::Presenter`] (blit +
 //! overlay).
 
+pub mod backoff;
 pub mod budget;
 pub mod camera;
 pub mod follow;

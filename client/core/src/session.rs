@@ -15,9 +15,10 @@ use brickcast_protocol::wire::{
     Budget, ClientMsg, EditOp, ErrorCode, Limits, PROTOCOL_VERSION, Peer, Role, ServerMsg, UserId,
 };
 
-/// First wait before reconnecting after a lost connection; it doubles up to [`BACKOFF_MAX`].
-pub const BACKOFF_START: Duration = Duration::from_millis(250);
-pub const BACKOFF_MAX: Duration = Duration::from_secs(5);
+/// First wait before reconnecting after a lost connection (see [`crate::backoff`]).
+pub const BACKOFF_START: Duration = crate::backoff::START;
+/// Longest wait before reconnecting.
+pub const BACKOFF_MAX: Duration = crate::backoff::MAX;
 
 /// Where the connection stands, for the status line.
 #[derive(Debug, Clone, PartialEq)]
