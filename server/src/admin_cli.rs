@@ -50,6 +50,13 @@ enum Command {
         #[arg(long = "as")]
         name: Option<String>,
     },
+    /// Drop a deleted scene now, for good (its disk back; on a cluster, its name free again).
+    Purge {
+        key: String,
+        /// Confirm: there is no undo.
+        #[arg(long)]
+        yes: bool,
+    },
     /// Rename a scene (its users are told the new name).
     Rename { name: String, to: String },
     /// Make a scene anew (empty by default, at its size by default); the old one is kept like
@@ -138,6 +145,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Command::Restore { key, name } => {
             let body = name.as_ref().map_or(json!({}), |n| json!({ "as": n }));
             api.call("POST", &format!("/admin/deleted/{key}/restore"), Some(body))?
+        }
+        Command::Purge { key, yes } => {
+            if !yes {
+                bail!("purge drops {key} for good: add --yes to confirm");
+            }
+            api.call(
+                "DELETE",
+                &format!("/admin/deleted/{key}?confirm={key}"),
+                None,
+            )?
         }
         Command::Rename { name, to } => api.call(
             "POST",
@@ -403,6 +420,9 @@ fn for_people(command: &Command, answer: &Value) -> String {
                 when(&answer["kept_until"]),
                 s(&answer["key"])
             );
+        }
+        Command::Purge { key, .. } => {
+            out += &format!("dropped {key} ({}) for good\n", s(&answer["name"]));
         }
         Command::Kick { .. } => {
             for d in answer["disconnected"].as_array().into_iter().flatten() {

@@ -104,6 +104,11 @@ async fn an_admin_manages_the_scenes_of_a_running_server() {
     );
     let again = refused(&admin(addr, &["restore", &key], None).await);
     assert!(again.contains("no deleted scene is kept as"), "{again}");
+    let purge_gone = refused(&admin(addr, &["purge", &key, "--yes"], None).await);
+    assert!(
+        purge_gone.contains("no deleted scene is kept as"),
+        "{purge_gone}"
+    );
 
     // Rename, with its user told where it went.
     ok(&admin(addr, &["rename", "world", "terrain2"], None).await);
@@ -176,7 +181,18 @@ async fn an_admin_manages_the_scenes_of_a_running_server() {
     let vox_arg = vox.display().to_string();
     let replaced = ok(&admin(addr, &["upload", "copy", &vox_arg, "--replace"], None).await);
     assert_eq!(replaced["voxels"], model.solid_voxels(), "{replaced}");
-    assert!(replaced["previous"]["key"].is_string(), "{replaced}");
+    let replaced_key = replaced["previous"]["key"].as_str().unwrap().to_string();
+    let purged = ok(&admin(addr, &["purge", &replaced_key, "--yes"], None).await);
+    assert_eq!(purged["name"], "copy", "{purged}");
+    let list = ok(&admin(addr, &["list"], None).await);
+    assert!(
+        !list["deleted"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|d| d["key"] == replaced_key.as_str()),
+        "{list}"
+    );
     let whole = std::fs::read(&backup).unwrap();
     let cut = files.path().join("cut.scene");
     std::fs::write(&cut, &whole[..whole.len() / 2]).unwrap();

@@ -81,6 +81,15 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     let elsewhere = refused(&admin(c.addr, &["restore", &key, "--as", "isle2"], None).await);
     assert!(elsewhere.contains("its own name"), "{elsewhere}");
 
+    // Purged through b: its name is free at once (a second delete keeps it again first).
+    ok(&admin(b.addr, &["create", "gone", "--size", "16,16,16"], None).await);
+    let kept = ok(&admin(b.addr, &["delete", "gone", "--yes"], None).await);
+    let kept_key = kept["key"].as_str().unwrap().to_string();
+    let unsure = refused(&admin(a.addr, &["purge", &kept_key], None).await);
+    assert!(unsure.contains("--yes"), "{unsure}");
+    ok(&admin(a.addr, &["purge", &kept_key, "--yes"], None).await);
+    ok(&admin(c.addr, &["create", "gone", "--size", "16,16,16"], None).await);
+
     // Restored through c: served again with the edit acknowledged before the delete.
     ok(&admin(c.addr, &["restore", &key], None).await);
     let mut back = Client::connect(&url(&a, "isle"), None).await.unwrap();

@@ -14,6 +14,7 @@
 //! * `DELETE /admin/scenes/NAME?confirm=NAME&keep=24h`: closes the scene (its users are told
 //!   why), keeps it for `keep` (default [`KEEP`]) so the delete can be undone.
 //! * `POST /admin/deleted/KEY/restore` `{"as": "NAME"}`: a kept scene back, served again.
+//! * `DELETE /admin/deleted/KEY?confirm=KEY`: a kept deleted scene dropped now, for good.
 //! * `POST /admin/scenes/NAME/rename` `{"to": "NEW"}`; `POST /admin/scenes/NAME/reset`
 //!   (a create of the same name, the old scene kept as a delete keeps it).
 //! * `GET /admin/scenes/NAME/backup`: the scene as a file (`files.rs`); `PUT
@@ -65,6 +66,7 @@ pub fn routes() -> Router<Arc<App>> {
         .route("/admin/scenes/{name}/rename", post(scenes::rename))
         .route("/admin/scenes/{name}/reset", post(scenes::reset))
         .route("/admin/deleted/{key}/restore", post(scenes::restore))
+        .route("/admin/deleted/{key}", axum::routing::delete(scenes::purge))
         .route("/admin/kick", post(users::kick))
 }
 

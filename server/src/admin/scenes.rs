@@ -282,6 +282,41 @@ pub async fn restore(
     Ok(Json(described))
 }
 
+/// `DELETE /admin/deleted/KEY?confirm=KEY`: a kept deleted scene dropped for good (its disk
+/// back; on a cluster its name free again).
+pub async fn purge(
+    _: Admin,
+    State(app): State<Arc<App>>,
+    Path(key): Path<String>,
+    Query(query): Query<DeleteQuery>,
+) -> Result<Json<Value>, AdminError> {
+    if query.confirm.as_deref() != Some(key.as_str()) {
+        return Err(AdminError::BadInput(format!(
+            "purging {key} drops it for good: confirm with ?confirm={key} (`--yes` on the command line)"
+        )));
+    }
+    let _turn = app.scenes.opening.lock().await;
+    let dropped = match (&app.store, &app.node) {
+        (Some(store), _) => {
+            let (store, key) = (store.clone(), key.clone());
+            blocking(move || store.drop_kept(&key).map_err(AdminError::from))
+                .await
+                .map(|d| d.name)
+        }
+        (None, Some(node)) => deleted::purge_key(&node.cluster, &key)
+            .await
+            .map(|d| d.name)
+            .map_err(from_cluster),
+        (None, None) => Err(AdminError::Failed("no store and no cluster".into())),
+    };
+    let name = dropped.map_err(|e| match e {
+        AdminError::UnknownScene(_) => not_kept(&key),
+        e => e,
+    })?;
+    tracing::info!(scene = %name, key = %key, "an administrator dropped a deleted scene for good");
+    Ok(Json(json!({ "purged": key, "name": name })))
+}
+
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Rename {

@@ -122,16 +122,28 @@ pub async fn restore(jet: &impl Jet, key: &str) -> Result<Deleted, ClusterError>
 pub async fn purge(jet: &impl Jet, now: u64) -> Result<Vec<Deleted>, ClusterError> {
     let mut dropped = Vec::new();
     for d in list(jet).await? {
-        if d.kept_until >= now {
-            continue;
+        if d.kept_until < now {
+            drop_one(jet, &d).await?;
+            dropped.push(d);
         }
-        // The entry last: a purge cut short is done again by the next one.
-        let _ = jet.delete_stream(&d.name).await;
-        snapshot::delete_all(jet, &d.name).await;
-        jet.kv_delete(Bucket::Scenes, &d.key, None)
-            .await
-            .map_err(nats("dropping a deleted scene's entry"))?;
-        dropped.push(d);
     }
     Ok(dropped)
+}
+
+/// Drops the deleted scene kept as `key` now, for good.
+pub async fn purge_key(jet: &impl Jet, key: &str) -> Result<Deleted, ClusterError> {
+    let Some(d) = list(jet).await?.into_iter().find(|d| d.key == key) else {
+        return Err(ClusterError::UnknownScene(key.into()));
+    };
+    drop_one(jet, &d).await?;
+    Ok(d)
+}
+
+async fn drop_one(jet: &impl Jet, d: &Deleted) -> Result<(), ClusterError> {
+    // The entry last: a purge cut short is done again by the next one.
+    let _ = jet.delete_stream(&d.name).await;
+    snapshot::delete_all(jet, &d.name).await;
+    jet.kv_delete(Bucket::Scenes, &d.key, None)
+        .await
+        .map_err(nats("dropping a deleted scene's entry"))
 }

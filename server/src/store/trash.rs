@@ -156,11 +156,19 @@ impl Store {
     /// Drops the deleted scenes kept until before `now` (unix seconds; `u64::MAX`: all of
     /// them). Returns what was dropped.
     pub fn purge_deleted(&self, now: u64) -> Result<Vec<Deleted>, StoreError> {
-        let expired: Vec<Deleted> = self
-            .deleted()?
-            .into_iter()
-            .filter(|d| d.kept_until < now)
-            .collect();
+        self.drop_deleted(|d| d.kept_until < now)
+    }
+
+    /// Drops the deleted scene kept as `key` now, for good.
+    pub fn drop_kept(&self, key: &str) -> Result<Deleted, StoreError> {
+        self.drop_deleted(|d| d.key == key)?
+            .pop()
+            .ok_or_else(|| StoreError::UnknownScene(key.into()))
+    }
+
+    /// Drops the deleted scenes `which` picks: their entries and every table they had.
+    fn drop_deleted(&self, which: impl Fn(&Deleted) -> bool) -> Result<Vec<Deleted>, StoreError> {
+        let expired: Vec<Deleted> = self.deleted()?.into_iter().filter(which).collect();
         if expired.is_empty() {
             return Ok(expired);
         }
@@ -346,5 +354,13 @@ mod tests {
         // A new scene of a deleted scene's name starts empty of the old one's rows.
         scene(&store, "b");
         assert_eq!(store.load_scene("b").unwrap().seq, 1);
+        // One kept scene dropped at once, by its key.
+        assert_eq!(store.drop_kept(&later.key).unwrap(), later);
+        assert!(store.deleted().unwrap().is_empty());
+        assert!(matches!(
+            store.drop_kept(&later.key),
+            Err(StoreError::UnknownScene(_))
+        ));
+        assert!(!tables(&store).iter().any(|t| t.contains(&later.key)));
     }
 }
