@@ -34,6 +34,7 @@ use super::log::{LogError, OwnedTurn, SceneLog, SnapshotOf};
 use super::request::Outcome;
 use super::undo_job::UndoJob;
 use super::{Clock, Command, Described, OwnerConfig, SceneInfo, SessionId, Subscriber};
+use crate::bucket::Bucket;
 use crate::metrics::{Metrics, OwnerPhase, PhaseClock};
 use crate::record::{LogRecord, REVERT_BRICK_OPS};
 use crate::store::{Loaded, Store, StoreLog};
@@ -100,7 +101,7 @@ pub struct Owner {
     pub(super) history: History,
     /// Undo work each user may still ask for (voxels compared), and when it was counted: undo
     /// and redo are charged like edits, by what they cost, on the owner's clock.
-    pub(super) undo_budget: HashMap<u64, (f64, Instant)>,
+    pub(super) undo_budget: HashMap<u64, Bucket>,
     /// Shutting down: a lost lease is not followed by a reload.
     pub(super) stopping: bool,
     /// Requests from other origins answered so far (a shared log: a retry is answered from
@@ -764,14 +765,14 @@ impl Owner {
             budget.max_work_per_second.max(budget.max_work_per_edit) as f64,
         );
         let now = (self.clock)();
-        let (tokens, at) = self.undo_budget.entry(user).or_insert((burst, now));
-        *tokens = (*tokens + now.saturating_duration_since(*at).as_secs_f64() * rate).min(burst);
-        *at = now;
+        let bucket = self
+            .undo_budget
+            .entry(user)
+            .or_insert_with(|| Bucket::new_at(rate, burst, now));
         // A step bigger than the whole burst still goes when the bucket is full.
-        if *tokens < cost.min(burst) {
+        if !bucket.take_at(cost.min(burst), now) {
             return Some(ask.refuse(&self.metrics, Refusal::RateLimited));
         }
-        *tokens -= cost.min(burst);
         if self.may_slice(to) && top.bricks >= self.config.slice_bricks {
             // Planned across turns, answered when applied.
             self.jobs.push_back(Job::Undo(UndoJob::new(ask, user)));
