@@ -101,7 +101,7 @@ async fn run(
     mut inbox: mpsc::UnboundedReceiver<ClientMsg>,
 ) {
     let lock = || state.lock().unwrap_or_else(|e| e.into_inner());
-    let mut backoff = brickcast_client_core::backoff::Backoff::default();
+    let mut backoff = brickcast_client_core::backoff::reconnect();
     let mut attempt = 0usize;
     loop {
         let url = &urls[attempt % urls.len().max(1)];

@@ -15,9 +15,11 @@
 //! * [`journal`]: before-images of the bricks an edit changes (for undo), and brick diffs.
 //! * [`replica`]: a client's copy of a scene, kept current by applying server messages.
 //! * [`roster`]: a client's list of who else is present and what they look at.
+//! * [`backoff`]: waits between retries, doubling, with jitter (every retry loop's rule).
 //! * [`viewpoint`]: the first camera for a scene: one that shows the model, outside or in.
 
 pub mod apply;
+pub mod backoff;
 pub mod beam;
 mod block_edit;
 pub mod blocks;

@@ -206,7 +206,7 @@ impl App {
             seq: ClientSeq::default(),
             socket: None,
             retired: Vec::new(),
-            backoff: Default::default(),
+            backoff: brickcast_client_core::backoff::reconnect(),
             bytes_in: 0,
             canvas,
             gpu: None,

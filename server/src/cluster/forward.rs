@@ -20,12 +20,13 @@
 
 use std::time::Duration;
 
+use brickcast_protocol::backoff::{self, Backoff};
 use brickcast_protocol::wire::{ErrorCode, UserId};
 use bytes::Bytes;
-use serde::{Deserialize, Serialize};
 use tokio::sync::mpsc;
 
 use super::jet::Jet;
+use crate::envelope::{EnvelopeError, Format};
 use crate::metrics::Metrics;
 use crate::scene::{Outbox, Outcome, Request, RequestItem};
 
@@ -38,8 +39,11 @@ const ATTEMPT_TIMEOUT: Duration = Duration::from_secs(3);
 const QUEUE: usize = 256;
 /// Ops one request carries at most (about 40 bytes each: well under NATS's 1 MB payload).
 const MAX_OPS_PER_REQUEST: usize = 8192;
-/// How often a request nobody took is tried again while the lease names nobody new.
-const RETRY_EVERY: Duration = Duration::from_millis(100);
+/// How long a request nobody took waits before it is tried again while the lease names
+/// nobody new: the first wait, doubling (with jitter, `brickcast_protocol::backoff`) to the
+/// longest, so the sessions of a node that lost its scene's owner do not ask in lockstep.
+const RETRY_FIRST: Duration = Duration::from_millis(100);
+const RETRY_LONGEST: Duration = Duration::from_secs(2);
 
 /// How a session reaches a clustered scene's owner.
 #[derive(Clone)]
@@ -54,33 +58,27 @@ pub struct SceneLink<J: Jet> {
     pub instance: String,
 }
 
-fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, String> {
-    bincode::serde::encode_to_vec(value, bincode::config::standard()).map_err(|e| e.to_string())
-}
-
-fn decode<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Result<T, String> {
-    let config = bincode::config::standard().with_limit::<{ 64 << 20 }>();
-    bincode::serde::decode_from_slice(bytes, config)
-        .map(|(v, _)| v)
-        .map_err(|e| e.to_string())
-}
+/// Requests and answers between nodes: bincode alone (the NATS subject says which), at most
+/// 64 MiB.
+const REQUEST: Format<{ 64 << 20 }> = Format::new("forwarded request", b"");
+const OUTCOME: Format<{ 64 << 20 }> = Format::new("forwarded answer", b"");
 
 /// A request as it travels over NATS.
-pub fn encode_request(request: &Request) -> Result<Vec<u8>, String> {
-    encode(request)
+pub fn encode_request(request: &Request) -> Result<Vec<u8>, EnvelopeError> {
+    REQUEST.encode(request)
 }
 
-pub fn decode_request(bytes: &[u8]) -> Result<Request, String> {
-    decode(bytes)
+pub fn decode_request(bytes: &[u8]) -> Result<Request, EnvelopeError> {
+    REQUEST.decode(bytes)
 }
 
 /// An owner's answer as it travels over NATS.
-pub fn encode_outcome(outcome: &Outcome) -> Result<Vec<u8>, String> {
-    encode(outcome)
+pub fn encode_outcome(outcome: &Outcome) -> Result<Vec<u8>, EnvelopeError> {
+    OUTCOME.encode(outcome)
 }
 
-pub fn decode_outcome(bytes: &[u8]) -> Result<Outcome, String> {
-    decode(bytes)
+pub fn decode_outcome(bytes: &[u8]) -> Result<Outcome, EnvelopeError> {
+    OUTCOME.decode(bytes)
 }
 
 /// Why a forwarded edit got no answer.
@@ -104,10 +102,15 @@ pub async fn request<J: Jet>(
     link: &SceneLink<J>,
     request: &Request,
 ) -> Result<Vec<Vec<u8>>, ForwardError> {
-    let payload = Bytes::from(encode_request(request).map_err(ForwardError::Other)?);
+    let payload =
+        Bytes::from(encode_request(request).map_err(|e| ForwardError::Other(e.to_string()))?);
     let started = tokio::time::Instant::now();
     let deadline = started + PATIENCE;
     let mut owner = link.owner.clone();
+    let mut backoff = Backoff::new(RETRY_FIRST, RETRY_LONGEST);
+    // The draws depend on the request only, so a simulated run replays.
+    let key = backoff::key_of(&request.origin) ^ request.number;
+    let mut attempt = 0u64;
     loop {
         let current = owner.get_and_update();
         if let Some(node) = current {
@@ -143,8 +146,10 @@ pub async fn request<J: Jet>(
             return Err(ForwardError::NoOwner(PATIENCE));
         }
         // Wait for the lease to name someone (else) or a short while, then try again.
+        attempt += 1;
+        let wait = backoff.next_wait(backoff::spread(key, attempt));
         let waited = tokio::time::timeout_at(
-            (tokio::time::Instant::now() + RETRY_EVERY).min(deadline),
+            (tokio::time::Instant::now() + wait).min(deadline),
             owner.changed(),
         )
         .await;

@@ -31,6 +31,7 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
 use brickcast_protocol::BrickMap;
+use brickcast_protocol::backoff::{self, Backoff};
 use brickcast_protocol::wire::UserId;
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
@@ -39,6 +40,7 @@ use tokio::time::Instant;
 use super::ClusterError;
 use super::jet::{Jet, LogStream, PortError};
 use super::snapshot;
+use crate::envelope::Format;
 use crate::record::LogRecord;
 use crate::scene::history::{HistoryWrites, Stacks, StepMeta};
 use crate::scene::{Answered, LogError, SceneLog, SnapshotOf, Turn, TurnWrite};
@@ -56,8 +58,13 @@ const HEADER_ROOM: usize = 4096;
 const APPEND_PATIENCE: Duration = Duration::from_secs(20);
 /// How long a stopping owner waits for its last snapshot's upload.
 const UPLOAD_PATIENCE: Duration = Duration::from_secs(20);
-/// How long an owner waits before it tries an unreachable log again.
-const RETRY_PAUSE: Duration = Duration::from_millis(500);
+/// How long an owner waits before it tries an unreachable log again: the first wait, doubling
+/// (with jitter, `brickcast_protocol::backoff`) to the longest while the log stays away.
+const RELOAD_FIRST: Duration = Duration::from_millis(500);
+const RELOAD_LONGEST: Duration = Duration::from_secs(8);
+/// Waits between the attempts of one append.
+const APPEND_FIRST: Duration = Duration::from_millis(200);
+const APPEND_LONGEST: Duration = Duration::from_secs(2);
 /// How many times a load starts over when the snapshot moved on while it was read.
 const LOAD_ATTEMPTS: u32 = 5;
 
@@ -71,10 +78,12 @@ pub fn decode_turn(bytes: &[u8]) -> Result<Turn, String> {
     decode_as(TURN_MAGIC, bytes, "turn")
 }
 
+/// The body of a packed message once unpacked: bincode, at most [`MAX_RAW`] bytes.
+const PACKED: Format<MAX_RAW> = Format::new("cluster log message", b"");
+
 /// `value` in bincode, packed under `magic`.
 pub(super) fn encode_as<T: Serialize>(magic: [u8; 2], value: &T) -> Result<Vec<u8>, String> {
-    let raw = bincode::serde::encode_to_vec(value, bincode::config::standard())
-        .map_err(|e| e.to_string())?;
+    let raw = PACKED.encode(value).map_err(|e| e.to_string())?;
     pack(magic, &raw)
 }
 
@@ -85,13 +94,7 @@ pub(super) fn decode_as<T: for<'de> Deserialize<'de>>(
     what: &str,
 ) -> Result<T, String> {
     let raw = unpack(magic, bytes, what)?;
-    let (value, read): (T, usize) =
-        bincode::serde::decode_from_slice(&raw, bincode::config::standard())
-            .map_err(|e| format!("{what}: {e}"))?;
-    if read != raw.len() {
-        return Err(format!("{what}: {} bytes after it", raw.len() - read));
-    }
-    Ok(value)
+    PACKED.decode_body(&raw).map_err(|e| format!("{what}: {e}"))
 }
 
 /// `magic`, raw length (u64 LE), zstd of `raw`.
@@ -520,6 +523,9 @@ pub struct JetLog<J: Jet> {
     /// Undo step bodies (the redb store's `history/` table).
     steps: HashMap<u64, Vec<u8>>,
     appends: u64,
+    /// Waits between attempts to reload an unreachable log, and how many so far.
+    reload_backoff: Backoff,
+    pauses: u64,
     /// The snapshot being uploaded: one at a time, so an older one can never land after (and
     /// over) a newer one whose trim already happened.
     uploading: Option<tokio::task::JoinHandle<()>>,
@@ -557,6 +563,8 @@ impl<J: Jet> JetLog<J> {
             lease,
             steps: std::mem::take(&mut loaded.steps),
             appends: 0,
+            reload_backoff: Backoff::new(RELOAD_FIRST, RELOAD_LONGEST),
+            pauses: 0,
             uploading: None,
             chain: Arc::default(),
         })
@@ -599,6 +607,8 @@ impl<J: Jet> JetLog<J> {
             // Whether an attempt may have landed (its ack was lost): then a later refusal
             // does not mean "not appended".
             let mut maybe_landed = false;
+            let mut backoff = Backoff::new(APPEND_FIRST, APPEND_LONGEST);
+            let mut attempt = 0u64;
             loop {
                 match stream.append(payload.clone(), &id, expected).await {
                     Ok(pos) => return Ok(pos),
@@ -610,7 +620,10 @@ impl<J: Jet> JetLog<J> {
                     Err(e) if started.elapsed() < APPEND_PATIENCE && lease.valid() => {
                         tracing::warn!(scene = %scene, error = %e, "log append failed; retrying");
                         maybe_landed = true;
-                        tokio::time::sleep(Duration::from_millis(200)).await;
+                        attempt += 1;
+                        // The draws depend on the message id only, so a simulated run replays.
+                        let unit = backoff::spread(backoff::key_of(&id), attempt);
+                        tokio::time::sleep(backoff.next_wait(unit)).await;
                     }
                     Err(e) if !maybe_landed => {
                         return Err(deposed(format!("the log append failed: {e}")));
@@ -869,15 +882,21 @@ impl<J: Jet> SceneLog for JetLog<J> {
         let mut loaded = self
             .exec
             .block_on(async move { load(&jet, &scene).await })?;
+        self.reload_backoff.reset();
         self.pos = loaded.pos;
         self.steps = std::mem::take(&mut loaded.steps);
         Ok(loaded.loaded)
     }
 
     fn pause(&mut self) {
+        self.pauses += 1;
+        let unit = backoff::spread(
+            backoff::key_of(&self.node) ^ backoff::key_of(&self.scene),
+            self.pauses,
+        );
+        let wait = self.reload_backoff.next_wait(unit);
         // The sleep is made inside the runtime: this thread is not one of its own.
-        self.exec
-            .block_on(async { tokio::time::sleep(RETRY_PAUSE).await });
+        self.exec.block_on(async { tokio::time::sleep(wait).await });
     }
 
     /// A snapshot still uploading when the owner stops (the scene closing on this node, the
