@@ -16,6 +16,8 @@ use brickcast_protocol::render::{
 };
 use brickcast_protocol::wire::{BrickBlob, ServerMsg};
 use brickcast_protocol::{BrickMap, Colour};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 /// Largest colour difference (max over channels, 0..255) allowed where both tracers hit the same
 /// voxel. Shading is a few multiply-adds on the same inputs; rounding differs by at most a step.
@@ -131,13 +133,9 @@ fn cameras(size: [u32; 3]) -> Vec<(&'static str, Camera)> {
 /// A scene of random boxes and spheres, sizes not multiples of a brick or a region.
 fn scattered_scene(size: [u32; 3], seed: u64) -> BrickMap {
     let mut map = BrickMap::new(size).expect("scene size");
-    let mut state = seed;
-    let mut next = move |n: u32| {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((state >> 33) % u64::from(n.max(1))) as u32
-    };
+    // Seeded ChaCha8 (`rand_chacha`: the same scene on every platform and rand release).
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut next = move |n: u32| rng.random_range(0..n.max(1));
     for i in 0..40 {
         let colour = Colour::from_rgb8(next(256) as u8, next(256) as u8, next(256) as u8);
         if i % 2 == 0 {
@@ -548,17 +546,9 @@ fn mixed_levels_match_the_cpu_tracer() {
 /// Scattered single voxels: one brick each, so masks and the coarse grid dominate.
 fn dust_scene(size: [u32; 3], voxels: u32) -> BrickMap {
     let mut map = BrickMap::new(size).expect("scene size");
-    let mut state = 7u64;
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
     for i in 0..voxels {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        let r = state >> 16;
-        let p = [
-            (r % u64::from(size[0])) as u32,
-            ((r >> 16) % u64::from(size[1])) as u32,
-            ((r >> 32) % u64::from(size[2])) as u32,
-        ];
+        let p = size.map(|n| rng.random_range(0..n));
         map.set(p, Colour::from_rgb8((i % 200) as u8 + 50, 120, 200));
     }
     map.rebuild_clearance();

@@ -12,17 +12,14 @@ use brickcast_server::auth::Auth;
 use brickcast_server::store::Store;
 use common::{Client, Refused, TestServer, colour, http_get};
 
-/// xorshift, so runs are reproducible without a RNG crate.
-struct Rng(u64);
+/// Seeded ChaCha8 (`rand_chacha`: the same numbers on every platform and rand release).
+struct Rng(rand_chacha::ChaCha8Rng);
 impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        self.0
+    fn new(seed: u64) -> Rng {
+        Rng(rand::SeedableRng::seed_from_u64(seed))
     }
     fn below(&mut self, n: u32) -> u32 {
-        (self.next() % u64::from(n)) as u32
+        rand::Rng::random_range(&mut self.0, 0..n)
     }
 }
 
@@ -73,7 +70,7 @@ async fn concurrent_editors_converge_and_survive_restart() {
             let mut c = Client::connect(&url, None).await.expect("joins");
             c.sync().await;
             let size = c.map.size();
-            let mut rng = Rng(0x9E37_79B9 + id * 7919);
+            let mut rng = Rng::new(0x9E37_79B9 + id * 7919);
             let mut last_seq = 0;
             // Pipeline several batches before reading acks, as a real client would.
             for round in 0..12 {
@@ -129,6 +126,31 @@ async fn concurrent_editors_converge_and_survive_restart() {
         "{metrics}"
     );
     assert!(metrics.contains("brickcast_log_commit_seconds_count"));
+    // Prometheus reads it: every family typed, the same sample names as before the crate.
+    let families = common::openmetrics_families(&metrics);
+    let kind_of = |name: &str| {
+        families
+            .iter()
+            .find(|f| f.0 == name)
+            .map(|f| (f.1.as_str(), f.2))
+            .unwrap_or_else(|| panic!("{name} missing: {families:?}"))
+    };
+    assert!(families.iter().all(|f| f.1 != "unknown"), "{families:?}");
+    assert_eq!(kind_of("brickcast_edits_applied"), ("counter", 1));
+    assert_eq!(kind_of("brickcast_connected_clients"), ("gauge", 1));
+    assert_eq!(kind_of("brickcast_scene_seq"), ("gauge", 1));
+    assert_eq!(kind_of("brickcast_owner_seconds").0, "counter");
+    assert_eq!(kind_of("brickcast_log_commit_seconds").0, "histogram");
+    assert!(families.len() > 60, "{families:?}");
+    assert!(
+        metrics.contains("\nbrickcast_scene_seq{scene=\"demo\"} "),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("\nbrickcast_edits_applied_total "),
+        "{metrics}"
+    );
+    assert!(metrics.ends_with("# EOF\n"));
     for c in clients {
         c.close().await;
     }
@@ -466,13 +488,13 @@ async fn a_client_that_never_reads_is_resynced_not_buffered() {
     editor.sync().await;
     // Random colours at random places: large deltas that barely compress, more than the
     // kernel's socket buffers can hide.
-    let mut rng = Rng(42);
+    let mut rng = Rng::new(42);
     let mut last = 0;
     for _ in 0..40 {
         let ops = (0..4000)
             .map(|_| EditOp::Set {
                 pos: [rng.below(128), rng.below(64), rng.below(128)],
-                colour: brickcast_protocol::Colour(rng.next() as u16),
+                colour: brickcast_protocol::Colour(rng.below(1 << 16) as u16),
             })
             .collect();
         if let ServerMsg::Ack { seq: Some(s), .. } = editor.edit(ops).await {
@@ -606,7 +628,7 @@ async fn a_client_joining_during_heavy_editing_converges() {
     let editor_url = url.clone();
     let editor = tokio::spawn(async move {
         let mut e = Client::connect(&editor_url, None).await.unwrap();
-        let mut rng = Rng(7);
+        let mut rng = Rng::new(7);
         let mut last = 0;
         for _ in 0..80 {
             let ops = (0..40)
@@ -746,7 +768,7 @@ async fn levels_of_detail_are_served_read_only_and_follow_edits() {
     };
     agree(&editor, &[(&one, 1), (&three, 3)]);
 
-    let mut rng = Rng(11);
+    let mut rng = Rng::new(11);
     let mut last = 0;
     for _ in 0..6 {
         let ops = (0..24)

@@ -6,42 +6,40 @@
 
 use brickcast_protocol::wire::{BrushMode, EditOp, RayAction};
 use brickcast_protocol::{BrickMap, Colour};
+use rand::{Rng as _, RngCore, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 use super::options::{OpKind, VoxelBox};
 
 /// Most solid voxels a paint client remembers as targets.
 const PAINT_TARGETS: usize = 65_536;
 
-/// SplitMix64: tiny, fast and good enough to scatter edits; no dependency for it.
+/// Seeded ChaCha8 (`rand_chacha`, documented to give the same numbers on every platform and
+/// rand release: a recorded run's seed replays) at a few nanoseconds a draw.
 #[derive(Clone)]
-pub struct Rng(u64);
+pub struct Rng(ChaCha8Rng);
 
 impl Rng {
     pub fn new(seed: u64) -> Rng {
-        Rng(seed ^ 0x9E37_79B9_7F4A_7C15)
+        Rng(ChaCha8Rng::seed_from_u64(seed))
     }
 
     pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
 
     /// Uniform in `lo..=hi`.
     pub fn between(&mut self, lo: u32, hi: u32) -> u32 {
-        let span = u64::from(hi - lo) + 1;
-        lo + ((u128::from(self.next_u64()) * u128::from(span)) >> 64) as u32
+        self.0.random_range(lo..=hi)
     }
 
     /// Uniform in `[0, 1)`.
     pub fn unit(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+        self.0.random()
     }
 
     pub fn coin(&mut self) -> bool {
-        self.next_u64() & 1 == 1
+        self.0.random()
     }
 }
 

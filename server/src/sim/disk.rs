@@ -196,7 +196,7 @@ mod tests {
 
     #[test]
     fn a_crash_keeps_what_was_synced() {
-        let mut rng = rand::rngs::StdRng::seed_from_u64(1);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
         let disk = SimDisk::new();
         disk.set_len(3 * PIECE).unwrap();
         disk.write(0, &[1; 10]).unwrap();

@@ -42,8 +42,8 @@ use brickcast_protocol::apply::apply_op;
 use brickcast_protocol::replica::Replica;
 use brickcast_protocol::wire::{EditOp, Limits, RayAction, Role, ServerMsg, decode_server};
 use brickcast_protocol::{BrickMap, BrushMode, Colour};
-use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use tokio::sync::oneshot;
 
 pub use disk::SimDisk;
@@ -130,7 +130,7 @@ macro_rules! check {
 /// One simulated world: a store on a simulated disk, the owner of one scene, its clients, and
 /// the model they are checked against.
 pub struct Sim {
-    rng: StdRng,
+    rng: ChaCha8Rng,
     now: Arc<Mutex<Instant>>,
     disk: SimDisk,
     store: Arc<Store>,
@@ -153,7 +153,7 @@ pub struct Sim {
 impl Sim {
     /// A world for `seed`: a random scene in a fresh store, `clients` users (some viewers).
     pub fn new(seed: u64) -> Result<Sim, Failure> {
-        let mut rng = StdRng::seed_from_u64(seed);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let size = [
             rng.random_range(16..72),
             rng.random_range(16..56),

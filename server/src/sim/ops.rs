@@ -3,14 +3,14 @@
 use brickcast_protocol::wire::{EditOp, RayAction};
 use brickcast_protocol::{BrickMap, BrushMode, Colour};
 use rand::Rng;
-use rand::rngs::StdRng;
+use rand_chacha::ChaCha8Rng;
 
-pub(super) fn random_colour(rng: &mut StdRng) -> Colour {
+pub(super) fn random_colour(rng: &mut ChaCha8Rng) -> Colour {
     Colour(rng.random_range(1..=u16::MAX))
 }
 
 /// Ground, a few hills, a few boxes.
-pub(super) fn initial_scene(rng: &mut StdRng, size: [u32; 3]) -> BrickMap {
+pub(super) fn initial_scene(rng: &mut ChaCha8Rng, size: [u32; 3]) -> BrickMap {
     let mut map = BrickMap::new(size).expect("valid size");
     let ground = rng.random_range(1..size[1] / 3);
     map.fill_box(
@@ -28,7 +28,7 @@ pub(super) fn initial_scene(rng: &mut StdRng, size: [u32; 3]) -> BrickMap {
 }
 
 /// An edit message: a few ops of every kind, some invalid; sometimes every op is refused.
-pub fn random_batch(rng: &mut StdRng, size: [u32; 3]) -> Vec<EditOp> {
+pub fn random_batch(rng: &mut ChaCha8Rng, size: [u32; 3]) -> Vec<EditOp> {
     let len = rng.random_range(1..=6);
     if rng.random_bool(0.15) {
         (0..len).map(|_| rejected_op(rng, size)).collect()
@@ -37,13 +37,13 @@ pub fn random_batch(rng: &mut StdRng, size: [u32; 3]) -> Vec<EditOp> {
     }
 }
 
-pub(super) fn point(rng: &mut StdRng, size: [u32; 3]) -> [u32; 3] {
+pub(super) fn point(rng: &mut ChaCha8Rng, size: [u32; 3]) -> [u32; 3] {
     std::array::from_fn(|i| rng.random_range(0..size[i]))
 }
 
 /// An op the owner must refuse: a ray into the sky, a voxel or box outside the scene, a brush
 /// over the size limit or with a non-finite centre.
-pub(super) fn rejected_op(rng: &mut StdRng, size: [u32; 3]) -> EditOp {
+pub(super) fn rejected_op(rng: &mut ChaCha8Rng, size: [u32; 3]) -> EditOp {
     let colour = random_colour(rng);
     match rng.random_range(0..5) {
         0 | 1 => EditOp::Ray {
@@ -74,7 +74,7 @@ pub(super) fn rejected_op(rng: &mut StdRng, size: [u32; 3]) -> EditOp {
     }
 }
 
-pub(super) fn random_op(rng: &mut StdRng, size: [u32; 3]) -> EditOp {
+pub(super) fn random_op(rng: &mut ChaCha8Rng, size: [u32; 3]) -> EditOp {
     let colour = random_colour(rng);
     let mode = [BrushMode::Fill, BrushMode::Erase, BrushMode::Paint][rng.random_range(0..3)];
     match rng.random_range(0..100) {
