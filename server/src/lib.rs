@@ -15,6 +15,8 @@ pub mod auth;
 mod bucket;
 pub mod cluster;
 pub mod conns;
+pub mod envelope;
+pub mod exposition;
 pub mod fair;
 pub mod generate;
 pub mod http;
@@ -47,7 +49,8 @@ use axum::extract::{ConnectInfo, Path, State, WebSocketUpgrade};
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
-use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::{TaskTracker, task_tracker::TaskTrackerToken};
 
 use crate::auth::Auth;
 use crate::conns::{ConnectionLimits, Connections};
@@ -67,12 +70,12 @@ pub const CLUSTER_POLL: Duration = Duration::from_secs(1);
 
 /// Waits `period`; false once shutdown was requested (at once, not after the period). The
 /// server's pollers (spool, cluster scene list) loop on it.
-async fn wait_or_shutdown(shutdown: &mut watch::Receiver<bool>, period: Duration) -> bool {
+async fn wait_or_shutdown(shutdown: &CancellationToken, period: Duration) -> bool {
     tokio::select! {
         _ = tokio::time::sleep(period) => {}
-        _ = shutdown.changed() => {}
+        () = shutdown.cancelled() => {}
     }
-    !*shutdown.borrow()
+    !shutdown.is_cancelled()
 }
 
 /// A node's name when `--node` is not given: the host's name and the listening port.
@@ -160,9 +163,12 @@ pub struct App {
     data: PathBuf,
     pub metrics: Arc<Metrics>,
     pub auth: Auth,
-    pub shutdown: watch::Receiver<bool>,
+    /// The server's one shutdown signal: cancelled once, when the server starts to stop; the
+    /// scenes' own close signals follow it (`served::close_signal`).
+    pub shutdown: CancellationToken,
     next_id: AtomicU64,
-    sessions: watch::Sender<u64>,
+    /// Websocket sessions still running; shutdown waits for them to flush and close.
+    sessions: TaskTracker,
     /// Bytes queued to every session together (see `scene::Outbox`).
     pub queued_total: Arc<std::sync::atomic::AtomicUsize>,
     pub stall_timeout: Duration,
@@ -178,24 +184,14 @@ pub struct App {
     pub bans: admin::Bans,
 }
 
-/// Decrements the live-session count when a session ends, so shutdown can wait for sockets to
-/// flush and close.
-pub struct SessionGuard(watch::Sender<u64>);
-
-impl Drop for SessionGuard {
-    fn drop(&mut self) {
-        self.0.send_modify(|n| *n -= 1);
-    }
-}
-
 impl App {
     pub fn next_session_id(&self) -> u64 {
         self.next_id.fetch_add(1, Relaxed)
     }
 
-    pub fn track_session(&self) -> SessionGuard {
-        self.sessions.send_modify(|n| *n += 1);
-        SessionGuard(self.sessions.clone())
+    /// Held by a session while it runs, so shutdown can wait for sockets to flush and close.
+    pub fn track_session(&self) -> TaskTrackerToken {
+        self.sessions.token()
     }
 
     /// A scene served now (a cluster node may also serve it on demand: [`App::open_scene`]).
@@ -328,9 +324,9 @@ impl App {
     /// Polls the spool until shutdown; drops deleted scenes whose time is up (`admin`) at
     /// start and every [`PURGE_EVERY`].
     async fn watch_spool(self: Arc<Self>) {
-        let mut shutdown = self.shutdown.clone();
+        let shutdown = self.shutdown.clone();
         let mut purged: Option<std::time::Instant> = None;
-        while wait_or_shutdown(&mut shutdown, SPOOL_POLL).await {
+        while wait_or_shutdown(&shutdown, SPOOL_POLL).await {
             if let Some(store) = &self.store
                 && purged.is_none_or(|at| at.elapsed() >= PURGE_EVERY)
             {
@@ -365,7 +361,7 @@ impl App {
 pub struct Server {
     listener: tokio::net::TcpListener,
     app: Arc<App>,
-    shutdown: watch::Sender<bool>,
+    shutdown: CancellationToken,
     http: http::HttpConfig,
 }
 
@@ -420,7 +416,7 @@ impl Server {
         store: Option<Arc<Store>>,
         node: Option<Node>,
     ) -> Server {
-        let (shutdown, shutdown_rx) = watch::channel(false);
+        let shutdown = CancellationToken::new();
         let app = Arc::new(App {
             scenes: served::Served::default(),
             owners: Mutex::new(Vec::new()),
@@ -430,9 +426,9 @@ impl Server {
             data: config.data,
             metrics: Arc::new(Metrics::default()),
             auth: config.auth,
-            shutdown: shutdown_rx,
+            shutdown: shutdown.clone(),
             next_id: AtomicU64::new(1),
-            sessions: watch::channel(0).0,
+            sessions: TaskTracker::new(),
             queued_total: Arc::default(),
             stall_timeout: config.stall_timeout,
             connections: Arc::default(),
@@ -543,7 +539,7 @@ impl Server {
                 () = signal => {}
                 () = name_lost => {}
             }
-            let _ = stop.send(true);
+            stop.cancel();
         })
         .await;
         tracing::info!("shutting down: flushing scenes");
@@ -568,8 +564,8 @@ impl Server {
         })
         .await?;
         // Owners have dropped their outboxes: writers send what is left and close.
-        let mut sessions = app.sessions.subscribe();
-        let _ = tokio::time::timeout(Duration::from_secs(5), sessions.wait_for(|&n| n == 0)).await;
+        app.sessions.close();
+        let _ = tokio::time::timeout(Duration::from_secs(5), app.sessions.wait()).await;
         let mut name_lost = None;
         if let Some(node) = &app.node {
             name_lost = node.registration.lost.get();
@@ -617,59 +613,95 @@ pub fn router(app: Arc<App>) -> Router {
 }
 
 async fn metrics_text(State(app): State<Arc<App>>) -> Response {
-    let mut text = app.metrics.render();
-    let mut gauge = |name: &str, help: &str, value: u64| {
-        text.push_str(&format!(
-            "# HELP brickcast_{name} {help}\n# TYPE brickcast_{name} gauge\nbrickcast_{name} {value}\n"
-        ));
-    };
-    gauge(
+    use exposition::Value;
+    let mut x = exposition::Exposition::default();
+    app.metrics.expose(&mut x);
+    x.one(
         "queued_bytes",
         "Bytes queued to all clients together (frames plus per-frame overhead).",
-        app.queued_total.load(Relaxed) as u64,
+        Value::gauge(app.queued_total.load(Relaxed) as u64),
     );
-    gauge(
+    x.one(
         "open_connections",
         "Websocket connections admitted and not yet closed.",
-        app.connections.open() as u64,
+        Value::gauge(app.connections.open() as u64),
     );
-    gauge(
+    let scenes = app.scene_list();
+    x.one(
         "scenes_open",
         "Scenes this server serves now (a cluster node: those someone here used lately).",
-        app.scene_list().len() as u64,
+        Value::gauge(scenes.len() as u64),
     );
     if let Some(rss) = metrics::resident_bytes() {
-        gauge(
+        x.one(
             "process_resident_bytes",
             "Resident memory of the server process.",
-            rss,
+            Value::gauge(rss),
         );
     }
     if let Some(cpu) = metrics::cpu_seconds() {
-        text.push_str(&format!(
-            "# HELP brickcast_process_cpu_seconds_total CPU time (user and system) of the server process.\n# TYPE brickcast_process_cpu_seconds_total counter\nbrickcast_process_cpu_seconds_total {cpu}\n"
-        ));
+        x.one(
+            "process_cpu_seconds",
+            "CPU time (user and system) of the server process.",
+            Value::Seconds(cpu),
+        );
     }
-    for (name, scene) in app.scene_list() {
-        let info = &scene.info;
-        for (metric, value) in [
-            ("scene_seq", info.seq.load(Relaxed)),
-            ("scene_bricks", info.bricks.load(Relaxed)),
-            ("scene_voxels", info.voxels.load(Relaxed)),
-            ("scene_clients", info.clients.load(Relaxed)),
-            ("scene_gpu_bytes", info.gpu_bytes.load(Relaxed)),
-            ("scene_history_users", info.history_users.load(Relaxed)),
-            ("scene_history_bytes", info.history_bytes.load(Relaxed)),
-            ("scene_present", scene.presence.len() as u64),
-            (
-                "scene_owned_here",
-                u64::from(scene.info.leading.load(Relaxed)),
-            ),
-        ] {
-            text.push_str(&format!("brickcast_{metric}{{scene=\"{name}\"}} {value}\n"));
-        }
+    // One family per scene figure, a series per scene.
+    type Read = fn(&SceneHandle) -> u64;
+    let per_scene: [(&str, &str, Read); 9] = [
+        ("scene_seq", "The scene's last applied sequence.", |s| {
+            s.info.seq.load(Relaxed)
+        }),
+        ("scene_bricks", "Bricks the scene holds.", |s| {
+            s.info.bricks.load(Relaxed)
+        }),
+        ("scene_voxels", "Solid voxels the scene holds.", |s| {
+            s.info.voxels.load(Relaxed)
+        }),
+        ("scene_clients", "Websocket sessions on the scene.", |s| {
+            s.info.clients.load(Relaxed)
+        }),
+        (
+            "scene_gpu_bytes",
+            "Bytes the scene takes as laid out for the GPU.",
+            |s| s.info.gpu_bytes.load(Relaxed),
+        ),
+        (
+            "scene_history_users",
+            "Users with undo history in the scene.",
+            |s| s.info.history_users.load(Relaxed),
+        ),
+        (
+            "scene_history_bytes",
+            "Bytes of undo history the scene keeps.",
+            |s| s.info.history_bytes.load(Relaxed),
+        ),
+        (
+            "scene_present",
+            "People present in the scene (all nodes).",
+            |s| s.presence.len() as u64,
+        ),
+        (
+            "scene_owned_here",
+            "1 where this node orders the scene's edits, else 0.",
+            |s| u64::from(s.info.leading.load(Relaxed)),
+        ),
+    ];
+    for (name, help, read) in per_scene {
+        x.labelled(
+            name,
+            help,
+            "scene",
+            scenes
+                .iter()
+                .map(|(scene, handle)| (scene.clone(), Value::gauge(read(handle)))),
+        );
     }
-    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response()
+    (
+        [(header::CONTENT_TYPE, exposition::CONTENT_TYPE)],
+        x.encode(),
+    )
+        .into_response()
 }
 
 async fn scene_list(State(app): State<Arc<App>>) -> Response {
@@ -730,7 +762,7 @@ async fn websocket(
         Ok(ws) => ws,
         Err(rejection) => return rejection.into_response(),
     };
-    if *app.shutdown.borrow() {
+    if app.shutdown.is_cancelled() {
         return (StatusCode::SERVICE_UNAVAILABLE, "shutting down\n").into_response();
     }
     let admitted = match app.connections.admit(peer.ip(), &app.connection_limits) {

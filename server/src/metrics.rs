@@ -1,18 +1,19 @@
 //! Server counters, exported at `GET /metrics` in the Prometheus text format.
 //!
-//! Plain atomics written from the scene owners and sessions; rendering is a string build on
-//! request. No metrics crate: the set is small and fixed, and this keeps the hot path to one
-//! relaxed add per event.
+//! Plain atomics written from the scene owners and sessions (one relaxed add per event); a
+//! scrape reads them into a `prometheus-client` collector ([`crate::exposition`]), which
+//! writes the text.
 //!
 //! Besides events, the owners and sessions account for their time per phase (decode, apply,
 //! commit, encode, send, ...), so "where does the time go" under load is answered by two scrapes
 //! of `/metrics` rather than by a profiler (`brickcast load` prints the breakdown).
 
-use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
 use brickcast_protocol::wire::ServerMsg;
+
+use crate::exposition::{Exposition, Value};
 
 /// A histogram's bucket bounds, in microseconds.
 pub trait Buckets {
@@ -76,21 +77,23 @@ impl<B: Buckets> Histogram<B> {
         self.count.load(Relaxed)
     }
 
-    /// The exposition of `brickcast_NAME` (seconds).
-    fn render(&self, out: &mut String, name: &str, help: &str) {
-        let _ = writeln!(out, "# HELP brickcast_{name} {help}");
-        let _ = writeln!(out, "# TYPE brickcast_{name} histogram");
-        let mut cumulative = 0;
-        for (bound, bucket) in B::US.iter().zip(&self.buckets) {
-            cumulative += bucket.load(Relaxed);
-            let le = *bound as f64 / 1e6;
-            let _ = writeln!(out, "brickcast_{name}_bucket{{le=\"{le}\"}} {cumulative}");
-        }
+    /// The histogram as one scrape's value (seconds).
+    pub fn value(&self) -> Value {
+        let mut buckets: Vec<(f64, u64)> = B::US
+            .iter()
+            .zip(&self.buckets)
+            .map(|(bound, n)| (*bound as f64 / 1e6, n.load(Relaxed)))
+            .collect();
+        // Read last: the count includes every bucket read above, and what is over the top bound.
         let count = self.count();
-        let _ = writeln!(out, "brickcast_{name}_bucket{{le=\"+Inf\"}} {count}");
+        let counted: u64 = buckets.iter().map(|b| b.1).sum();
+        buckets.push((f64::MAX, count.saturating_sub(counted)));
         let sum = self.sum_us.load(Relaxed) as f64 / 1e6;
-        let _ = writeln!(out, "brickcast_{name}_sum {sum}");
-        let _ = writeln!(out, "brickcast_{name}_count {count}");
+        Value::Histogram {
+            buckets,
+            sum,
+            count: count.max(counted),
+        }
     }
 }
 
@@ -311,281 +314,257 @@ impl Metrics {
         self.commit.observe(took);
     }
 
-    /// The Prometheus text exposition of every metric.
-    pub fn render(&self) -> String {
-        let mut out = String::new();
-        let mut metric = |name: &str, kind: &str, help: &str, value: u64| {
-            let _ = writeln!(
-                out,
-                "# HELP brickcast_{name} {help}\n# TYPE brickcast_{name} {kind}\nbrickcast_{name} {value}"
-            );
-        };
+    /// Every metric of this struct, read once, added to a scrape (see [`crate::exposition`]).
+    pub fn expose(&self, x: &mut Exposition) {
         let get = |c: &AtomicU64| c.load(Relaxed);
-        metric(
+        x.one(
             "connected_clients",
-            "gauge",
             "Websocket sessions currently open.",
-            get(&self.connected_clients),
+            Value::gauge(get(&self.connected_clients)),
         );
-        metric(
-            "edit_batches_total",
-            "counter",
+        x.one(
+            "edit_batches",
             "Edit messages that applied at least one op.",
-            get(&self.edit_batches),
+            Value::Counter(get(&self.edit_batches)),
         );
-        metric(
-            "edits_applied_total",
-            "counter",
+        x.one(
+            "edits_applied",
             "Edit ops applied.",
-            get(&self.ops_applied),
+            Value::Counter(get(&self.ops_applied)),
         );
-        metric(
-            "edits_rejected_total",
-            "counter",
+        x.one(
+            "edits_rejected",
             "Edit ops rejected (bounds, limits, role, rate).",
-            get(&self.ops_rejected),
+            Value::Counter(get(&self.ops_rejected)),
         );
-        metric(
-            "voxels_changed_total",
-            "counter",
+        x.one(
+            "voxels_changed",
             "Voxels whose solidity or colour changed.",
-            get(&self.voxels_changed),
+            Value::Counter(get(&self.voxels_changed)),
         );
-        metric(
-            "deltas_sent_total",
-            "counter",
+        x.one(
+            "deltas_sent",
             "Delta frames queued to clients.",
-            get(&self.deltas_sent),
+            Value::Counter(get(&self.deltas_sent)),
         );
-        metric(
-            "sync_batches_sent_total",
-            "counter",
+        x.one(
+            "sync_batches_sent",
             "Sync batch frames queued to clients.",
-            get(&self.sync_batches_sent),
+            Value::Counter(get(&self.sync_batches_sent)),
         );
-        metric(
-            "bytes_out_total",
-            "counter",
+        x.one(
+            "bytes_out",
             "Websocket payload bytes sent.",
-            get(&self.bytes_out),
+            Value::Counter(get(&self.bytes_out)),
         );
-        metric(
-            "bytes_in_total",
-            "counter",
+        x.one(
+            "bytes_in",
             "Websocket payload bytes received.",
-            get(&self.bytes_in),
+            Value::Counter(get(&self.bytes_in)),
         );
-        metric(
-            "resyncs_total",
-            "counter",
+        x.one(
+            "resyncs",
             "Clients whose queue overflowed and were resynced.",
-            get(&self.resyncs),
+            Value::Counter(get(&self.resyncs)),
         );
-        metric(
-            "rejected_frames_total",
-            "counter",
+        x.one(
+            "rejected_frames",
             "Malformed or oversized frames (the connection is closed).",
-            get(&self.rejected_frames),
+            Value::Counter(get(&self.rejected_frames)),
         );
-        metric(
-            "ids_over_allowance_total",
-            "counter",
+        x.one(
+            "ids_over_allowance",
             "Clients whose chosen user id was over their address's allowance (served under a connection-lived id).",
-            get(&self.ids_over_allowance),
+            Value::Counter(get(&self.ids_over_allowance)),
         );
-        metric(
-            "edits_over_budget_total",
-            "counter",
+        x.one(
+            "edits_over_budget",
             "Edit messages refused whole for asking more work than one message may.",
-            get(&self.edits_over_budget),
+            Value::Counter(get(&self.edits_over_budget)),
         );
-        metric(
-            "stalled_disconnects_total",
-            "counter",
+        x.one(
+            "stalled_disconnects",
             "Sessions cut off because their client stopped reading.",
-            get(&self.stalled_disconnects),
+            Value::Counter(get(&self.stalled_disconnects)),
         );
-        metric(
-            "reads_paused_total",
-            "counter",
+        x.one(
+            "reads_paused",
             "Times a session stopped reading a client that sent faster than it read its replies.",
-            get(&self.reads_paused),
+            Value::Counter(get(&self.reads_paused)),
         );
-        metric(
-            "thumbnails_rendered_total",
-            "counter",
+        x.one(
+            "thumbnails_rendered",
             "Scene thumbnails drawn by scene owners.",
-            get(&self.thumbnails_rendered),
+            Value::Counter(get(&self.thumbnails_rendered)),
         );
-        metric(
-            "refused_connections_total",
-            "counter",
+        x.one(
+            "refused_connections",
             "Websocket connections refused by the connection limits.",
-            get(&self.refused_connections),
+            Value::Counter(get(&self.refused_connections)),
         );
-        metric(
-            "camera_updates_total",
-            "counter",
+        x.one(
+            "camera_updates",
             "Camera updates forwarded to scene owners (at most one per session per 50 ms).",
-            get(&self.camera_updates),
+            Value::Counter(get(&self.camera_updates)),
         );
         for (name, help, value) in [
             (
-                "cluster_edits_forwarded_total",
+                "cluster_edits_forwarded",
                 "Edits and undos forwarded to the scene's owner and answered (cluster).",
                 &self.edits_forwarded,
             ),
             (
-                "cluster_turns_replicated_total",
+                "cluster_turns_replicated",
                 "Turns applied from another node's log (cluster).",
                 &self.turns_replicated,
             ),
             (
-                "cluster_takeovers_total",
+                "cluster_takeovers",
                 "Scene leases this node took and claimed the log with (cluster).",
                 &self.takeovers,
             ),
             (
-                "cluster_stepdowns_total",
+                "cluster_stepdowns",
                 "Times this node stopped ordering a scene's edits: lease lost, another node appended, or an append refused (cluster).",
                 &self.stepdowns,
             ),
             (
-                "cluster_scene_opens_total",
+                "cluster_scene_opens",
                 "Scenes this node loaded from the cluster because a client or page asked for them (cluster).",
                 &self.scene_opens,
             ),
             (
-                "cluster_scene_closes_total",
+                "cluster_scene_closes",
                 "Scenes this node closed after nobody here used them for --close-idle (cluster).",
                 &self.scene_closes,
             ),
             (
-                "presence_frames_total",
+                "presence_frames",
                 "Presence frames queued to clients.",
                 &self.presence_frames,
             ),
             (
-                "presence_bytes_total",
+                "presence_bytes",
                 "Bytes of presence frames queued to clients.",
                 &self.presence_bytes,
             ),
             (
-                "presence_skipped_total",
+                "presence_skipped",
                 "Presence frames not queued to a client whose queue was long (it gets a full frame later).",
                 &self.presence_skipped,
             ),
             (
-                "presence_updates_total",
+                "presence_updates",
                 "Presence messages accepted from clients.",
                 &self.presence_updates,
             ),
             (
-                "presence_refused_total",
+                "presence_refused",
                 "Presence and rename messages refused (bad numbers or names, too fast).",
                 &self.presence_refused,
             ),
             (
-                "cluster_presence_relayed_total",
+                "cluster_presence_relayed",
                 "Presence messages published to the other nodes (cluster).",
                 &self.presence_relayed,
             ),
             (
-                "cluster_presence_refused_total",
+                "cluster_presence_refused",
                 "Presence messages or entries from other nodes that could not be read or were out of range (cluster).",
                 &self.presence_relay_refused,
             ),
-            ("undos_total", "Undo steps applied.", &self.undos),
-            ("redos_total", "Redo steps applied.", &self.redos),
+            ("undos", "Undo steps applied.", &self.undos),
+            ("redos", "Redo steps applied.", &self.redos),
             (
-                "history_refused_total",
+                "history_refused",
                 "Undo and redo requests refused (nothing to undo or redo, viewers, too fast).",
                 &self.history_refused,
             ),
             (
-                "undo_voxels_restored_total",
+                "undo_voxels_restored",
                 "Voxels undo and redo put back.",
                 &self.undo_voxels_restored,
             ),
             (
-                "undo_voxels_kept_total",
+                "undo_voxels_kept",
                 "Voxels undo and redo left alone because someone changed them since.",
                 &self.undo_voxels_kept,
             ),
             (
-                "undos_sliced_total",
+                "undos_sliced",
                 "Undos and redos of large steps planned across turns and applied in one.",
                 &self.undos_sliced,
             ),
             (
-                "edits_sliced_total",
+                "edits_sliced",
                 "Heavy edits planned across turns and applied in one.",
                 &self.edits_sliced,
             ),
         ] {
-            metric(name, "counter", help, get(value));
+            x.one(name, help, Value::Counter(get(value)));
         }
-        metric(
-            "snapshots_total",
-            "counter",
+        x.one(
+            "snapshots",
             "Scene snapshots written.",
-            get(&self.snapshots),
+            Value::Counter(get(&self.snapshots)),
         );
-        metric(
-            "owner_turns_total",
-            "counter",
+        x.one(
+            "owner_turns",
             "Scene owner turns (each drains the queued commands and commits once).",
-            get(&self.owner_turns),
+            Value::Counter(get(&self.owner_turns)),
         );
-        self.commit.render(
-            &mut out,
+        x.one(
             "log_commit_seconds",
             "Durable edit-log commit latency.",
+            self.commit.value(),
         );
-        self.turns.render(
-            &mut out,
+        x.one(
             "owner_turn_seconds",
             "How long each scene owner turn held its scene (waiting for commands not counted).",
+            self.turns.value(),
         );
-        family(
-            &mut out,
-            "frames_unencodable_total",
+        x.labelled(
+            "frames_unencodable",
             "Replies that could not be encoded (a server bug; the session is closed with an Internal error).",
             "message",
             ServerMsg::KINDS
                 .iter()
                 .zip(&self.unencodable)
-                .map(|(kind, n)| (*kind, get(n).to_string())),
+                .map(|(kind, n)| (kind.to_string(), Value::Counter(get(n)))),
         );
-        family(
-            &mut out,
-            "read_errors_total",
+        x.labelled(
+            "read_errors",
             "Websocket reads that failed, by cause.",
             "kind",
-            ReadError::ALL
-                .iter()
-                .map(|k| (k.name(), get(&self.read_errors[*k as usize]).to_string())),
+            ReadError::ALL.iter().map(|k| {
+                let n = get(&self.read_errors[*k as usize]);
+                (k.name().to_string(), Value::Counter(n))
+            }),
         );
-        let seconds = |ns: &AtomicU64| (get(ns) as f64 / 1e9).to_string();
-        family(
-            &mut out,
-            "owner_seconds_total",
+        let seconds = |ns: &AtomicU64| Value::Seconds(get(ns) as f64 / 1e9);
+        x.labelled(
+            "owner_seconds",
             "Wall time scene owners spent per phase.",
             "phase",
             OwnerPhase::ALL
                 .iter()
-                .map(|p| (p.name(), seconds(&self.owner_ns[*p as usize]))),
+                .map(|p| (p.name().to_string(), seconds(&self.owner_ns[*p as usize]))),
         );
-        family(
-            &mut out,
-            "session_seconds_total",
+        x.labelled(
+            "session_seconds",
             "Time sessions spent decoding frames and writing them.",
             "phase",
             SessionPhase::ALL
                 .iter()
-                .map(|p| (p.name(), seconds(&self.session_ns[*p as usize]))),
+                .map(|p| (p.name().to_string(), seconds(&self.session_ns[*p as usize]))),
         );
-        out
+    }
+
+    /// The text of [`Metrics::expose`] alone (tests; the server adds its gauges).
+    pub fn render(&self) -> String {
+        let mut x = Exposition::default();
+        self.expose(&mut x);
+        x.encode()
     }
 }
 
@@ -608,23 +587,6 @@ pub fn cpu_seconds() -> Option<f64> {
     // SAFETY: sysconf only reads a configuration value.
     let per_second = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
     (per_second > 0).then(|| ticks as f64 / per_second as f64)
-}
-
-/// Writes one counter family with a label: its help and type lines, then a line per value.
-fn family<'a>(
-    out: &mut String,
-    name: &str,
-    help: &str,
-    label: &str,
-    rows: impl Iterator<Item = (&'a str, String)>,
-) {
-    let _ = writeln!(
-        out,
-        "# HELP brickcast_{name} {help}\n# TYPE brickcast_{name} counter"
-    );
-    for (key, value) in rows {
-        let _ = writeln!(out, "brickcast_{name}{{{label}=\"{key}\"}} {value}");
-    }
 }
 
 fn nanos(d: Duration) -> u64 {
@@ -655,6 +617,17 @@ impl PhaseClock {
 mod tests {
     use super::*;
 
+    /// The value of each sample line (`name{labels} value`) of a scrape.
+    fn samples(text: &str) -> std::collections::HashMap<String, f64> {
+        text.lines()
+            .filter(|l| !l.starts_with('#'))
+            .filter_map(|l| {
+                let (name, value) = l.rsplit_once(' ')?;
+                Some((name.to_string(), value.parse().ok()?))
+            })
+            .collect()
+    }
+
     #[test]
     fn histogram_is_cumulative() {
         let m = Metrics::default();
@@ -662,13 +635,19 @@ mod tests {
         m.observe_commit(Duration::from_micros(3_000));
         m.observe_commit(Duration::from_secs(5));
         let text = m.render();
-        assert!(
-            text.contains("brickcast_log_commit_seconds_bucket{le=\"0.0001\"} 1"),
-            "{text}"
-        );
-        assert!(text.contains("brickcast_log_commit_seconds_bucket{le=\"0.005\"} 2"));
-        assert!(text.contains("brickcast_log_commit_seconds_bucket{le=\"+Inf\"} 3"));
-        assert!(text.contains("brickcast_log_commit_seconds_count 3"));
+        let got = samples(&text);
+        for (series, want) in [
+            ("brickcast_log_commit_seconds_bucket{le=\"0.0001\"}", 1.0),
+            ("brickcast_log_commit_seconds_bucket{le=\"0.005\"}", 2.0),
+            ("brickcast_log_commit_seconds_bucket{le=\"1.0\"}", 2.0),
+            ("brickcast_log_commit_seconds_bucket{le=\"+Inf\"}", 3.0),
+            ("brickcast_log_commit_seconds_count", 3.0),
+            ("brickcast_log_commit_seconds_sum", 5.00309),
+        ] {
+            assert_eq!(got.get(series), Some(&want), "{series}:\n{text}");
+        }
+        assert!(text.contains("# TYPE brickcast_log_commit_seconds histogram\n"));
+        assert!(text.ends_with("# EOF\n"), "{text}");
     }
 
     #[test]
@@ -679,15 +658,17 @@ mod tests {
         m.owner_time(OwnerPhase::Fanout, Duration::from_micros(5));
         m.session_time(SessionPhase::Decode, Duration::from_millis(20));
         let text = m.render();
-        for line in [
-            "brickcast_owner_seconds_total{phase=\"apply\"} 1.75",
-            "brickcast_owner_seconds_total{phase=\"fanout\"} 0.000005",
-            "brickcast_owner_seconds_total{phase=\"commit\"} 0",
-            "brickcast_session_seconds_total{phase=\"decode\"} 0.02",
-            "brickcast_session_seconds_total{phase=\"send\"} 0",
+        let got = samples(&text);
+        for (series, want) in [
+            ("brickcast_owner_seconds_total{phase=\"apply\"}", 1.75),
+            ("brickcast_owner_seconds_total{phase=\"fanout\"}", 0.000005),
+            ("brickcast_owner_seconds_total{phase=\"commit\"}", 0.0),
+            ("brickcast_session_seconds_total{phase=\"decode\"}", 0.02),
+            ("brickcast_session_seconds_total{phase=\"send\"}", 0.0),
         ] {
-            assert!(text.lines().any(|l| l == line), "{line} missing:\n{text}");
+            assert_eq!(got.get(series), Some(&want), "{series}:\n{text}");
         }
+        assert!(text.contains("# TYPE brickcast_owner_seconds counter\n"));
         let mut clock = PhaseClock::start();
         std::thread::sleep(Duration::from_millis(2));
         clock.mark(&m, OwnerPhase::Wait);

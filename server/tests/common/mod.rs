@@ -64,7 +64,45 @@ impl TestServer {
     }
 }
 
-/// A plain HTTP GET over a raw socket: status code and body.
+/// `/metrics` text as Prometheus' own OpenMetrics parser reads it (the official Python client's,
+/// Debian's `python3-prometheus-client`, installed by `scripts/setup`): each family's name,
+/// type and number of samples. Panics with the parser's complaint when it refuses the text.
+#[allow(dead_code)]
+pub fn openmetrics_families(text: &str) -> Vec<(String, String, usize)> {
+    use std::io::Write;
+    const PARSE: &str = "import sys\n\
+from prometheus_client.openmetrics.parser import text_string_to_metric_families as parse\n\
+for f in parse(sys.stdin.read()):\n    print(f.name, f.type, len(f.samples))\n";
+    let mut child = std::process::Command::new("/usr/bin/python3")
+        .args(["-c", PARSE])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("/usr/bin/python3 (scripts/setup installs python3-prometheus-client)");
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(text.as_bytes())
+        .unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "the OpenMetrics parser refused /metrics: {}\n{text}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let mut w = l.split(' ');
+            let (name, kind, n) = (w.next().unwrap(), w.next().unwrap(), w.next().unwrap());
+            (name.to_string(), kind.to_string(), n.parse().unwrap())
+        })
+        .collect()
+}
+
 /// A figure from the server's `/metrics`.
 #[allow(dead_code)]
 pub async fn metric(addr: SocketAddr, name: &str) -> f64 {
@@ -74,6 +112,7 @@ pub async fn metric(addr: SocketAddr, name: &str) -> f64 {
         .unwrap_or_else(|| panic!("{name} is not in /metrics"))
 }
 
+/// A plain HTTP GET over a raw socket: status code and body.
 pub async fn http_get(addr: SocketAddr, path: &str) -> (u16, String) {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let mut s = TcpStream::connect(addr).await.unwrap();
