@@ -24,7 +24,8 @@ use hyper::body::Incoming;
 use hyper::server::conn::http1;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use tokio::net::TcpListener;
-use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 use tower::ServiceExt;
 
 /// How long shutdown waits for HTTP requests in flight.
@@ -54,9 +55,10 @@ pub async fn serve(
     shutdown: impl Future<Output = ()>,
 ) {
     let mut shutdown = pin!(shutdown);
-    // Dropped (closed) when accepting stops; every connection task watches it.
-    let (stop, stopped) = watch::channel(());
-    let (open_tx, mut all_closed) = tokio::sync::mpsc::channel::<()>(1);
+    // Cancelled when accepting stops; every connection task watches it and is tracked, so the
+    // drain waits for exactly the connections still open.
+    let stop = CancellationToken::new();
+    let connections = TaskTracker::new();
     loop {
         let (stream, peer) = tokio::select! {
             accepted = listener.accept() => match accepted {
@@ -80,10 +82,9 @@ pub async fn serve(
                 .insert(ConnectInfo::<SocketAddr>(peer));
             router.clone().oneshot(request.map(Body::new))
         });
-        let mut stopped = stopped.clone();
-        let open = open_tx.clone();
+        let stopped = stop.clone();
         let header_timeout = config.header_timeout;
-        tokio::spawn(async move {
+        connections.spawn(async move {
             let mut builder = http1::Builder::new();
             builder
                 .timer(TokioTimer::new())
@@ -95,7 +96,7 @@ pub async fn serve(
             );
             let result = tokio::select! {
                 result = conn.as_mut() => result,
-                _ = stopped.changed() => {
+                () = stopped.cancelled() => {
                     conn.as_mut().graceful_shutdown();
                     conn.await
                 }
@@ -103,11 +104,9 @@ pub async fn serve(
             if let Err(e) = result {
                 tracing::debug!(%peer, error = %e, "HTTP connection ended with an error");
             }
-            drop(open);
         });
     }
-    drop(stop);
-    drop(open_tx);
-    // Every connection task holds a sender: `recv` returns None once they are all done.
-    let _ = tokio::time::timeout(DRAIN, all_closed.recv()).await;
+    stop.cancel();
+    connections.close();
+    let _ = tokio::time::timeout(DRAIN, connections.wait()).await;
 }

@@ -18,6 +18,10 @@ use brickcast_protocol::brick::BrickData;
 use brickcast_protocol::wire::BrickBlob;
 use serde::{Deserialize, Serialize};
 
+use crate::envelope::Format;
+
+/// A scene file's body after its header (name, size, bricks), at most 1 GiB.
+const BODY: Format<{ 1 << 30 }> = Format::new("scene file", b"");
 const MAGIC: &[u8; 16] = b"brickcast-scene\n";
 const VERSION: u32 = 1;
 /// Bricks per blob: keeps each blob's decompressed size modest.
@@ -93,7 +97,7 @@ pub fn encode(name: &str, map: &BrickMap) -> Result<Vec<u8>, String> {
     };
     let mut bytes = MAGIC.to_vec();
     bytes.extend_from_slice(&VERSION.to_le_bytes());
-    bincode::serde::encode_into_std_write(&spooled, &mut bytes, bincode::config::standard())
+    BODY.append(&spooled, &mut bytes)
         .map_err(|e| e.to_string())?;
     Ok(bytes)
 }
@@ -159,10 +163,9 @@ pub fn decode(bytes: &[u8]) -> Result<(String, BrickMap), String> {
             "format version {version}, this server reads {VERSION}"
         ));
     }
-    let config = bincode::config::standard().with_limit::<{ 1 << 30 }>();
-    let (spooled, _): (Spooled, usize) =
-        bincode::serde::decode_from_slice(&bytes[MAGIC.len() + 4..], config)
-            .map_err(|e| e.to_string())?;
+    let spooled: Spooled = BODY
+        .decode_body(&bytes[MAGIC.len() + 4..])
+        .map_err(|e| e.to_string())?;
     let mut map = BrickMap::new(spooled.size).map_err(|e| e.to_string())?;
     for blob in &spooled.blobs {
         for brick in blob.decode(BLOB_BRICKS as u32).map_err(|e| e.to_string())? {

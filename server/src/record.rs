@@ -21,6 +21,7 @@ use brickcast_protocol::BrickMap;
 use brickcast_protocol::wire::{EditOp, Limits, UserId};
 use serde::{Deserialize, Serialize};
 
+use crate::envelope::Format;
 use crate::scene::history::{Image, Step, apply_after, write_bricks};
 
 /// Replay cost of one brick of a `Revert`, in single-voxel ops (the snapshot budget's unit):
@@ -34,6 +35,8 @@ const VERSION: u8 = 3;
 const FIRST_VERSION: u8 = 2;
 /// The prefix of a row holding a turn's records.
 const BATCH: u8 = 4;
+/// A record's (or a row's) bincode after its `[0, …]` header: at most 1 GiB.
+const RECORD: Format<{ 1 << 30 }> = Format::new("log record", b"");
 
 /// What one logged sequence did.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -64,28 +67,20 @@ impl LogRecord {
     pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), String> {
         out.clear();
         out.extend_from_slice(&[0, VERSION]);
-        bincode::serde::encode_into_std_write(self, out, bincode::config::standard())
-            .map(|_| ())
-            .map_err(|e| e.to_string())
+        RECORD.append(self, out).map_err(|e| e.to_string())
     }
 
     pub fn decode(bytes: &[u8]) -> Result<LogRecord, String> {
-        let config = bincode::config::standard();
         match bytes {
             [0, version, body @ ..] if (FIRST_VERSION..=VERSION).contains(version) => {
-                let (record, read): (LogRecord, usize) =
-                    bincode::serde::decode_from_slice(body, config).map_err(|e| e.to_string())?;
-                if read != body.len() {
-                    return Err(format!("{} bytes after the record", body.len() - read));
-                }
-                Ok(record)
+                RECORD.decode_body(body).map_err(|e| e.to_string())
             }
             [0, version, _, ..] => Err(format!(
                 "log record version {version}, this server reads up to {VERSION}"
             )),
             _ => {
                 let (ops, _): (Vec<EditOp>, usize) =
-                    bincode::serde::decode_from_slice(bytes, config).map_err(|e| e.to_string())?;
+                    RECORD.decode_prefix(bytes).map_err(|e| e.to_string())?;
                 Ok(LogRecord::Ops { user: 0, ops })
             }
         }
@@ -104,10 +99,8 @@ impl LogRecord {
         out.clear();
         out.extend_from_slice(&[0, BATCH]);
         out.extend_from_slice(&count.to_le_bytes());
-        let config = bincode::config::standard();
         for (_, record) in records {
-            bincode::serde::encode_into_std_write(record, out, config)
-                .map_err(|e| e.to_string())?;
+            RECORD.append(record, out).map_err(|e| e.to_string())?;
         }
         Ok(())
     }
@@ -130,12 +123,11 @@ impl LogRecord {
         if count == 0 || count > key {
             return Err(format!("a row of {count} records keyed {key}"));
         }
-        let config = bincode::config::standard();
         let mut out = Vec::with_capacity(count.min(1 << 16) as usize);
         for seq in key + 1 - count..=key {
-            let (record, read): (LogRecord, usize) =
-                bincode::serde::decode_from_slice(body, config)
-                    .map_err(|e| format!("record {seq} of the row: {e}"))?;
+            let (record, read): (LogRecord, usize) = RECORD
+                .decode_prefix(body)
+                .map_err(|e| format!("record {seq} of the row: {e}"))?;
             body = &body[read..];
             out.push((seq, record));
         }

@@ -21,7 +21,7 @@ use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
-use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
 
 use crate::cluster::catalog::{scene_entry, scene_names};
 use crate::cluster::{Cluster, SceneLink, signal};
@@ -289,7 +289,7 @@ impl App {
         if let Some(found) = self.scenes.take(name) {
             return Ok(Some(found));
         }
-        if *self.shutdown.borrow() {
+        if self.shutdown.is_cancelled() {
             return Err(OpenError::ShuttingDown);
         }
         if self
@@ -349,9 +349,9 @@ impl App {
     /// service, and closes scenes nobody here used for `close_idle` (never when it is zero),
     /// until shutdown.
     pub(crate) async fn tend_cluster_scenes(self: Arc<Self>, close_idle: Duration) {
-        let mut shutdown = self.shutdown.clone();
+        let shutdown = self.shutdown.clone();
         let mut purged: Option<Instant> = None;
-        while wait_or_shutdown(&mut shutdown, CLUSTER_POLL).await {
+        while wait_or_shutdown(&shutdown, CLUSTER_POLL).await {
             let Some(node) = &self.node else { return };
             let listed = match self.refresh_known(&node.cluster).await {
                 Ok(()) => true,
@@ -373,7 +373,7 @@ impl App {
                 }
             }
             let _closing = self.scenes.opening.lock().await;
-            if *self.shutdown.borrow() {
+            if self.shutdown.is_cancelled() {
                 return;
             }
             let mut closed = 0;
@@ -491,17 +491,19 @@ pub(crate) fn give_back_memory() {
     }
 }
 
-/// A per-scene stop signal that also fires at the server's shutdown.
+/// A per-scene stop signal that also fires at the server's shutdown: the cluster's own signal
+/// (the simulation drives it without a runtime of tokio's), set when `shutdown` is cancelled
+/// unless the scene was closed first.
 pub fn close_signal(
-    shutdown: &watch::Receiver<bool>,
+    shutdown: &CancellationToken,
 ) -> (Arc<signal::Sender<bool>>, signal::Receiver<bool>) {
     let (tx, rx) = signal::channel(false);
     let tx = Arc::new(tx);
-    let mut global = shutdown.clone();
+    let global = shutdown.clone();
     let forward = tx.clone();
     tokio::spawn(async move {
         tokio::select! {
-            _ = global.wait_for(|stop| *stop) => { forward.send_replace(true); }
+            () = global.cancelled() => { forward.send_replace(true); }
             _ = forward.closed() => {}
         }
     });

@@ -38,7 +38,7 @@ use crate::scene::{
 async fn hold_while_backlogged(
     out: &Outbox,
     max_queue_bytes: usize,
-    shutdown: &mut tokio::sync::watch::Receiver<bool>,
+    shutdown: &tokio_util::sync::CancellationToken,
     metrics: &Metrics,
 ) -> bool {
     if out.reply_backlog() <= MAX_REPLY_BACKLOG && out.queued() <= 2 * max_queue_bytes {
@@ -47,7 +47,7 @@ async fn hold_while_backlogged(
     Metrics::add(&metrics.reads_paused, 1);
     tokio::select! {
         _ = out.drained_to(MAX_REPLY_BACKLOG / 2, max_queue_bytes) => !out.is_closed(),
-        _ = shutdown.changed() => false,
+        () = shutdown.cancelled() => false,
     }
 }
 
@@ -375,7 +375,7 @@ async fn read_loop(
     // The latest camera not yet forwarded, and when the next may go.
     let mut camera: Option<[f32; 3]> = None;
     let mut camera_at = tokio::time::Instant::now();
-    let mut shutdown = app.shutdown.clone();
+    let shutdown = app.shutdown.clone();
     // In a cluster, edits and undos go to the scene's owner over NATS, one at a time, in
     // order (`crate::cluster::forward`).
     let forwarder = link.map(|c| {
@@ -396,12 +396,12 @@ async fn read_loop(
     loop {
         // A client that sends faster than it reads its replies is not read until the writer
         // catches up (see `scene::outbox`): its requests wait in its own socket.
-        if !hold_while_backlogged(out, scene.max_queue_bytes, &mut shutdown, &app.metrics).await {
+        if !hold_while_backlogged(out, scene.max_queue_bytes, &shutdown, &app.metrics).await {
             return;
         }
         let next = tokio::select! {
             next = stream.next() => next,
-            _ = shutdown.changed() => return,
+            () = shutdown.cancelled() => return,
             // The owner, the writer, or a reply that could not be encoded ended the session.
             _ = out.closed() => return,
             _ = tokio::time::sleep_until(camera_at), if camera.is_some() => {
@@ -440,7 +440,7 @@ async fn read_loop(
         // turn's worth at once): hold this frame until they are written, so a client that
         // writes without reading meets the pause and then its writer's stall timeout, however
         // the owner's turns fall.
-        if !hold_while_backlogged(out, scene.max_queue_bytes, &mut shutdown, &app.metrics).await {
+        if !hold_while_backlogged(out, scene.max_queue_bytes, &shutdown, &app.metrics).await {
             return;
         }
         let started = Instant::now();
@@ -503,7 +503,7 @@ async fn read_loop(
                 // A heavy edit waits for its turn at the scene, its socket unread meanwhile.
                 let admitted = tokio::select! {
                     admitted = scene.heavy.admit(work) => admitted,
-                    _ = shutdown.changed() => return,
+                    () = shutdown.cancelled() => return,
                     _ = out.closed() => return,
                 };
                 let sent = match &forwarder {

@@ -182,6 +182,11 @@ fn bincode_config() -> bincode::config::Configuration {
     bincode::config::standard()
 }
 
+/// A store row's bincode (scene metadata, undo index entries, deleted-scene entries): at
+/// most 1 GiB, so a corrupt length prefix cannot ask for more.
+pub(crate) const ROW: crate::envelope::Format<{ 1 << 30 }> =
+    crate::envelope::Format::new("store row", b"");
+
 /// One raw brick row: 64 mask bytes then the colours as u16 LE (what stores before format 2
 /// and cluster snapshots before `S3`/`D2` hold; only tests write it now).
 #[cfg(test)]
@@ -322,7 +327,7 @@ impl Store {
     }
 
     fn decode_meta(&self, scene: &str, bytes: &[u8]) -> Result<SceneMeta, StoreError> {
-        bincode::serde::decode_from_slice(bytes, bincode_config())
+        ROW.decode_prefix(bytes)
             .map(|(m, _)| m)
             .map_err(|e| StoreError::Corrupt {
                 scene: scene.into(),

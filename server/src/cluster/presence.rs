@@ -30,6 +30,7 @@ use brickcast_protocol::wire::{Peer, PeerId, PeerState, check_display_name};
 use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
 
+use crate::envelope::{EnvelopeError, Format};
 use crate::metrics::Metrics;
 use crate::presence::{Hub, REMOTE_IDS};
 use crate::scene::SceneHandle;
@@ -38,11 +39,8 @@ use crate::scene::SceneHandle;
 pub const FULL_EVERY: Duration = Duration::from_secs(1);
 /// A node not heard from this long has its peers removed.
 pub const SILENT_AFTER: Duration = Duration::from_secs(4);
-/// Largest presence message read from another node.
-const MAX_MESSAGE: usize = 8 << 20;
-
-/// The first bytes of every presence message: a tag and the format's version.
-const MAGIC: [u8; 2] = [b'P', 1];
+/// A presence message between nodes: a tag and the format's version, at most 8 MiB.
+const FORMAT: Format<{ 8 << 20 }> = Format::new("presence message", b"P\x01");
 
 pub fn subject(scene: &str) -> String {
     format!("brickcast.presence.{}", super::log::token(scene))
@@ -63,24 +61,12 @@ pub struct Relay {
 }
 
 impl Relay {
-    pub fn encode(&self) -> Result<Vec<u8>, String> {
-        let mut out = MAGIC.to_vec();
-        bincode::serde::encode_into_std_write(self, &mut out, bincode::config::standard())
-            .map_err(|e| e.to_string())?;
-        Ok(out)
+    pub fn encode(&self) -> Result<Vec<u8>, EnvelopeError> {
+        FORMAT.encode(self)
     }
 
-    pub fn decode(bytes: &[u8]) -> Result<Relay, String> {
-        let body = bytes
-            .strip_prefix(&MAGIC)
-            .ok_or("not a brickcast presence message")?;
-        let config = bincode::config::standard().with_limit::<MAX_MESSAGE>();
-        let (relay, used): (Relay, usize) =
-            bincode::serde::decode_from_slice(body, config).map_err(|e| e.to_string())?;
-        if used != body.len() {
-            return Err("trailing bytes after a presence message".into());
-        }
-        Ok(relay)
+    pub fn decode(bytes: &[u8]) -> Result<Relay, EnvelopeError> {
+        FORMAT.decode(bytes)
     }
 }
 

@@ -12,7 +12,7 @@ use std::time::Duration;
 use bytes::Bytes;
 use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
-use tokio::sync::{oneshot, watch};
+use tokio::sync::oneshot;
 
 use super::catalog::scene_names;
 use super::jet::{Bucket, Jet, LogStream};
@@ -189,7 +189,7 @@ pub async fn answer<J: Jet>(
     jet: J,
     node: String,
     scenes: ScenesNow,
-    mut shutdown: watch::Receiver<bool>,
+    shutdown: tokio_util::sync::CancellationToken,
 ) {
     let mut asks = match jet.subscribe(status_subject(&node)).await {
         Ok(s) => s,
@@ -201,7 +201,7 @@ pub async fn answer<J: Jet>(
     loop {
         let ask = tokio::select! {
             biased;
-            _ = shutdown.changed() => return,
+            () = shutdown.cancelled() => return,
             ask = asks.next() => ask,
         };
         let Some(ask) = ask else { return };

@@ -24,6 +24,8 @@ use brickcast_protocol::Colour;
 use brickcast_protocol::brick::{BrickData, EMPTY_MASK, Mask, popcount};
 use serde::{Deserialize, Serialize};
 
+use crate::envelope::Format;
+
 /// A brick's contents without its position.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Image {
@@ -493,8 +495,7 @@ fn decode_legacy(bytes: &[u8]) -> Result<Step, String> {
         _ => return Err("unknown step format".into()),
     };
     let (step, _): (LegacyStep, usize) =
-        bincode::serde::decode_from_slice(body, bincode::config::standard())
-            .map_err(|e| e.to_string())?;
+        LEGACY_STEP.decode_prefix(body).map_err(|e| e.to_string())?;
     Ok(Step {
         bricks: step
             .bricks
@@ -516,6 +517,8 @@ const STEP_FRAMES: u8 = 3;
 const MAX_FRAME_BYTES: usize = FRAME_BRICKS * (5 + 8 * 24 + 2 * 2 * 512);
 /// Largest decoded step of the old formats.
 const MAX_LEGACY_BYTES: usize = 1 << 30;
+/// A step of the old formats once unpacked.
+const LEGACY_STEP: Format<MAX_LEGACY_BYTES> = Format::new("undo step (old format)", b"");
 
 /// What undoing a step would do to the map now.
 pub struct Revert {

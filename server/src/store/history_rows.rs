@@ -170,9 +170,9 @@ fn live_index_noting(
         for row in index.iter()? {
             let (key, bytes) = row?;
             let (user, id) = key.value();
-            let (meta, _): (StepMeta, usize) =
-                bincode::serde::decode_from_slice(bytes.value(), bincode_config())
-                    .map_err(|e| corrupt(format!("undo step {id} of user {user}: {e}")))?;
+            let (meta, _): (StepMeta, usize) = super::ROW
+                .decode_prefix(bytes.value())
+                .map_err(|e| corrupt(format!("undo step {id} of user {user}: {e}")))?;
             live.insert((user, id), meta);
         }
     }
@@ -194,12 +194,7 @@ fn live_index_noting(
 }
 
 fn decode_change(bytes: &[u8]) -> Result<IndexChange, String> {
-    let (change, read): (IndexChange, usize) =
-        bincode::serde::decode_from_slice(bytes, bincode_config()).map_err(|e| e.to_string())?;
-    if read != bytes.len() {
-        return Err(format!("{} bytes after the change", bytes.len() - read));
-    }
-    Ok(change)
+    super::ROW.decode_body(bytes).map_err(|e| e.to_string())
 }
 
 /// The highest step id the scene's tables name (0: none): ids are never given out twice while

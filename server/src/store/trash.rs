@@ -204,7 +204,8 @@ fn corrupt(scene: &str, detail: String) -> StoreError {
 }
 
 fn decode_deleted(key: &str, bytes: &[u8]) -> Result<Deleted, StoreError> {
-    bincode::serde::decode_from_slice(bytes, bincode_config())
+    super::ROW
+        .decode_prefix(bytes)
         .map(|(d, _)| d)
         .map_err(|e| corrupt(key, format!("deleted scene entry: {e}")))
 }
