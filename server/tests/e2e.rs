@@ -141,7 +141,7 @@ async fn concurrent_editors_converge_and_survive_restart() {
     assert_eq!(kind_of("brickcast_scene_seq"), ("gauge", 1));
     assert_eq!(kind_of("brickcast_owner_seconds").0, "counter");
     assert_eq!(kind_of("brickcast_log_commit_seconds").0, "histogram");
-    assert!(families.len() > 60, "{families:?}");
+    assert!(families.len() >= 50, "{families:?}");
     assert!(
         metrics.contains("\nbrickcast_scene_seq{scene=\"demo\"} "),
         "{metrics}"

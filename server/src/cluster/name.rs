@@ -7,6 +7,7 @@
 
 use std::time::Duration;
 
+use brickcast_protocol::backoff::{self, Backoff};
 use bytes::Bytes;
 use tokio::sync::oneshot;
 
@@ -56,6 +57,11 @@ pub fn process_instance() -> String {
 /// How long a starting node waits for NATS to answer before it gives up.
 pub const BOOT_UNAVAILABLE: Duration = Duration::from_secs(30);
 
+/// Waits between registration attempts (`brickcast_protocol::backoff`, with jitter drawn from
+/// the node's name, so a simulated run replays).
+const RETRY_FIRST: Duration = Duration::from_millis(250);
+const RETRY_LONGEST: Duration = Duration::from_secs(2);
+
 /// Takes `name` for this process (instance `instance`, listening on `listen`) and keeps it
 /// while the process lives. A name held by a node that just died frees itself within
 /// [`NODE_TTL`], so a restarted node waits that long before it calls the name taken. NATS
@@ -82,6 +88,9 @@ pub async fn register<J: Jet>(
     let taken_until = start + NODE_TTL + Duration::from_secs(1);
     // NATS may be restarting or briefly out of reach as the node starts.
     let unreachable_until = start + BOOT_UNAVAILABLE;
+    // Nodes restarted together (or waiting out one NATS restart) do not ask in lockstep.
+    let mut backoff = Backoff::new(RETRY_FIRST, RETRY_LONGEST);
+    let mut attempt = 0u64;
     let revision = loop {
         let error = match jet.kv_create(Bucket::Nodes, name, value.clone()).await {
             Ok(r) => break r,
@@ -111,7 +120,9 @@ pub async fn register<J: Jet>(
             }
             e => return Err(ClusterError::Nats(format!("registering the node: {e}"))),
         }
-        tokio::time::sleep(Duration::from_millis(250)).await;
+        attempt += 1;
+        let unit = backoff::spread(backoff::key_of(name), attempt);
+        tokio::time::sleep(backoff.next_wait(unit)).await;
     };
     let (release, released) = oneshot::channel();
     let (lost_tx, lost) = signal::channel(None);
