@@ -117,4 +117,73 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     let mut seen = Client::connect(&url(&c, "carved"), None).await.unwrap();
     seen.sync().await;
     assert_eq!(seen.map.solid_voxels(), model.solid_voxels());
+
+    // A load run over two nodes leaves the real scene alone: it edits a scratch scene made
+    // through the first node, served by both, and deleted after.
+    let brickcast =
+        std::path::Path::new(env!("CARGO_BIN_EXE_brickcast-server")).with_file_name("brickcast");
+    assert!(
+        brickcast.exists(),
+        "{} is missing: `cargo build --workspace --bins` first (scripts/test does)",
+        brickcast.display()
+    );
+    let run = tokio::task::spawn_blocking({
+        let (to_a, to_b) = (url(&a, "carved"), url(&b, "carved"));
+        move || {
+            std::process::Command::new(brickcast)
+                .args([
+                    "load",
+                    &to_a,
+                    &to_b,
+                    "--duration",
+                    "1",
+                    "--clients",
+                    "2",
+                    "--json",
+                ])
+                .env("NO_COLOR", "1")
+                .output()
+                .unwrap()
+        }
+    })
+    .await
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        run.status.success(),
+        "load over two nodes failed:\n{stderr}"
+    );
+    assert!(stderr.contains("scratch"), "{stderr}");
+    let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    assert!(report["ops_acked"].as_u64().unwrap_or(0) > 0, "{report}");
+    let mut fresh = Client::connect(&url(&a, "carved"), None).await.unwrap();
+    fresh.sync().await;
+    assert_eq!(
+        fresh.map.content_hash(),
+        seen.map.content_hash(),
+        "the real scene was edited"
+    );
+    let after = ok(&admin(b.addr, &["list"], None).await);
+    // Deleted at once; each node closes it at its next look at the scene list (every second).
+    let served = |list: &serde_json::Value| {
+        list["scenes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|s| s["name"].as_str().is_some_and(|n| n.contains(".load-")))
+    };
+    assert!(
+        after["deleted"].to_string().contains(".load-"),
+        "the scratch scene was not deleted: {after}"
+    );
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let mut last = after;
+    while served(&last) {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the scratch scene is still served: {last}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        last = ok(&admin(b.addr, &["list"], None).await);
+    }
 }

@@ -243,15 +243,9 @@ pub async fn run_on(urls: &[String], args: &LoadArgs) -> Result<LoadOutcome, Loa
     if welcome.total_bricks == 0 || args.in_place {
         return edit(urls, args).await;
     }
-    if urls.len() > 1 {
-        return Err(LoadError::Scratch {
-            scene: welcome.scene,
-            bricks: welcome.total_bricks,
-            why: "a run over several servers (a cluster) cannot make one yet".into(),
-        });
-    }
+    // On a cluster the scratch scene is made through the first node; every node serves it.
     let scratch = scratch::Scratch::create(&url, args.token.as_deref(), &welcome).await?;
-    let outcome = edit(vec![scratch.url()], args).await;
+    let outcome = edit(scratch.urls(&urls), args).await;
     scratch.delete().await;
     outcome
 }

@@ -3,9 +3,10 @@
 //! A run's edits stay in the scene it edits. So unless told `--in-place`, a run on a scene that
 //! holds voxels makes a scratch scene of the same size through the server's admin API (the
 //! demo's terrain, or a generated world above its size limit), runs there, and deletes it
-//! after (kept for no time). That needs an admin: any client on the server's own machine when
-//! the server has no auth file, or an `admin` `--token`. Whatever refuses it is named with
-//! the ways around it.
+//! after (kept for no time). On a cluster it is made and deleted through the first node, and the
+//! run's clients edit it through every node they were given, as they would the scene. That needs
+//! an admin: any client on the server's own machine when the server has no auth file, or an
+//! `admin` `--token`. Whatever refuses it is named with the ways around it.
 
 use std::time::Duration;
 
@@ -72,10 +73,17 @@ impl Scratch {
         Ok(scratch)
     }
 
-    /// The scratch scene's websocket address (as `crate::link::websocket_url` makes them).
-    pub fn url(&self) -> String {
-        let host = self.base.trim_start_matches("http://");
-        format!("ws://{host}/scenes/{}/ws", self.name)
+    /// The scratch scene's websocket address at each server of `ws_urls` (the scene's
+    /// addresses, as `crate::link::websocket_url` makes them), in their order.
+    pub fn urls(&self, ws_urls: &[String]) -> Vec<String> {
+        ws_urls
+            .iter()
+            .map(|u| http_base(u).unwrap_or_else(|| self.base.clone()))
+            .map(|base| {
+                let host = base.trim_start_matches("http://");
+                format!("ws://{host}/scenes/{}/ws", self.name)
+            })
+            .collect()
     }
 
     /// Deletes the scratch scene (at once: it is kept for no time).
