@@ -76,13 +76,23 @@ enum Command {
         #[arg(long)]
         out: Option<std::path::PathBuf>,
     },
-    /// Upload a backup (`backup`) or a MagicaVoxel .vox model as scene NAME.
+    /// Upload a backup (`backup`), a MagicaVoxel .vox model, or an .obj mesh (voxelized here,
+    /// with its materials and textures, then uploaded) as scene NAME.
     Upload {
         name: String,
         file: std::path::PathBuf,
         /// Replace a scene of that name (the one before is kept like a deleted scene).
         #[arg(long)]
         replace: bool,
+        /// Voxels along an .obj mesh's longest axis: a power of two, 8..=8192.
+        #[arg(long)]
+        resolution: Option<u32>,
+        /// Voxelizing threads for an .obj mesh (default: one per core).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Let an .obj's MTL libraries and textures be read from outside its own folder.
+        #[arg(long)]
+        allow_outside_files: bool,
     },
     /// Disconnect a user and refuse them for a while.
     Kick {
@@ -178,9 +188,37 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             name,
             file,
             replace,
+            resolution,
+            threads,
+            allow_outside_files,
         } => {
             let path = format!("/admin/scenes/{name}?replace={replace}");
-            api.upload(&path, file)?
+            let is_mesh = file
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("obj"));
+            if is_mesh {
+                // Voxelized here (the server takes scene files and .vox), then sent as a
+                // scene file: the model's MTL and textures never have to reach the server.
+                let options = brickcast_server::import::ImportOptions {
+                    resolution: resolution
+                        .unwrap_or(brickcast_server::import::ImportOptions::default().resolution),
+                    threads: *threads,
+                    allow_outside_files: *allow_outside_files,
+                };
+                let bars = crate::import_cli::Bars::new(!std::io::stderr().is_terminal());
+                let imported = brickcast_server::import::import_file(file, &options, &bars)?;
+                for warning in &imported.report.warnings {
+                    eprintln!("warning: {warning}");
+                }
+                let bytes = brickcast_server::incoming::encode(name, &imported.map)
+                    .map_err(|e| anyhow::anyhow!("encoding {}: {e}", file.display()))?;
+                api.upload_bytes(&path, bytes)?
+            } else {
+                if resolution.is_some() {
+                    eprintln!("warning: --resolution applies to .obj meshes; ignored");
+                }
+                api.upload(&path, file)?
+            }
         }
         Command::Kick {
             name,
@@ -285,10 +323,25 @@ impl Api {
 
     /// PUTs a file, with a progress bar on a terminal.
     fn upload(&self, path: &str, file: &std::path::Path) -> anyhow::Result<Value> {
-        let url = format!("{}{path}", self.base);
         let opened =
             std::fs::File::open(file).with_context(|| format!("opening {}", file.display()))?;
         let len = opened.metadata()?.len();
+        self.upload_from(path, opened, len)
+    }
+
+    /// PUTs bytes made here (a voxelized mesh), with a progress bar on a terminal.
+    fn upload_bytes(&self, path: &str, bytes: Vec<u8>) -> anyhow::Result<Value> {
+        let len = bytes.len() as u64;
+        self.upload_from(path, std::io::Cursor::new(bytes), len)
+    }
+
+    fn upload_from(
+        &self,
+        path: &str,
+        source: impl std::io::Read + Send + Sync + 'static,
+        len: u64,
+    ) -> anyhow::Result<Value> {
+        let url = format!("{}{path}", self.base);
         let bar = if std::io::stderr().is_terminal() {
             indicatif::ProgressBar::new(len)
         } else {
@@ -300,7 +353,7 @@ impl Api {
             )
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
         );
-        let reader = bar.wrap_read(opened);
+        let reader = bar.wrap_read(source);
         let response = with_auth(Self::agent().put(&url), &self.auth())
             .header("content-type", "application/octet-stream")
             .header("content-length", len.to_string())

@@ -52,13 +52,13 @@ pub struct Args {
 }
 
 /// One progress bar per phase on stderr (hidden when stderr is not a terminal or with --quiet).
-struct Bars {
+pub(crate) struct Bars {
     hidden: bool,
     current: Mutex<Option<ProgressBar>>,
 }
 
 impl Bars {
-    fn new(hidden: bool) -> Bars {
+    pub(crate) fn new(hidden: bool) -> Bars {
         Bars {
             hidden,
             current: Mutex::new(None),

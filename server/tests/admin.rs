@@ -193,6 +193,41 @@ async fn an_admin_manages_the_scenes_of_a_running_server() {
             .any(|d| d["key"] == replaced_key.as_str()),
         "{list}"
     );
+    // An .obj mesh is voxelized by the command (materials and textures read there) and
+    // served as the offline import would make it.
+    let obj = files.path().join("cube.obj");
+    std::fs::write(
+        &obj,
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nv 1 0 1\nv 1 1 1\nv 0 1 1\n\
+         f 1 2 3\nf 1 3 4\nf 5 7 6\nf 5 8 7\nf 1 5 6\nf 1 6 2\n\
+         f 4 3 7\nf 4 7 8\nf 1 4 8\nf 1 8 5\nf 2 6 7\nf 2 7 3\n",
+    )
+    .unwrap();
+    let options = brickcast_server::import::ImportOptions {
+        resolution: 32,
+        ..Default::default()
+    };
+    let offline = brickcast_server::import::import_file(
+        &obj,
+        &options,
+        &brickcast_server::import::NoProgress,
+    )
+    .unwrap();
+    let obj_arg = obj.display().to_string();
+    let mesh = ok(&admin(
+        addr,
+        &["upload", "cube", &obj_arg, "--resolution", "32"],
+        None,
+    )
+    .await);
+    assert_eq!(mesh["voxels"], offline.map.solid_voxels(), "{mesh}");
+    assert!(offline.map.solid_voxels() > 1000, "a hollow 32³ cube");
+    let mut cube = Client::connect(&format!("ws://{addr}/scenes/cube/ws"), None)
+        .await
+        .unwrap();
+    cube.sync().await;
+    assert_eq!(cube.map.content_hash(), offline.map.content_hash());
+    cube.close().await;
     let whole = std::fs::read(&backup).unwrap();
     let cut = files.path().join("cut.scene");
     std::fs::write(&cut, &whole[..whole.len() / 2]).unwrap();
@@ -228,7 +263,7 @@ async fn an_admin_manages_the_scenes_of_a_running_server() {
         .iter()
         .map(|s| s["name"].as_str().unwrap())
         .collect();
-    assert_eq!(names, ["copy", "demo", "demo-old", "terrain2"]);
+    assert_eq!(names, ["copy", "cube", "demo", "demo-old", "terrain2"]);
     server.shutdown().await.unwrap();
 }
 
