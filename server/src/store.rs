@@ -132,7 +132,7 @@ pub struct SceneMeta {
 
 impl SceneMeta {
     fn bytes(&self, scene: &str) -> Result<Vec<u8>, StoreError> {
-        bincode::serde::encode_to_vec(self, bincode_config()).map_err(|e| StoreError::Corrupt {
+        ROW.encode(self).map_err(|e| StoreError::Corrupt {
             scene: scene.into(),
             detail: e.to_string(),
         })
@@ -176,10 +176,6 @@ fn open_optional<K: redb::Key + 'static, V: redb::Value + 'static>(
         Err(redb::TableError::TableDoesNotExist(_)) => Ok(None),
         Err(e) => Err(e.into()),
     }
-}
-
-fn bincode_config() -> bincode::config::Configuration {
-    bincode::config::standard()
 }
 
 /// A store row's bincode (scene metadata, undo index entries, deleted-scene entries): at
@@ -711,11 +707,9 @@ impl Store {
                 size: map.size(),
                 snapshot_seq: seq,
             };
-            let bytes = bincode::serde::encode_to_vec(&meta, bincode_config()).map_err(|e| {
-                StoreError::Corrupt {
-                    scene: scene.into(),
-                    detail: e.to_string(),
-                }
+            let bytes = ROW.encode(&meta).map_err(|e| StoreError::Corrupt {
+                scene: scene.into(),
+                detail: e.to_string(),
             })?;
             scenes.insert(scene, bytes.as_slice())?;
         }

@@ -31,7 +31,7 @@ use brickcast_protocol::wire::UserId;
 use redb::{ReadTransaction, ReadableTable, TableDefinition, WriteTransaction};
 use serde::{Deserialize, Serialize};
 
-use super::{StoreError, UndoIndex, bincode_config, history_table, open_optional, undo_table};
+use super::{StoreError, UndoIndex, history_table, open_optional, undo_table};
 use crate::scene::history::{HistoryWrites, StepMeta};
 
 /// `steps/<scene>`: first step id → a pack of step bodies.
@@ -293,12 +293,12 @@ pub(super) fn write(
         .iter()
         .map(|(&id, (user, meta, _))| (*user, id, *meta))
         .collect();
-    let bytes = bincode::serde::encode_to_vec(&change, bincode_config()).map_err(|e| {
-        StoreError::Corrupt {
+    let bytes = super::ROW
+        .encode(&change)
+        .map_err(|e| StoreError::Corrupt {
             scene: scene.into(),
             detail: format!("undo index change: {e}"),
-        }
-    })?;
+        })?;
     let mut journal = txn.open_table(Bodies::new(&journal_table(scene)))?;
     journal.insert(state.next_change, bytes.as_slice())?;
     drop(journal);
@@ -325,12 +325,12 @@ pub(super) fn fold(
         match meta {
             Some(meta) => {
                 buf.clear();
-                bincode::serde::encode_into_std_write(meta, &mut buf, bincode_config()).map_err(
-                    |e| StoreError::Corrupt {
+                super::ROW
+                    .encode_into(&meta, &mut buf)
+                    .map_err(|e| StoreError::Corrupt {
                         scene: scene.into(),
                         detail: e.to_string(),
-                    },
-                )?;
+                    })?;
                 index.insert(key, buf.as_slice())?;
             }
             None => {
@@ -551,7 +551,7 @@ mod tests {
                 let mut index = txn.open_table(UndoIndex::new(&undo_table("s"))).unwrap();
                 for id in [3u64, 4] {
                     bodies.insert(id, [id as u8; 5].as_slice()).unwrap();
-                    let m = bincode::serde::encode_to_vec(meta(5), bincode_config()).unwrap();
+                    let m = super::super::ROW.encode(&meta(5)).unwrap();
                     index.insert((9, id), m.as_slice()).unwrap();
                 }
             }

@@ -18,7 +18,7 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use redb::{Durability, ReadableDatabase, ReadableTable, TableDefinition, TableHandle};
 use serde::{Deserialize, Serialize};
 
-use super::{SCENES, SceneMeta, Store, StoreError, bincode_config, valid_scene_name};
+use super::{SCENES, SceneMeta, Store, StoreError, valid_scene_name};
 
 /// Deleted scene's key → bincode [`Deleted`].
 const DELETED: TableDefinition<&str, &[u8]> = TableDefinition::new("deleted");
@@ -99,7 +99,8 @@ impl Store {
                 deleted_at: now.as_secs(),
                 kept_until: now.as_secs().saturating_add(keep.as_secs()),
             };
-            let bytes = bincode::serde::encode_to_vec(&deleted, bincode_config())
+            let bytes = super::ROW
+                .encode(&deleted)
                 .map_err(|e| corrupt(name, e.to_string()))?;
             table.insert(deleted.key.as_str(), bytes.as_slice())?;
             deleted
