@@ -516,6 +516,14 @@ impl Server {
                 Arc::new(move || scenes.scene_list()),
                 app.shutdown.clone(),
             ));
+            // An administrator's kick asked of any node reaches this one's connections too.
+            let kicks = app.clone();
+            tokio::spawn(cluster::kick::answer(
+                node.cluster.clone(),
+                node.name.clone(),
+                Arc::new(move |order| admin::handle_kick_order(&kicks, order)),
+                app.shutdown.clone(),
+            ));
             tokio::spawn(app.clone().tend_cluster_scenes(node.close_idle))
         } else {
             tokio::spawn(app.clone().watch_spool())

@@ -118,6 +118,31 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     seen.sync().await;
     assert_eq!(seen.map.solid_voxels(), model.solid_voxels());
 
+    // A kick asked of one node reaches the user's connection to another, and every node
+    // refuses them after; a kick of nobody refuses nobody.
+    let nobody = refused(&admin(a.addr, &["kick", "--name", "nobody-here"], None).await);
+    assert!(nobody.contains("nobody like that"), "{nobody}");
+    let mut mallory = Client::as_user(&url(&c, "carved"), None, 77, "mallory")
+        .await
+        .unwrap();
+    mallory.sync().await;
+    let kicked = ok(&admin(a.addr, &["kick", "--name", "mallory", "--for", "10m"], None).await);
+    assert_eq!(kicked["disconnected"][0]["node"], "c", "{kicked}");
+    assert!(kicked.get("nodes_not_told").is_none(), "{kicked}");
+    let errors = mallory.until_closed().await;
+    let (code, text) = errors.last().cloned().expect("told why");
+    assert_eq!(code, ErrorCode::Unauthorized);
+    assert!(text.contains("come back in 10 min"), "{text}");
+    for node in [&a, &b, &c] {
+        match Client::as_user(&url(node, "carved"), None, 77, "mallory").await {
+            Err(common::Refused::Error(ErrorCode::Unauthorized, text)) => {
+                assert!(text.contains("administrator"), "{text}")
+            }
+            Err(e) => panic!("refused by {} otherwise: {e:?}", node.name),
+            Ok(_) => panic!("a kicked user came straight back through {}", node.name),
+        }
+    }
+
     // A load run over two nodes leaves the real scene alone: it edits a scratch scene made
     // through the first node, served by both, and deleted after.
     let brickcast =

@@ -43,7 +43,7 @@ use axum::routing::{get, post};
 use crate::App;
 
 pub(crate) use scenes::take_out;
-pub use users::Bans;
+pub use users::{Bans, handle_order as handle_kick_order};
 
 /// How long a deleted scene is kept when the delete does not say.
 pub const KEEP: Duration = Duration::from_secs(24 * 3600);

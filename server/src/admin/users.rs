@@ -3,8 +3,9 @@
 //! Clients reconnect by themselves, so a kick that only closed the connections would be
 //! undone within a second: a kicked user is also refused for `for` (default [`KICK_FOR`]),
 //! by user id and by name (its look-alike key, `crate::identity::name_key`), on the one scene
-//! the kick names or on all of them. Refusals live in this server's memory: a restart
-//! forgets them, and in a cluster a kick reaches only the connections to the node asked.
+//! the kick names or on all of them. On a cluster every node is told (`cluster::kick`): each
+//! closes the user's connections to it and refuses them. Refusals live in each server's
+//! memory: a restart forgets them.
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -17,6 +18,7 @@ use serde_json::{Value, json};
 
 use super::{Admin, AdminError, Body, parse_duration};
 use crate::App;
+use crate::cluster::kick::{self, Order, Round};
 use crate::identity::name_key;
 
 /// How long a kicked user is refused when the kick does not say.
@@ -115,15 +117,101 @@ pub async fn kick(
         Some(text) => parse_duration(text).map_err(AdminError::BadInput)?,
         None => KICK_FOR,
     };
-    let scenes = match &kick.scene {
-        Some(name) => match app.scene(name) {
-            Some(scene) => vec![(name.clone(), scene)],
-            None => return Err(AdminError::UnknownScene(name.clone())),
-        },
+    if let Some(name) = &kick.scene
+        && !app.has_scene(name).await
+    {
+        return Err(AdminError::UnknownScene(name.clone()));
+    }
+    let mut order = Order {
+        user: kick.user,
+        name: kick.name.clone(),
+        scene: kick.scene.clone(),
+        refuse_for_ms: u64::try_from(refuse_for.as_millis()).unwrap_or(u64::MAX),
+        round: Round::Disconnect,
+    };
+    let nobody = || {
+        AdminError::BadInput(format!(
+            "nobody like that is connected to {}: `admin list` (GET /admin/scenes) lists who is",
+            kick.scene.as_deref().unwrap_or("any scene of this server")
+        ))
+    };
+    // On a cluster every node is asked (this one too, through NATS), in two rounds.
+    let (closed, not_told) = match &app.node {
+        None => {
+            let closed = disconnect_here(&app, &order);
+            if closed.is_empty() {
+                return Err(nobody());
+            }
+            refuse_here(&app, &order);
+            (closed, Vec::new())
+        }
+        Some(node) => {
+            let mut closed = Vec::new();
+            let mut not_told = Vec::new();
+            for (name, answer) in kick::ask_all(&node.cluster, &order).await {
+                match answer.and_then(|b| serde_json::from_slice::<Vec<Value>>(&b).ok()) {
+                    Some(list) => closed.extend(list),
+                    None => not_told.push(name),
+                }
+            }
+            if closed.is_empty() {
+                return Err(AdminError::BadInput(format!(
+                    "nobody like that is connected to {} on any node that answered{}: `admin list` (GET /admin/scenes) lists who is",
+                    kick.scene.as_deref().unwrap_or("any scene"),
+                    if not_told.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" (not answering: {})", not_told.join(", "))
+                    }
+                )));
+            }
+            if !refuse_for.is_zero() {
+                order.round = Round::Refuse;
+                for (name, answer) in kick::ask_all(&node.cluster, &order).await {
+                    if answer.is_none() {
+                        not_told.push(name);
+                    }
+                }
+            }
+            not_told.sort();
+            not_told.dedup();
+            (closed, not_told)
+        }
+    };
+    tracing::info!(name = ?kick.name, user = ?kick.user, scene = ?kick.scene, closed = closed.len(), refused_s = refuse_for.as_secs(), "an administrator disconnected a user");
+    let mut answer = json!({
+        "disconnected": closed,
+        "refused_for_s": refuse_for.as_secs(),
+    });
+    if !not_told.is_empty() {
+        answer["nodes_not_told"] = json!(not_told);
+    }
+    Ok(Json(answer))
+}
+
+/// What this node does with a kick order of the cluster's (`cluster::kick`): the answer's bytes.
+pub fn handle_order(app: &App, order: &Order) -> Vec<u8> {
+    match order.round {
+        Round::Disconnect => serde_json::to_vec(&disconnect_here(app, order)).unwrap_or_default(),
+        Round::Refuse => {
+            refuse_here(app, order);
+            b"[]".to_vec()
+        }
+    }
+}
+
+/// Closes this node's connections of whom `order` names; those closed, as the answer lists them.
+fn disconnect_here(app: &App, order: &Order) -> Vec<Value> {
+    let scenes = match &order.scene {
+        Some(name) => app
+            .scene(name)
+            .map(|s| vec![(name.clone(), s)])
+            .unwrap_or_default(),
         None => app.scene_list(),
     };
-    let key = kick.name.as_deref().map(name_key);
-    let which = |p: &Peer| kick.user == Some(p.user) || key.as_deref() == Some(&name_key(&p.name));
+    let key = order.name.as_deref().map(name_key);
+    let which = |p: &Peer| order.user == Some(p.user) || key.as_deref() == Some(&name_key(&p.name));
+    let refuse_for = Duration::from_millis(order.refuse_for_ms);
     let text = if refuse_for.is_zero() {
         "an administrator disconnected you".to_string()
     } else {
@@ -138,33 +226,32 @@ pub async fn kick(
             .presence
             .disconnect(which, ErrorCode::Unauthorized, &text)
         {
-            closed.push(json!({
+            let mut entry = json!({
                 "scene": scene,
                 "session": peer.id,
                 "user": peer.user,
                 "name": peer.name,
-            }));
+            });
+            if let Some(node) = app.node_name() {
+                entry["node"] = json!(node);
+            }
+            closed.push(entry);
         }
     }
-    if closed.is_empty() {
-        return Err(AdminError::BadInput(format!(
-            "nobody like that is connected to {}: `admin list` (GET /admin/scenes) lists who is",
-            kick.scene.as_deref().unwrap_or("any scene of this server")
-        )));
+    closed
+}
+
+/// Refuses whom `order` names on this node for the order's time.
+fn refuse_here(app: &App, order: &Order) {
+    if order.refuse_for_ms == 0 {
+        return;
     }
-    if !refuse_for.is_zero() {
-        app.bans.add(Ban {
-            user: kick.user,
-            name: key,
-            scene: kick.scene.clone(),
-            until: Instant::now() + refuse_for,
-        });
-    }
-    tracing::info!(name = ?kick.name, user = ?kick.user, scene = ?kick.scene, closed = closed.len(), refused_s = refuse_for.as_secs(), "an administrator disconnected a user");
-    Ok(Json(json!({
-        "disconnected": closed,
-        "refused_for_s": refuse_for.as_secs(),
-    })))
+    app.bans.add(Ban {
+        user: order.user,
+        name: order.name.as_deref().map(name_key),
+        scene: order.scene.clone(),
+        until: Instant::now() + Duration::from_millis(order.refuse_for_ms),
+    });
 }
 
 #[cfg(test)]

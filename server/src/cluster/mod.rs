@@ -41,6 +41,7 @@ pub mod catalog;
 pub mod deleted;
 pub mod forward;
 pub mod jet;
+pub mod kick;
 mod lease;
 pub mod log;
 pub mod name;
