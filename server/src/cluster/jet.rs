@@ -179,3 +179,37 @@ pub trait Jet: Clone + Send + Sync + 'static {
         work: impl FnOnce() -> R + Send + 'static,
     ) -> impl Future<Output = Option<R>> + Send;
 }
+
+/// Answers the requests on `subject` with `handle` (`None`: no answer) until `shutdown` or the
+/// subscription ends: the loop of every node-side request handler (`cluster status`, kicks).
+pub async fn answer_requests<J, F, Fut>(
+    jet: &J,
+    subject: String,
+    what: &str,
+    shutdown: &tokio_util::sync::CancellationToken,
+    mut handle: F,
+) where
+    J: Jet,
+    F: FnMut(Bytes) -> Fut,
+    Fut: Future<Output = Option<Bytes>>,
+{
+    let mut asks = match jet.subscribe(subject).await {
+        Ok(s) => s,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot answer {what}");
+            return;
+        }
+    };
+    loop {
+        let ask = tokio::select! {
+            biased;
+            () = shutdown.cancelled() => return,
+            ask = futures_util::StreamExt::next(&mut asks) => ask,
+        };
+        let Some(ask) = ask else { return };
+        let Some(to) = ask.reply else { continue };
+        if let Some(answer) = handle(ask.payload).await {
+            let _ = jet.publish(to, answer).await;
+        }
+    }
+}

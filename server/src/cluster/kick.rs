@@ -12,10 +12,9 @@ use std::time::Duration;
 
 use brickcast_protocol::wire::UserId;
 use bytes::Bytes;
-use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
 
-use super::jet::{Bucket, Jet};
+use super::jet::{Bucket, Jet, answer_requests};
 use super::log::token;
 
 /// How long the asking node waits for each node's answer.
@@ -73,27 +72,17 @@ pub async fn answer<J: Jet>(
     handle: Handler,
     shutdown: tokio_util::sync::CancellationToken,
 ) {
-    let mut orders = match jet.subscribe(subject(&node)).await {
-        Ok(s) => s,
-        Err(e) => {
-            tracing::warn!(error = %e, "cannot take administrators' kicks from other nodes");
-            return;
-        }
-    };
-    loop {
-        let message = tokio::select! {
-            biased;
-            () = shutdown.cancelled() => return,
-            message = orders.next() => message,
-        };
-        let Some(message) = message else { return };
-        let Some(to) = message.reply else { continue };
+    answer_requests(&jet, subject(&node), "administrators' kicks from other nodes", &shutdown, |payload| {
         // A message this node cannot read (another version, garbage) gets no answer: the
         // asking node names this node as not told.
-        let Ok(order) = serde_json::from_slice::<Order>(&message.payload) else {
-            tracing::warn!(node = %node, "a kick order that could not be read was ignored");
-            continue;
+        let answer = match serde_json::from_slice::<Order>(&payload) {
+            Ok(order) => Some(Bytes::from(handle(&order))),
+            Err(e) => {
+                tracing::warn!(node = %node, error = %e, "a kick order that could not be read was ignored");
+                None
+            }
         };
-        let _ = jet.publish(to, Bytes::from(handle(&order))).await;
-    }
+        std::future::ready(answer)
+    })
+    .await;
 }

@@ -10,12 +10,11 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::Bytes;
-use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
 use tokio::sync::oneshot;
 
 use super::catalog::scene_names;
-use super::jet::{Bucket, Jet, LogStream};
+use super::jet::{Bucket, Jet, LogStream, answer_requests};
 use super::log::status_subject;
 use super::{ClusterError, NodeEntry, SceneEntry};
 use crate::scene::{Command, Described, SceneHandle};
@@ -191,21 +190,8 @@ pub async fn answer<J: Jet>(
     scenes: ScenesNow,
     shutdown: tokio_util::sync::CancellationToken,
 ) {
-    let mut asks = match jet.subscribe(status_subject(&node)).await {
-        Ok(s) => s,
-        Err(e) => {
-            tracing::warn!(error = %e, "cannot answer `cluster status`");
-            return;
-        }
-    };
-    loop {
-        let ask = tokio::select! {
-            biased;
-            () = shutdown.cancelled() => return,
-            ask = asks.next() => ask,
-        };
-        let Some(ask) = ask else { return };
-        let Some(to) = ask.reply else { continue };
+    let subject = status_subject(&node);
+    answer_requests(&jet, subject, "`cluster status`", &shutdown, |_| async {
         let mut replicas = Vec::new();
         for (name, handle) in scenes() {
             let (done, described) = oneshot::channel();
@@ -220,10 +206,12 @@ pub async fn answer<J: Jet>(
             }
         }
         match serde_json::to_vec(&replicas) {
-            Ok(bytes) => {
-                let _ = jet.publish(to, Bytes::from(bytes)).await;
+            Ok(bytes) => Some(Bytes::from(bytes)),
+            Err(e) => {
+                tracing::error!(error = %e, "cannot encode a status answer");
+                None
             }
-            Err(e) => tracing::error!(error = %e, "cannot encode a status answer"),
         }
-    }
+    })
+    .await;
 }
