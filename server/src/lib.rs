@@ -260,7 +260,11 @@ impl App {
     /// decides whether this node orders its edits) until it closes (see `served`).
     async fn add_cluster_scene(&self, name: String) -> anyhow::Result<()> {
         let node = self.node.as_ref().context("not a cluster node")?;
-        let loaded = cluster::log::load(&node.cluster, &name)
+        let entry = cluster::catalog::scene_entry(&node.cluster, &name)
+            .await?
+            .with_context(|| format!("the cluster has no scene {name}"))?;
+        let log = entry.log_key(&name).to_string();
+        let loaded = cluster::log::load(&node.cluster, &log)
             .await
             .with_context(|| format!("loading scene {name} from the cluster"))?;
         tracing::info!(scene = %name, seq = loaded.loaded.seq, replayed = loaded.loaded.replayed, pos = loaded.pos, "scene loaded from the cluster");
@@ -269,6 +273,7 @@ impl App {
             &node.cluster,
             &node.name,
             name.clone(),
+            &log,
             loaded,
             self.metrics.clone(),
             self.owner_config.clone(),

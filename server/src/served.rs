@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
 
 use crate::cluster::catalog::{scene_entry, scene_names};
-use crate::cluster::{Cluster, SceneLink, signal};
+use crate::cluster::{Cluster, SceneEntry, SceneLink, signal};
 use crate::metrics::Metrics;
 use crate::scene::{Command, SceneHandle};
 use crate::{App, CLUSTER_POLL, wait_or_shutdown};
@@ -38,8 +38,9 @@ const PURGE_EVERY: Duration = Duration::from_secs(60);
 #[derive(Default)]
 pub struct Served {
     open: RwLock<BTreeMap<String, Entry>>,
-    /// Cluster: the cluster's scene list (name → size), refreshed every [`CLUSTER_POLL`].
-    known: RwLock<BTreeMap<String, [u32; 3]>>,
+    /// Cluster: the cluster's scene list (name → size and log key), refreshed every
+    /// [`CLUSTER_POLL`].
+    known: RwLock<BTreeMap<String, SceneEntry>>,
     /// Held while a scene opens or closes (see the module's limits), and by shutdown.
     pub(crate) opening: tokio::sync::Mutex<()>,
     /// Scenes whose owner thread did not stop within [`CLOSE_PATIENCE`]: not reopened here
@@ -87,6 +88,14 @@ impl Drop for SceneUse {
             .unwrap_or_else(|e| e.into_inner()) = Instant::now();
         self.uses.count.fetch_sub(1, Relaxed);
     }
+}
+
+/// Why a cluster scene's copy served here is not the scene of its name any more.
+enum Stale {
+    /// Its name is not in the scene list (deleted, or renamed).
+    Unlisted,
+    /// Its name names another log now (reset, or replaced by an upload).
+    OtherLog,
 }
 
 /// A scene in the scene list: served here (`handle`), or only known to the cluster.
@@ -165,19 +174,47 @@ impl Served {
     }
 
     /// Cluster: the scene list as the cluster has it now.
-    pub fn set_known(&self, known: BTreeMap<String, [u32; 3]>) {
+    pub fn set_known(&self, known: BTreeMap<String, SceneEntry>) {
         *self.known.write().unwrap_or_else(|e| e.into_inner()) = known;
     }
 
-    /// Cluster: the scenes served here that the cluster's list (as of the last look) no
-    /// longer has: deleted by an administrator on some node.
-    fn served_but_unlisted(&self) -> Vec<String> {
+    /// Cluster: the scenes served here over a log that the cluster's list (as of the last
+    /// look) no longer gives their name: deleted, renamed or reset by an administrator on
+    /// some node. With each, its log key.
+    fn served_but_unlisted(&self) -> Vec<(String, String)> {
         let known = self.known.read().unwrap_or_else(|e| e.into_inner());
         self.read()
             .iter()
-            .filter(|(name, e)| e.close.is_some() && !known.contains_key(*name))
+            .filter_map(|(name, e)| {
+                let log = e.link.as_ref()?.log.clone();
+                let listed = known.get(name).is_some_and(|k| k.log_key(name) == log);
+                (e.close.is_some() && !listed).then(|| (name.clone(), log))
+            })
+            .collect()
+    }
+
+    /// Cluster: the scenes served here from the cluster; a fresh look at the list reads their
+    /// entries again (one may now name another log).
+    fn served_names(&self) -> Vec<String> {
+        self.read()
+            .iter()
+            .filter(|(_, e)| e.link.is_some())
             .map(|(name, _)| name.clone())
             .collect()
+    }
+
+    /// Cluster: the log key of the copy of `name` served here.
+    fn log_of(&self, name: &str) -> Option<String> {
+        self.read().get(name)?.link.as_ref().map(|l| l.log.clone())
+    }
+
+    /// Cluster: the listed scene whose log key is `log` (a renamed scene's new name).
+    fn named_for_log(&self, log: &str) -> Option<String> {
+        let known = self.known.read().unwrap_or_else(|e| e.into_inner());
+        known
+            .iter()
+            .find(|(name, e)| e.log_key(name) == log)
+            .map(|(name, _)| name.clone())
     }
 
     /// Whether a scene is served or known to the cluster (as of the last look at its list).
@@ -197,10 +234,10 @@ impl Served {
             .read()
             .unwrap_or_else(|e| e.into_inner())
             .iter()
-            .map(|(name, &size)| {
+            .map(|(name, entry)| {
                 let listed = Listed {
                     name: name.clone(),
-                    size,
+                    size: entry.size,
                     handle: None,
                 };
                 (name.clone(), listed)
@@ -271,7 +308,11 @@ impl App {
         name: &str,
     ) -> Result<Option<(SceneHandle, SceneUse)>, OpenError> {
         if let Some(found) = self.scenes.take(name) {
-            return Ok(Some(found));
+            match self.cluster_copy_stale(name).await {
+                None => return Ok(Some(found)),
+                Some(Stale::Unlisted) => return Ok(None),
+                Some(Stale::OtherLog) => drop(found),
+            }
         }
         let Some(node) = &self.node else {
             return Ok(None);
@@ -313,6 +354,31 @@ impl App {
             .ok_or_else(|| failed("it closed as it opened".into()))
     }
 
+    /// Cluster: whether the copy of `name` served here is no longer the cluster's scene of
+    /// that name (deleted, renamed, reset or replaced since this node's last look at the
+    /// list). A copy over another log is taken out of service now, so the caller opens the
+    /// new one; an unlisted one is left to [`App::tend_cluster_scenes`] to close and say why.
+    /// `None` (serve it) also when the list cannot be read.
+    async fn cluster_copy_stale(&self, name: &str) -> Option<Stale> {
+        let node = self.node.as_ref()?;
+        let log = self.scenes.log_of(name)?;
+        let entry = scene_entry(&node.cluster, name).await.ok()?;
+        let Some(entry) = entry else {
+            return Some(Stale::Unlisted);
+        };
+        if entry.log_key(name) == log {
+            return None;
+        }
+        let _opening = self.scenes.opening.lock().await;
+        if self.scenes.log_of(name).as_deref() == Some(log.as_str()) {
+            let why = format!(
+                "scene {name} was reset or replaced by an administrator: reconnect to see it"
+            );
+            let _ = crate::admin::take_out(self, name, why).await;
+        }
+        Some(Stale::OtherLog)
+    }
+
     /// Cluster: reads the cluster's scene list (an entry only for names not seen before).
     pub(crate) async fn refresh_known(
         &self,
@@ -324,21 +390,23 @@ impl App {
             .read()
             .unwrap_or_else(|e| e.into_inner())
             .clone();
+        // A served scene's entry is read every time: a reset keeps its name, not its log.
+        let served = self.scenes.served_names();
         let mut known = BTreeMap::new();
         for name in scene_names(cluster).await? {
-            let size = match before.get(&name) {
-                Some(&size) => Some(size),
+            let entry = match before.get(&name) {
+                Some(entry) if !served.contains(&name) => Some(entry.clone()),
                 // One bad entry does not hide the others.
-                None => match scene_entry(cluster, &name).await {
-                    Ok(entry) => entry.map(|e| e.size),
+                _ => match scene_entry(cluster, &name).await {
+                    Ok(entry) => entry,
                     Err(e) => {
                         tracing::warn!(scene = %name, error = %e, "skipping a scene of the cluster's list");
                         None
                     }
                 },
             };
-            if let Some(size) = size {
-                known.insert(name, size);
+            if let Some(entry) = entry {
+                known.insert(name, entry);
             }
         }
         self.scenes.set_known(known);
@@ -383,12 +451,23 @@ impl App {
             } else {
                 Vec::new()
             };
-            for name in unlisted {
-                // Opened since the list was read (a scene made meanwhile): still listed.
-                if !matches!(scene_entry(&node.cluster, &name).await, Ok(None)) {
-                    continue;
-                }
-                let why = format!("scene {name} was deleted by an administrator");
+            for (name, log) in unlisted {
+                // Listed again since the list was read (a restore), or unreadable: left.
+                let why = match scene_entry(&node.cluster, &name).await {
+                    Ok(Some(e)) if e.log_key(&name) == log => continue,
+                    Ok(Some(_)) => {
+                        format!(
+                            "scene {name} was reset or replaced by an administrator: reconnect to see it"
+                        )
+                    }
+                    Ok(None) => match self.scenes.named_for_log(&log) {
+                        Some(to) => format!(
+                            "scene {name} was renamed to {to} by an administrator: open /scenes/{to}"
+                        ),
+                        None => format!("scene {name} was deleted by an administrator"),
+                    },
+                    Err(_) => continue,
+                };
                 if crate::admin::take_out(&self, &name, why).await.is_ok() {
                     closed += 1;
                 }

@@ -1,8 +1,9 @@
 //! The admin API against a three-node cluster (a real `nats-server`, three `serve --nats`
 //! processes): a scene made through one node is served by the others; deleted through one,
-//! every node closes it and tells its people; it is kept, refused as a new scene's name, and
-//! restored through a third node with every acknowledged edit; an uploaded model is served
-//! everywhere; what a cluster cannot do yet is refused with the reason.
+//! every node closes it and tells its people; it is kept while a new scene takes its name, and
+//! restored under another name through a third node with every acknowledged edit; renamed and
+//! reset with people on it through other nodes (told why, nothing lost, the old one kept); an
+//! uploaded model is served everywhere, and replaced by another.
 
 mod common;
 mod nodes;
@@ -40,18 +41,16 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
             colour: colour(3),
         }])
         .await;
-    assert!(matches!(ack, ServerMsg::Ack { .. }), "{ack:?}");
+    let ServerMsg::Ack { seq: Some(seq), .. } = ack else {
+        panic!("{ack:?}")
+    };
+    // A forwarded edit's answer may come before the delta of its turn: both clients are
+    // waited for up to its sequence (in the sync or after it).
+    on_b.catch_up(seq).await;
     let mut on_c = Client::connect(&url(&c, "isle"), None).await.unwrap();
     on_c.sync().await;
-    // The edit is in c's sync or comes after it as a delta: `until` looks only at messages
-    // still to come, so it is asked only when the sync did not already hold the edit.
-    if on_c.map.content_hash() != on_b.map.content_hash() {
-        assert!(
-            on_c.until(|cl, _| cl.map.content_hash() == on_b.map.content_hash())
-                .await,
-            "c closed before it held b's edit"
-        );
-    }
+    on_c.catch_up(seq).await;
+    assert_eq!(on_c.map.content_hash(), on_b.map.content_hash());
     let hash = on_b.map.content_hash();
 
     // Deleted through a: the people on b and c are told, by their own nodes.
@@ -75,18 +74,78 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
         "{list}"
     );
     assert_eq!(list["deleted"][0]["key"], key.as_str(), "{list}");
-    let reuse = refused(&admin(b.addr, &["create", "isle"], None).await);
-    assert!(
-        reuse.contains("deleted scene named isle is kept"),
-        "{reuse}"
+    // A new scene may take the kept one's name: it gets a log of its own.
+    ok(&admin(b.addr, &["create", "isle", "--size", "16,16,16"], None).await);
+    let mut new_isle = Client::connect(&url(&c, "isle"), None).await.unwrap();
+    new_isle.sync().await;
+    assert_eq!(new_isle.map.solid_voxels(), 0, "the new isle is empty");
+    drop(new_isle);
+
+    // The kept one comes back under another name, through c, with the edit acknowledged
+    // before the delete.
+    let taken = refused(&admin(c.addr, &["restore", &key], None).await);
+    assert!(taken.contains("--as"), "{taken}");
+    ok(&admin(c.addr, &["restore", &key, "--as", "isle2"], None).await);
+    let mut back = Client::connect(&url(&a, "isle2"), None).await.unwrap();
+    back.sync().await;
+    assert_eq!(back.map.content_hash(), hash, "the scene as it was deleted");
+
+    // Renamed through b while people are on it through a and c: each is told the new name,
+    // which serves the same log (nothing copied, nothing lost).
+    let mut on_c2 = Client::connect(&url(&c, "isle2"), None).await.unwrap();
+    on_c2.sync().await;
+    ok(&admin(b.addr, &["rename", "isle2", "islet"], None).await);
+    for client in [&mut back, &mut on_c2] {
+        let errors = tokio::time::timeout(Duration::from_secs(30), client.until_closed())
+            .await
+            .expect("closed within 30 s");
+        let (_, text) = errors.last().cloned().expect("told why");
+        assert!(text.contains("renamed to islet"), "{text}");
+    }
+    let mut renamed = Client::connect(&url(&c, "islet"), None).await.unwrap();
+    renamed.sync().await;
+    assert_eq!(
+        renamed.map.content_hash(),
+        hash,
+        "renamed with its contents"
     );
-    let rename = refused(&admin(b.addr, &["rename", "demo", "other"], None).await);
-    assert!(
-        rename.contains("not available on a cluster node"),
-        "{rename}"
+    let ack = renamed
+        .edit(vec![EditOp::Set {
+            pos: [6, 30, 6],
+            colour: colour(4),
+        }])
+        .await;
+    let ServerMsg::Ack { seq: Some(seq), .. } = ack else {
+        panic!("{ack:?}")
+    };
+    // The owner's answer may come before this node's replica applied the turn.
+    renamed.catch_up(seq).await;
+    let edited = renamed.map.content_hash();
+    let taken = refused(&admin(a.addr, &["rename", "islet", "isle"], None).await);
+    assert!(taken.contains("already exists"), "{taken}");
+    let unknown = refused(&admin(a.addr, &["rename", "isle2", "x"], None).await);
+    assert!(unknown.contains("no scene"), "{unknown}");
+
+    // Reset through a while someone is on it through c: c closes its copy (the name now
+    // names another log) and says why; the scene is empty; the one before is kept.
+    let reset = ok(&admin(a.addr, &["reset", "islet", "--yes"], None).await);
+    let previous = reset["previous"]["key"].as_str().unwrap().to_string();
+    let errors = tokio::time::timeout(Duration::from_secs(30), renamed.until_closed())
+        .await
+        .expect("closed within 30 s");
+    let (_, text) = errors.last().cloned().expect("told why");
+    assert!(text.contains("reset"), "{text}");
+    let mut empty = Client::connect(&url(&b, "islet"), None).await.unwrap();
+    empty.sync().await;
+    assert_eq!(empty.map.solid_voxels(), 0, "reset to an empty scene");
+    ok(&admin(b.addr, &["restore", &previous, "--as", "islet-old"], None).await);
+    let mut old = Client::connect(&url(&c, "islet-old"), None).await.unwrap();
+    old.sync().await;
+    assert_eq!(
+        old.map.content_hash(),
+        edited,
+        "the reset scene, kept whole"
     );
-    let elsewhere = refused(&admin(c.addr, &["restore", &key, "--as", "isle2"], None).await);
-    assert!(elsewhere.contains("its own name"), "{elsewhere}");
 
     // Purged through b: its name is free at once (a second delete keeps it again first).
     ok(&admin(b.addr, &["create", "gone", "--size", "16,16,16"], None).await);
@@ -96,12 +155,6 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     assert!(unsure.contains("--yes"), "{unsure}");
     ok(&admin(a.addr, &["purge", &kept_key, "--yes"], None).await);
     ok(&admin(c.addr, &["create", "gone", "--size", "16,16,16"], None).await);
-
-    // Restored through c: served again with the edit acknowledged before the delete.
-    ok(&admin(c.addr, &["restore", &key], None).await);
-    let mut back = Client::connect(&url(&a, "isle"), None).await.unwrap();
-    back.sync().await;
-    assert_eq!(back.map.content_hash(), hash, "the scene as it was deleted");
 
     // An uploaded model is served by every node.
     let mut model = brickcast_protocol::BrickMap::new([24, 16, 24]).unwrap();
@@ -124,6 +177,15 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     let mut seen = Client::connect(&url(&c, "carved"), None).await.unwrap();
     seen.sync().await;
     assert_eq!(seen.map.solid_voxels(), model.solid_voxels());
+    let twice = refused(
+        &admin(
+            a.addr,
+            &["upload", "carved", &vox.display().to_string()],
+            None,
+        )
+        .await,
+    );
+    assert!(twice.contains("--replace"), "{twice}");
 
     // A kick asked of one node reaches the user's connection to another, and every node
     // refuses them after; a kick of nobody refuses nobody.
@@ -218,4 +280,30 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
         tokio::time::sleep(Duration::from_millis(100)).await;
         last = ok(&admin(b.addr, &["list"], None).await);
     }
+
+    // Replaced by another upload through c: the name serves the new model, the old is kept.
+    let mut other = brickcast_protocol::BrickMap::new([24, 16, 24]).unwrap();
+    other.fill_box(
+        [2, 0, 2],
+        [9, 9, 9],
+        brickcast_protocol::BrushMode::Fill,
+        colour(6),
+    );
+    let vox2 = files.path().join("other.vox");
+    std::fs::write(&vox2, brickcast_server::import::vox::export_vox(&other).0).unwrap();
+    let replaced = ok(&admin(
+        c.addr,
+        &["upload", "carved", &vox2.display().to_string(), "--replace"],
+        None,
+    )
+    .await);
+    assert!(replaced["previous"]["key"].is_string(), "{replaced}");
+    let errors = tokio::time::timeout(Duration::from_secs(30), seen.until_closed())
+        .await
+        .expect("closed within 30 s");
+    let (_, text) = errors.last().cloned().expect("told why");
+    assert!(text.contains("replaced"), "{text}");
+    let mut now = Client::connect(&url(&b, "carved"), None).await.unwrap();
+    now.sync().await;
+    assert_eq!(now.map.solid_voxels(), other.solid_voxels());
 }

@@ -82,11 +82,6 @@ pub async fn upload(
     body: Result<Bytes, BytesRejection>,
 ) -> Result<(StatusCode, Json<Value>), AdminError> {
     check_name(&name)?;
-    if app.node.is_some() && query.replace {
-        return Err(AdminError::NotOnCluster(
-            "`upload --replace` is not available on a cluster node yet: delete the scene, then upload".into(),
-        ));
-    }
     let body = body.map_err(|e| {
         AdminError::BadInput(format!(
             "the upload did not arrive whole ({e}); nothing changed"
@@ -100,9 +95,15 @@ pub async fn upload(
     let _turn = app.scenes.opening.lock().await;
     let exists = app.has_scene(&name).await;
     if let Some(node) = &app.node {
+        if exists && query.replace {
+            let why = format!("scene {name} was replaced by an administrator: reconnect to see it");
+            let described = super::scenes::replace_in_cluster(&app, node, &name, why, map).await?;
+            tracing::info!(scene = %name, "an administrator replaced a scene of the cluster by an upload");
+            return Ok((StatusCode::OK, Json(described)));
+        }
         if exists {
             return Err(AdminError::Conflict(format!(
-                "scene {name} already exists in the cluster"
+                "scene {name} already exists in the cluster: upload under another name, or replace it (?replace=true, `--replace`; the scene before is kept like a deleted one)"
             )));
         }
         let described = create_in_cluster(&node.cluster, &name, map).await?;

@@ -4,8 +4,8 @@
 //! Every route is under `/admin/` and needs an admin (`crate::auth`: an `admin` token in
 //! `Authorization: Bearer TOKEN`, or, on a server without an auth file, a request from this
 //! machine). Answers are JSON; a refusal is `{"error": "..."}` with a status that says what
-//! kind (400 bad input, 403 not an admin, 404 unknown scene, 409 name in use, 501 not on a
-//! cluster node yet, 503 try again). `brickcast-server admin` is the command line over it.
+//! kind (400 bad input, 403 not an admin, 404 unknown scene, 409 name in use, 503 try
+//! again). `brickcast-server admin` is the command line over it.
 //!
 //! * `GET /admin/scenes`: every scene with its size, sequence, bricks, memory and who is
 //!   there; the deleted scenes still kept.
@@ -23,8 +23,10 @@
 //!   user's connections and refuses them for a while.
 //!
 //! **Limits:** scene commands run one at a time per server (they share the lock scenes open
-//! under), and a `create` of a large terrain holds it while it generates; on a cluster node
-//! only `GET /admin/scenes`, `backup` and `kick` work so far (the others answer 501).
+//! under), and a `create` of a large terrain holds it while it generates. On a cluster every
+//! command works through any node: scene commands change the cluster's scene list
+//! (`crate::cluster::catalog`, `deleted`), whose entries name each scene's log by a key of
+//! its own, so a rename moves no data and a reset's old scene keeps its log.
 
 mod files;
 mod scenes;
@@ -82,8 +84,6 @@ pub enum AdminError {
     #[error("{0}")]
     Conflict(String),
     #[error("{0}")]
-    NotOnCluster(String),
-    #[error("{0}")]
     TryAgain(String),
     #[error("{0}")]
     Failed(String),
@@ -96,7 +96,6 @@ impl AdminError {
             AdminError::NotAdmin(_) => StatusCode::FORBIDDEN,
             AdminError::UnknownScene(_) => StatusCode::NOT_FOUND,
             AdminError::Conflict(_) => StatusCode::CONFLICT,
-            AdminError::NotOnCluster(_) => StatusCode::NOT_IMPLEMENTED,
             AdminError::TryAgain(_) => StatusCode::SERVICE_UNAVAILABLE,
             AdminError::Failed(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }

@@ -172,11 +172,7 @@ pub async fn delete(
     let why = format!("scene {name} was deleted by an administrator");
     if let Some(node) = &app.node {
         // Out of the list first, so no node opens it again; the others close it when they see.
-        let now_ms = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .unwrap_or_default()
-            .as_millis() as u64;
-        let deleted = deleted::delete_keeping(&node.cluster, &name, now_ms, keep.as_secs())
+        let deleted = deleted::delete_keeping(&node.cluster, &name, unix_ms(), keep.as_secs())
             .await
             .map_err(from_cluster)?;
         match take_out(&app, &name, why).await {
@@ -227,29 +223,21 @@ pub async fn restore(
     Body(body): Body<Restore>,
 ) -> Result<Json<Value>, AdminError> {
     if let Some(node) = &app.node {
-        let _turn = app.scenes.opening.lock().await;
-        let kept = deleted::list(&node.cluster).await.map_err(from_cluster)?;
-        let Some(kept) = kept.into_iter().find(|d| d.key == key) else {
-            return Err(not_kept(&key));
-        };
-        if body.name.as_ref().is_some_and(|n| *n != kept.name) {
-            return Err(AdminError::BadInput(format!(
-                "on a cluster a deleted scene comes back under its own name ({}): its log is named after it",
-                kept.name
-            )));
+        if let Some(name) = &body.name {
+            check_name(name)?;
         }
-        let restored = deleted::restore(&node.cluster, &key)
+        let _turn = app.scenes.opening.lock().await;
+        let (_, name) = deleted::restore(&node.cluster, &key, body.name.as_deref())
             .await
             .map_err(|e| match e {
                 ClusterError::SceneExists(name) => AdminError::Conflict(format!(
-                    "scene {name} exists: delete it first to restore the one kept"
+                    "scene {name} exists: restore under another name ({{\"as\": \"NAME\"}}, `--as` on the command line)"
                 )),
+                ClusterError::UnknownScene(_) => not_kept(&key),
                 e => from_cluster(e),
             })?;
-        tracing::info!(scene = %restored.name, "an administrator restored a deleted scene of the cluster");
-        return Ok(Json(
-            json!({ "name": restored.name, "size": restored.size }),
-        ));
+        tracing::info!(scene = %name, key = %key, "an administrator restored a deleted scene of the cluster");
+        return Ok(Json(described_in_cluster(node, &name).await?));
     }
     let store = single_node(&app, "restore")?;
     let kept = {
@@ -330,7 +318,6 @@ pub async fn rename(
     Path(name): Path<String>,
     Body(body): Body<Rename>,
 ) -> Result<Json<Value>, AdminError> {
-    let store = single_node(&app, "rename")?;
     let to = body.to;
     check_name(&to)?;
     let _turn = app.scenes.opening.lock().await;
@@ -339,12 +326,26 @@ pub async fn rename(
             "scene {to} already exists: pick another name"
         )));
     }
-    take_out(
-        &app,
-        &name,
-        format!("scene {name} was renamed to {to} by an administrator: open /scenes/{to}"),
-    )
-    .await?;
+    let why = format!("scene {name} was renamed to {to} by an administrator: open /scenes/{to}");
+    if let Some(node) = &app.node {
+        // The entry moves first; this node's copy closes now, the others' when they see it.
+        catalog::rename_scene(&node.cluster, &name, &to)
+            .await
+            .map_err(|e| match e {
+                ClusterError::SceneExists(to) => {
+                    AdminError::Conflict(format!("scene {to} already exists: pick another name"))
+                }
+                e => from_cluster(e),
+            })?;
+        match take_out(&app, &name, why).await {
+            Ok(()) | Err(AdminError::UnknownScene(_)) => {}
+            Err(e) => return Err(e),
+        }
+        tracing::info!(scene = %name, to = %to, "an administrator renamed a scene of the cluster");
+        return Ok(Json(described_in_cluster(node, &to).await?));
+    }
+    let store = single_node(&app, "rename")?;
+    take_out(&app, &name, why).await?;
     let loaded = {
         let (store, name, to) = (store.clone(), name.clone(), to.clone());
         blocking(move || {
@@ -375,13 +376,27 @@ pub async fn reset(
     Path(name): Path<String>,
     Body(spec): Body<Create>,
 ) -> Result<Json<Value>, AdminError> {
+    let why = format!("scene {name} was reset by an administrator: reconnect to see it");
+    if let Some(node) = &app.node {
+        let Some(entry) = catalog::scene_entry(&node.cluster, &name)
+            .await
+            .map_err(from_cluster)?
+        else {
+            return Err(AdminError::UnknownScene(name));
+        };
+        let size = spec.size.unwrap_or(entry.size);
+        let map = blocking(move || map_of(spec.kind, size, spec.seed)).await?;
+        let _turn = app.scenes.opening.lock().await;
+        let described = replace_in_cluster(&app, node, &name, why, map).await?;
+        tracing::info!(scene = %name, "an administrator reset a scene of the cluster");
+        return Ok(Json(described));
+    }
     let store = single_node(&app, "reset")?;
     let _turn = app.scenes.opening.lock().await;
     let Some(size) = app.scene(&name).map(|s| s.size) else {
         return Err(AdminError::UnknownScene(name));
     };
     let size = spec.size.unwrap_or(size);
-    let why = format!("scene {name} was reset by an administrator: reconnect to see it");
     let make = move |store: &Store, name: &str| make_scene(store, name, spec.kind, size, spec.seed);
     let described = replace(&app, &store, &name, why, make).await?;
     tracing::info!(scene = %name, "an administrator reset a scene");
@@ -427,6 +442,62 @@ pub(super) async fn replace(
     app.add_scene(name.to_string(), loaded)
         .map_err(|e| AdminError::Failed(format!("{e:#}")))?;
     Ok(described)
+}
+
+/// On a cluster: replaces scene `name` by `map` under a log of its own, keeping the one
+/// before for [`KEEP`] like a deleted scene (its key in the answer's `previous`). A create
+/// that fails puts the one before back. The caller holds `served.opening`.
+pub(super) async fn replace_in_cluster(
+    app: &App,
+    node: &crate::Node,
+    name: &str,
+    why: String,
+    map: BrickMap,
+) -> Result<Value, AdminError> {
+    let cluster = &node.cluster;
+    let kept = deleted::delete_keeping(cluster, name, unix_ms(), KEEP.as_secs())
+        .await
+        .map_err(from_cluster)?;
+    match take_out(app, name, why).await {
+        Ok(()) | Err(AdminError::UnknownScene(_)) => {}
+        Err(e) => {
+            tracing::warn!(scene = %name, error = %e, "could not close the scene being replaced here")
+        }
+    }
+    if let Err(e) = catalog::create_scene(cluster, name, &map, false).await {
+        if let Err(back) = deleted::restore(cluster, &kept.key, None).await {
+            tracing::error!(scene = %name, key = %kept.key, error = %back, "a failed replacement could not put the old scene back; it is kept as deleted");
+        }
+        return Err(from_cluster(e));
+    }
+    let mut described = json!({
+        "name": name,
+        "size": map.size(),
+        "seq": map.sequence(),
+        "bricks": map.brick_count(),
+        "voxels": map.solid_voxels(),
+    });
+    described["previous"] = json!({ "key": kept.key, "kept_until": kept.kept_until });
+    Ok(described)
+}
+
+/// What the admin API answers about cluster scene `name`: its name and size (the list's
+/// entry; its contents are read only by a node that opens it).
+async fn described_in_cluster(node: &crate::Node, name: &str) -> Result<Value, AdminError> {
+    let Some(entry) = catalog::scene_entry(&node.cluster, name)
+        .await
+        .map_err(from_cluster)?
+    else {
+        return Err(AdminError::UnknownScene(name.into()));
+    };
+    Ok(json!({ "name": name, "size": entry.size }))
+}
+
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap_or_default()
+        .as_millis() as u64
 }
 
 fn not_kept(key: &str) -> AdminError {
@@ -497,15 +568,6 @@ pub(super) async fn create_in_cluster(
     name: &str,
     map: BrickMap,
 ) -> Result<Value, AdminError> {
-    if let Some(kept) = deleted::kept_as(cluster, name)
-        .await
-        .map_err(from_cluster)?
-    {
-        return Err(AdminError::Conflict(format!(
-            "a deleted scene named {name} is kept (as {}) until unix time {}: restore it, or use another name until then",
-            kept.key, kept.kept_until
-        )));
-    }
     catalog::create_scene(cluster, name, &map, false)
         .await
         .map_err(from_cluster)?;
@@ -518,13 +580,11 @@ pub(super) async fn create_in_cluster(
     }))
 }
 
-/// The redb store, or the refusal of a command not built for cluster nodes yet.
+/// The redb store (every command handles a cluster node before it asks for this).
 pub(super) fn single_node(app: &App, what: &str) -> Result<Arc<Store>, AdminError> {
-    app.store.clone().ok_or_else(|| {
-        AdminError::NotOnCluster(format!(
-            "`{what}` is not available on a cluster node yet (a scene's log is named after it, so it cannot move)"
-        ))
-    })
+    app.store
+        .clone()
+        .ok_or_else(|| AdminError::Failed(format!("`{what}`: this server has no store")))
 }
 
 pub(super) fn check_name(name: &str) -> Result<(), AdminError> {

@@ -35,9 +35,65 @@ pub async fn scene_entry(jet: &impl Jet, name: &str) -> Result<Option<SceneEntry
         .map_err(|e| ClusterError::Nats(format!("the scene list's entry for {name}: {e}")))
 }
 
+/// Every log key the scene list uses, live scenes' and kept deleted scenes' alike.
+async fn log_keys_in_use(jet: &impl Jet) -> Result<Vec<String>, ClusterError> {
+    let mut keys = Vec::new();
+    for name in scene_names(jet).await? {
+        if let Some(entry) = scene_entry(jet, &name).await? {
+            keys.push(entry.log_key(&name).to_string());
+        }
+    }
+    for kept in super::deleted::list(jet).await? {
+        keys.push(kept.log_key().to_string());
+    }
+    Ok(keys)
+}
+
+/// Whether a live scene (not a kept deleted one) uses log key `key`.
+pub async fn log_key_live(jet: &impl Jet, key: &str) -> Result<bool, ClusterError> {
+    for name in scene_names(jet).await? {
+        if scene_entry(jet, &name)
+            .await?
+            .is_some_and(|e| e.log_key(&name) == key)
+        {
+            return Ok(true);
+        }
+    }
+    Ok(false)
+}
+
+/// A log key for a new scene `name`: its name when no scene (live or kept deleted) uses that
+/// key, else `name=<unix ms>` (no scene name holds `=`, so it is nobody's name either).
+pub async fn fresh_log_key(
+    jet: &impl Jet,
+    name: &str,
+    now_ms: u64,
+) -> Result<String, ClusterError> {
+    let used = log_keys_in_use(jet).await?;
+    if !used.iter().any(|k| k == name) {
+        return Ok(name.to_string());
+    }
+    let mut at = now_ms;
+    loop {
+        let key = format!("{name}={at}");
+        if !used.contains(&key) {
+            return Ok(key);
+        }
+        at += 1;
+    }
+}
+
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
 /// Adds a scene to the cluster: its stream, a first snapshot, then its entry in the scene
 /// list (last, so no node opens a scene that is not complete). `replace` first deletes a
-/// scene of that name: its log and snapshot (nodes serving it must be restarted).
+/// scene of that name: its log and snapshot, for good (nodes serving it close it when they
+/// see its entry name another log). A deleted scene kept under the same name keeps its own
+/// log: the new scene gets a log key of its own ([`fresh_log_key`]).
 pub async fn create_scene(
     jet: &impl Jet,
     name: &str,
@@ -49,30 +105,33 @@ pub async fn create_scene(
             "scene name {name:?} is invalid"
         )));
     }
-    // A deleted scene kept under this name still has its log and snapshots here.
-    if let Some(kept) = super::deleted::kept_as(jet, name).await? {
-        return Err(ClusterError::Nats(format!(
-            "a deleted scene named {name} is kept until unix time {} (key {}): restore it, or use another name until then",
-            kept.kept_until, kept.key
-        )));
-    }
-    let exists = scene_entry(jet, name).await?.is_some();
-    if exists && !replace {
+    let old = scene_entry(jet, name).await?;
+    if old.is_some() && !replace {
         return Err(ClusterError::SceneExists(name.into()));
     }
-    if exists {
+    if let Some(old) = &old {
         jet.kv_delete(Bucket::Scenes, name, None)
             .await
             .map_err(|e| ClusterError::Nats(format!("removing the old scene: {e}")))?;
-        let _ = jet.delete_stream(name).await;
-        snapshot::delete_all(jet, name).await;
+        let _ = jet.delete_stream(old.log_key(name)).await;
+        snapshot::delete_all(jet, old.log_key(name)).await;
     }
-    log::create(jet, name, map)
+    let key = fresh_log_key(jet, name, unix_ms()).await?;
+    log::create(jet, &key, map)
         .await
         .map_err(|e| ClusterError::Nats(e.to_string()))?;
-    let entry = SceneEntry { size: map.size() };
+    let entry = SceneEntry::new(name, map.size(), &key);
+    put_new(jet, name, &entry).await
+}
+
+/// Writes a new scene list entry; a name taken meanwhile is [`ClusterError::SceneExists`].
+pub(super) async fn put_new(
+    jet: &impl Jet,
+    name: &str,
+    entry: &SceneEntry,
+) -> Result<(), ClusterError> {
     let value =
-        serde_json::to_vec(&entry).map_err(|e| ClusterError::Nats(format!("scene entry: {e}")))?;
+        serde_json::to_vec(entry).map_err(|e| ClusterError::Nats(format!("scene entry: {e}")))?;
     match jet
         .kv_create(Bucket::Scenes, name, Bytes::from(value))
         .await
@@ -82,5 +141,56 @@ pub async fn create_scene(
         Err(e) => Err(ClusterError::Nats(format!(
             "adding the scene to the list: {e}"
         ))),
+    }
+}
+
+/// Renames scene `from` to `to`: the entry moves (written under `to` first, then taken from
+/// `from`), the log, snapshots and lease stay under their key, so nothing is copied and no
+/// edit is lost. Nodes serving `from` close it when they see it gone; one serving both for
+/// a moment runs two replicas of one log, which the log's fence keeps to one writer.
+pub async fn rename_scene(
+    jet: &impl Jet,
+    from: &str,
+    to: &str,
+) -> Result<SceneEntry, ClusterError> {
+    if !crate::store::valid_scene_name(to) {
+        return Err(ClusterError::Nats(format!("scene name {to:?} is invalid")));
+    }
+    let Some(entry) = scene_entry(jet, from).await? else {
+        return Err(ClusterError::UnknownScene(from.into()));
+    };
+    let moved = SceneEntry::new(to, entry.size, entry.log_key(from));
+    put_new(jet, to, &moved).await?;
+    jet.kv_delete(Bucket::Scenes, from, None)
+        .await
+        .map_err(|e| ClusterError::Nats(format!("taking the old name out of the list: {e}")))?;
+    Ok(moved)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn entries_from_before_log_keys_use_the_name() {
+        let old: SceneEntry = serde_json::from_str(r#"{"size":[64,32,64]}"#).unwrap();
+        assert_eq!(old.log, None);
+        assert_eq!(old.log_key("demo"), "demo");
+        // A new entry whose key is its name is written as before (older nodes read it).
+        let same = SceneEntry::new("demo", [1, 2, 3], "demo");
+        assert_eq!(serde_json::to_string(&same).unwrap(), r#"{"size":[1,2,3]}"#);
+        let moved = SceneEntry::new("other", [1, 2, 3], "demo=17");
+        let text = serde_json::to_string(&moved).unwrap();
+        let back: SceneEntry = serde_json::from_str(&text).unwrap();
+        assert_eq!(back.log_key("other"), "demo=17");
+        // A node from before log keys reads `size` as three numbers: it cannot read this
+        // entry, so it never uses the log named after the scene (someone else's).
+        #[derive(serde::Deserialize)]
+        #[allow(dead_code)]
+        struct Before {
+            size: [u32; 3],
+        }
+        assert!(serde_json::from_str::<Before>(&text).is_err(), "{text}");
+        assert!(serde_json::from_str::<Before>(r#"{"size":[1,2,3]}"#).is_ok());
     }
 }

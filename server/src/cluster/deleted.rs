@@ -12,13 +12,17 @@
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 
+use super::entry::Size;
 use super::jet::{Bucket, Jet, PortError};
 use super::{ClusterError, SceneEntry, catalog, snapshot};
 
 const PREFIX: &str = "deleted=";
 
-/// A deleted scene as the scene list keeps it.
+/// A deleted scene as the scene list keeps it (its size and log key in the shape of
+/// [`SceneEntry`]'s: a node from before log keys cannot read one whose key is not its name,
+/// so it never purges the log named after it — someone else's).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(from = "Raw", into = "Raw")]
 pub struct Deleted {
     /// What restoring it is called by.
     pub key: String,
@@ -27,6 +31,51 @@ pub struct Deleted {
     /// Unix seconds.
     pub deleted_at: u64,
     pub kept_until: u64,
+    /// Its log key (`None`: its name).
+    pub log: Option<String>,
+}
+
+/// A deleted scene's entry as JSON holds it.
+#[derive(Serialize, Deserialize)]
+struct Raw {
+    key: String,
+    name: String,
+    size: Size,
+    deleted_at: u64,
+    kept_until: u64,
+}
+
+impl From<Raw> for Deleted {
+    fn from(raw: Raw) -> Deleted {
+        let (size, log) = raw.size.parts();
+        Deleted {
+            key: raw.key,
+            name: raw.name,
+            size,
+            deleted_at: raw.deleted_at,
+            kept_until: raw.kept_until,
+            log,
+        }
+    }
+}
+
+impl From<Deleted> for Raw {
+    fn from(d: Deleted) -> Raw {
+        Raw {
+            size: Size::of(d.size, d.log.as_deref(), &d.name),
+            key: d.key,
+            name: d.name,
+            deleted_at: d.deleted_at,
+            kept_until: d.kept_until,
+        }
+    }
+}
+
+impl Deleted {
+    /// The key its log, snapshots and lease go by.
+    pub fn log_key(&self) -> &str {
+        self.log.as_deref().unwrap_or(&self.name)
+    }
 }
 
 /// Whether a scene list key is a deleted scene's.
@@ -54,6 +103,7 @@ pub async fn delete_keeping(
         size: entry.size,
         deleted_at: now_ms / 1000,
         kept_until: (now_ms / 1000).saturating_add(keep_s),
+        log: entry.log.clone(),
     };
     let value = serde_json::to_vec(&deleted)
         .map_err(|e| ClusterError::Nats(format!("deleted scene entry: {e}")))?;
@@ -95,26 +145,28 @@ pub async fn kept_as(jet: &impl Jet, name: &str) -> Result<Option<Deleted>, Clus
     Ok(list(jet).await?.into_iter().find(|d| d.name == name))
 }
 
-/// Puts a deleted scene back in the scene list under its name.
-pub async fn restore(jet: &impl Jet, key: &str) -> Result<Deleted, ClusterError> {
+/// Puts a deleted scene back in the scene list, under `name` (its own name when `None`).
+/// Returns it as it was kept, and the name it is served under now.
+pub async fn restore(
+    jet: &impl Jet,
+    key: &str,
+    name: Option<&str>,
+) -> Result<(Deleted, String), ClusterError> {
     let Some(deleted) = list(jet).await?.into_iter().find(|d| d.key == key) else {
         return Err(ClusterError::UnknownScene(key.into()));
     };
-    let entry = SceneEntry { size: deleted.size };
-    let value =
-        serde_json::to_vec(&entry).map_err(|e| ClusterError::Nats(format!("scene entry: {e}")))?;
-    match jet
-        .kv_create(Bucket::Scenes, &deleted.name, Bytes::from(value))
-        .await
-    {
-        Ok(_) => {}
-        Err(PortError::Conflict(_)) => return Err(ClusterError::SceneExists(deleted.name)),
-        Err(e) => return Err(nats("putting the scene back in the list")(e)),
+    let name = name.unwrap_or(&deleted.name).to_string();
+    if !crate::store::valid_scene_name(&name) {
+        return Err(ClusterError::Nats(format!(
+            "scene name {name:?} is invalid"
+        )));
     }
+    let entry = SceneEntry::new(&name, deleted.size, deleted.log_key());
+    catalog::put_new(jet, &name, &entry).await?;
     jet.kv_delete(Bucket::Scenes, key, None)
         .await
         .map_err(nats("removing the deleted scene's entry"))?;
-    Ok(deleted)
+    Ok((deleted, name))
 }
 
 /// Drops the deleted scenes kept until before `now` (unix seconds): their logs, snapshots and
@@ -141,9 +193,31 @@ pub async fn purge_key(jet: &impl Jet, key: &str) -> Result<Deleted, ClusterErro
 
 async fn drop_one(jet: &impl Jet, d: &Deleted) -> Result<(), ClusterError> {
     // The entry last: a purge cut short is done again by the next one.
-    let _ = jet.delete_stream(&d.name).await;
-    snapshot::delete_all(jet, &d.name).await;
+    // A log a live scene uses (an entry written by hand, or a rename raced) stays.
+    if !catalog::log_key_live(jet, d.log_key()).await? {
+        let _ = jet.delete_stream(d.log_key()).await;
+        snapshot::delete_all(jet, d.log_key()).await;
+    }
     jet.kv_delete(Bucket::Scenes, &d.key, None)
         .await
         .map_err(nats("dropping a deleted scene's entry"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kept_entries_from_before_log_keys_load_and_new_ones_round_trip() {
+        let old = r#"{"key":"deleted=5=isle","name":"isle","size":[8,8,8],"deleted_at":5,"kept_until":9}"#;
+        let d: Deleted = serde_json::from_str(old).unwrap();
+        assert_eq!((d.log_key(), d.size), ("isle", [8, 8, 8]));
+        let keyed = Deleted {
+            log: Some("isle=3".into()),
+            ..d
+        };
+        let text = serde_json::to_string(&keyed).unwrap();
+        assert_eq!(serde_json::from_str::<Deleted>(&text).unwrap(), keyed);
+        assert!(text.contains(r#""log":"isle=3""#), "{text}");
+    }
 }

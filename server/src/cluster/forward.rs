@@ -49,6 +49,8 @@ const RETRY_LONGEST: Duration = Duration::from_secs(2);
 #[derive(Clone)]
 pub struct SceneLink<J: Jet> {
     pub jet: J,
+    /// The scene's log key ([`super::SceneEntry`]).
+    pub log: String,
     /// The scene's edit subject; the owner listens on it plus `.<node>`.
     pub subject: String,
     /// The node the scene's lease names now (`None`: nobody holds it).

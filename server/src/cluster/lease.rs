@@ -46,8 +46,8 @@ pub struct Opened<J: Jet> {
     pub link: SceneLink<J>,
 }
 
-/// Opens a scene loaded from the cluster on node `node` (process `instance`): its owner over a
-/// [`JetLog`], following the log, and the lease and follower tasks, which end at `shutdown`
+/// Opens scene `name`, whose log key is `log` ([`super::SceneEntry`]), loaded from the
+/// cluster on node `node` (process `instance`): its owner over a [`JetLog`], following the log, and the lease and follower tasks, which end at `shutdown`
 /// (the node's, or the scene's close on this node). Must run inside the runtime `exec` names.
 #[allow(clippy::too_many_arguments)]
 pub async fn open_scene<J: Jet>(
@@ -56,6 +56,7 @@ pub async fn open_scene<J: Jet>(
     node: &str,
     instance: &str,
     name: String,
+    log: &str,
     mut loaded: ClusterLoaded,
     metrics: Arc<Metrics>,
     config: OwnerConfig,
@@ -64,11 +65,11 @@ pub async fn open_scene<J: Jet>(
 ) -> anyhow::Result<Opened<J>> {
     let lease = Arc::new(LeaseClock::default());
     let start = loaded.pos + 1;
-    let log = JetLog::open(jet.clone(), exec, node, &name, &mut loaded, lease.clone()).await?;
+    let jet_log = JetLog::open(jet.clone(), exec, node, log, &mut loaded, lease.clone()).await?;
     let (owner, handle, commands) = scene::open(
         name.clone(),
         loaded.loaded,
-        Box::new(log),
+        Box::new(jet_log),
         metrics.clone(),
         config,
         clock,
@@ -76,17 +77,19 @@ pub async fn open_scene<J: Jet>(
     let (owner_tx, owner_rx) = signal::channel(None);
     let link = SceneLink {
         jet: jet.clone(),
-        subject: jetlog::edit_subject(&name),
+        log: log.to_string(),
+        subject: jetlog::edit_subject(log),
         owner: owner_rx,
         instance: instance.to_string(),
     };
     let stream = jet
-        .stream(&name, false)
+        .stream(log, false)
         .await
         .map_err(|e| anyhow::anyhow!("scene {name}: opening the log stream: {e}"))?;
     tokio::spawn(follow(stream, start, handle.clone(), shutdown.clone()));
     tokio::spawn(hold_lease(LeaseTask {
         scene: handle.clone(),
+        log: log.to_string(),
         jet: jet.clone(),
         node: node.to_string(),
         owner: owner_tx,
@@ -104,10 +107,12 @@ pub async fn open_scene<J: Jet>(
 
 /// Starts serving a scene loaded from the cluster on this node: [`open_scene`], its owner on
 /// a thread of its own, and presence across nodes.
+#[allow(clippy::too_many_arguments)]
 pub async fn start_scene(
     cluster: &Cluster,
     node: &str,
     name: String,
+    log: &str,
     loaded: ClusterLoaded,
     metrics: Arc<Metrics>,
     config: OwnerConfig,
@@ -120,6 +125,7 @@ pub async fn start_scene(
         node,
         &super::name::process_instance(),
         name,
+        log,
         loaded,
         metrics.clone(),
         config,
@@ -227,6 +233,8 @@ async fn follow<S: LogStream>(
 
 struct LeaseTask<J: Jet> {
     scene: SceneHandle,
+    /// The scene's log key: the lease's key in `brickcast_owners`.
+    log: String,
     jet: J,
     node: String,
     /// Who the lease names, for this node's sessions (see `forward.rs`).
@@ -245,7 +253,7 @@ impl<J: Jet> LeaseTask<J> {
         let node = Bytes::from(self.node.clone());
         match self
             .jet
-            .kv_update(Bucket::Owners, &self.scene.name, node, *revision)
+            .kv_update(Bucket::Owners, &self.log, node, *revision)
             .await
         {
             Ok(r) => {
@@ -274,7 +282,7 @@ impl<J: Jet> LeaseTask<J> {
     async fn release(&self, revision: u64) {
         let _ = self
             .jet
-            .kv_delete(Bucket::Owners, &self.scene.name, Some(revision))
+            .kv_delete(Bucket::Owners, &self.log, Some(revision))
             .await;
     }
 
@@ -287,6 +295,7 @@ impl<J: Jet> LeaseTask<J> {
                 self.jet.clone(),
                 self.scene.clone(),
                 self.node.clone(),
+                self.log.clone(),
             )));
         }
         let (done, mut answer) = oneshot::channel();
@@ -391,7 +400,7 @@ async fn hold_lease<J: Jet>(mut task: LeaseTask<J>) {
             continue;
         }
         // Who holds it now (for this node's sessions); nobody: try to take it.
-        match task.jet.kv_get(Bucket::Owners, &task.scene.name).await {
+        match task.jet.kv_get(Bucket::Owners, &task.log).await {
             Ok(Some(holder)) => {
                 free_since = None;
                 let holder = String::from_utf8_lossy(&holder.value).into_owned();
@@ -421,11 +430,7 @@ async fn hold_lease<J: Jet>(mut task: LeaseTask<J>) {
         }
         let sent = Instant::now();
         let node = Bytes::from(task.node.clone());
-        let Ok(revision) = task
-            .jet
-            .kv_create(Bucket::Owners, &task.scene.name, node)
-            .await
-        else {
+        let Ok(revision) = task.jet.kv_create(Bucket::Owners, &task.log, node).await else {
             // Another node holds it (or NATS is away): look again later.
             continue;
         };
@@ -439,8 +444,8 @@ async fn hold_lease<J: Jet>(mut task: LeaseTask<J>) {
 
 /// Forwarded edits for the scene, while this node leads it, in arrival order; each answer is
 /// published once the owner gives it, in the same order.
-async fn take_edits<J: Jet>(jet: J, scene: SceneHandle, node: String) {
-    let subject = owner_subject(&jetlog::edit_subject(&scene.name), &node);
+async fn take_edits<J: Jet>(jet: J, scene: SceneHandle, node: String, log: String) {
+    let subject = owner_subject(&jetlog::edit_subject(&log), &node);
     let mut sub = match jet.subscribe(subject).await {
         Ok(s) => s,
         Err(e) => {

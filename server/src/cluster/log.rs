@@ -166,10 +166,14 @@ fn split(turn: Turn, limit: usize, scene: &str) -> Result<Vec<Vec<u8>>, LogError
     Ok(out)
 }
 
-/// NATS names for a scene: streams allow letters, digits, `-` and `_`; scene names also allow
-/// `.` (a subject separator). `_` → `__`, `.` → `_d`: one-to-one.
+/// NATS names for a scene's log key (or a node's name): streams allow letters, digits, `-`
+/// and `_`; scene names also allow `.` (a subject separator), and log keys `=`.
+/// `_` → `__`, `.` → `_d`, `=` → `_e`: one-to-one.
 pub fn token(scene: &str) -> String {
-    scene.replace('_', "__").replace('.', "_d")
+    scene
+        .replace('_', "__")
+        .replace('.', "_d")
+        .replace('=', "_e")
 }
 
 pub fn stream_name(scene: &str) -> String {
@@ -948,6 +952,9 @@ mod tests {
         assert_ne!(token("a_d"), token("a.")); // "a__d" vs "a_d"
         assert_eq!(stream_name("x.y"), "BRICKCAST_LOG_x_dy");
         assert_eq!(log_subject("x.y"), "brickcast.log.x_dy");
+        // A fresh log key never shares a stream with a scene name.
+        assert_eq!(stream_name("x=12"), "BRICKCAST_LOG_x_e12");
+        assert_ne!(token("a=1"), token("a_e1")); // "a_e1" vs "a__e1"
     }
 
     #[test]

@@ -29,16 +29,18 @@
 //!   a full roster every second).
 //! * `status.rs` — `brickcast-server cluster status` (and each node's answer to it).
 //!
-//! NATS layout (names in [`log`]): key-value buckets `brickcast_owners` (scene → owner node,
-//! entries expire after [`LEASE_TTL`] without renewal), `brickcast_nodes` (node name → the
-//! running instance, expiring after [`NODE_TTL`]), `brickcast_scenes` (scene → size: the
-//! cluster's scene list); object store `brickcast_snapshots` (scene → base snapshot, `scene+N`
-//! → its deltas); one stream `BRICKCAST_LOG_<scene>` per scene; core subjects
-//! `brickcast.edit.<scene>.<node>` for forwarded edits, `brickcast.presence.<scene>` for
+//! NATS layout (names in [`log`]; `<log>` is a scene's log key, see [`SceneEntry`]): key-value
+//! buckets `brickcast_owners` (log key → owner node, entries expire after [`LEASE_TTL`]
+//! without renewal), `brickcast_nodes` (node name → the running instance, expiring after
+//! [`NODE_TTL`]), `brickcast_scenes` (scene → size and log key: the cluster's scene list);
+//! object store `brickcast_snapshots` (`<log>` → base snapshot, `<log>+N` → its deltas); one
+//! stream `BRICKCAST_LOG_<log>` per scene; core subjects `brickcast.edit.<log>.<node>` for
+//! forwarded edits, `brickcast.presence.<scene>` for
 //! presence and `brickcast.status.<node>` for `cluster status`.
 
 pub mod catalog;
 pub mod deleted;
+mod entry;
 pub mod forward;
 pub mod jet;
 pub mod kick;
@@ -58,6 +60,7 @@ use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
+pub use entry::SceneEntry;
 pub use forward::SceneLink;
 pub use jet::{Jet, PortError};
 pub use lease::{open_scene, start_scene};
@@ -113,12 +116,6 @@ impl From<PortError> for ClusterError {
     fn from(e: PortError) -> ClusterError {
         ClusterError::Nats(e.to_string())
     }
-}
-
-/// What the scene list in `brickcast_scenes` says of a scene.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct SceneEntry {
-    pub size: [u32; 3],
 }
 
 /// What `brickcast_nodes` says of a running node.

@@ -89,9 +89,16 @@ impl Repaired {
 
 /// Repairs `scene` (see the module doc). Changes nothing when its log can be followed.
 pub async fn repair<J: Jet>(jet: &J, scene: &str) -> Result<Repaired, ClusterError> {
-    if scene_entry(jet, scene).await?.is_none() {
+    let Some(entry) = scene_entry(jet, scene).await? else {
         return Err(ClusterError::UnknownScene(scene.into()));
-    }
+    };
+    let mut repaired = repair_log(jet, entry.log_key(scene)).await?;
+    repaired.scene = scene.into();
+    Ok(repaired)
+}
+
+/// [`repair`] of the log whose key is `scene` (its name, unless it was renamed or reset).
+async fn repair_log<J: Jet>(jet: &J, scene: &str) -> Result<Repaired, ClusterError> {
     match load(jet, scene).await {
         Ok(loaded) => {
             return Ok(Repaired {

@@ -91,27 +91,30 @@ pub async fn status(jet: &impl Jet) -> Result<Status, ClusterError> {
     }
     let mut scenes = Vec::new();
     for name in scene_names(jet).await? {
-        let size = match jet.kv_get(Bucket::Scenes, &name).await {
-            Ok(Some(v)) => serde_json::from_slice::<SceneEntry>(&v.value)
-                .map(|e| e.size)
-                .unwrap_or([0; 3]),
+        let entry = match jet.kv_get(Bucket::Scenes, &name).await {
+            Ok(Some(v)) => serde_json::from_slice::<SceneEntry>(&v.value).ok(),
             Ok(None) => continue,
             Err(e) => return Err(ClusterError::Nats(format!("reading the scene list: {e}"))),
         };
+        let size = entry.as_ref().map_or([0; 3], |e| e.size);
+        let log = entry
+            .as_ref()
+            .map_or(name.as_str(), |e| e.log_key(&name))
+            .to_string();
         let owner = jet
-            .kv_get(Bucket::Owners, &name)
+            .kv_get(Bucket::Owners, &log)
             .await
             .ok()
             .flatten()
             .map(|v| String::from_utf8_lossy(&v.value).into_owned());
-        let (log_messages, log_last) = match jet.stream(&name, false).await {
+        let (log_messages, log_last) = match jet.stream(&log, false).await {
             Ok(stream) => match stream.bounds().await {
                 Ok((_, last, messages)) => (messages, last),
                 Err(e) => return Err(ClusterError::Nats(format!("reading a log stream: {e}"))),
             },
             Err(_) => (0, 0),
         };
-        let described = super::snapshot::newest(jet, &name).await;
+        let described = super::snapshot::newest(jet, &log).await;
         scenes.push(SceneStatus {
             name,
             size,

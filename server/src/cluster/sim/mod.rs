@@ -11,7 +11,8 @@
 //! * **never two appenders**: every turn that orders edits comes from the node whose claim
 //!   (marker) is the last before it, and the log's sequence goes on by one;
 //! * **replicas are the log**: every node serving the scene holds exactly the log's scene at
-//!   its sequence;
+//!   its sequence, a second copy of the same log on one node too (what a node serves while a
+//!   rename reaches it: the old name and the new, one lease key, one node name);
 //! * **one process per name**: two processes of one node name never both run for long;
 //! * **liveness**: once the faults heal (pauses end, the dead restart, an operator repairs a
 //!   log with garbage in it), every node has an edit acknowledged within a bound, and every
@@ -90,6 +91,7 @@ pub struct SimStats {
     pub garbage: u64,
     pub repairs: u64,
     pub gave_up: u64,
+    pub second_names: u64,
 }
 
 impl crate::sim::seeds::Tally for SimStats {
@@ -108,6 +110,7 @@ impl crate::sim::seeds::Tally for SimStats {
         self.garbage += o.garbage;
         self.repairs += o.repairs;
         self.gave_up += o.gave_up;
+        self.second_names += o.second_names;
     }
 }
 
@@ -474,6 +477,24 @@ impl Sim {
                     .publish_unfenced(SCENE, Bytes::from(bytes));
                 self.note(format!("garbage published on the log: message {pos}"));
             }
+            95..99 => {
+                // A rename reaching this node: the scene's log served under a second name
+                // beside the first for a while, people editing through both.
+                let Some(i) = self.pick_alive() else { return };
+                if self.procs[i].has_second() {
+                    return;
+                }
+                let lasting = Duration::from_millis(self.rng.random_range(1000..10000));
+                self.stats.second_names += 1;
+                self.procs[i].open_second(self.now + lasting);
+                let what = format!(
+                    "{}#{} serves the scene under a second name for {:.3}s",
+                    self.procs[i].name,
+                    self.procs[i].id,
+                    lasting.as_secs_f64()
+                );
+                self.note(what);
+            }
             _ => {}
         }
     }
@@ -576,7 +597,7 @@ impl Sim {
             if !p.alive() {
                 continue;
             }
-            if let Some((seq, hash)) = p.replica() {
+            for (seq, hash) in p.replicas() {
                 check!(
                     seq <= self.truth.seq,
                     "{}#{} is at sequence {seq}, past the log's {}",
@@ -714,7 +735,7 @@ impl Sim {
         let firsts: BTreeMap<u64, u32> = self
             .procs
             .iter()
-            .flat_map(|p| p.clients.iter().map(|c| (c.user, c.next_k)))
+            .flat_map(|p| p.clients().map(|c| (c.user, c.next_k)))
             .collect();
         // Every process running (now or later): whether one of its edits made since landed.
         let mut acked_after: BTreeMap<u64, bool> = BTreeMap::new();
@@ -725,7 +746,7 @@ impl Sim {
                     acked_after.remove(&p.id);
                     continue;
                 }
-                let acked = p.clients.iter().any(|c| {
+                let acked = p.clients().any(|c| {
                     let first = firsts.get(&c.user).copied().unwrap_or(0);
                     let from = EditKey {
                         user: c.user,

@@ -84,6 +84,16 @@ pub struct Client {
     pub next_k: u32,
 }
 
+impl Client {
+    fn new(user: u64) -> Client {
+        Client {
+            user,
+            session: None,
+            next_k: 0,
+        }
+    }
+}
+
 /// The scene, as served on this process.
 enum SceneSlot {
     Closed {
@@ -97,12 +107,43 @@ enum SceneSlot {
     Open(Box<OpenScene>),
 }
 
+impl SceneSlot {
+    fn leading(&self) -> bool {
+        match self {
+            SceneSlot::Open(s) => s
+                .handle
+                .info
+                .leading
+                .load(std::sync::atomic::Ordering::Relaxed),
+            _ => false,
+        }
+    }
+
+    fn replica(&self) -> Option<(u64, u64)> {
+        match self {
+            SceneSlot::Open(s) => Some((s.owner.seq(), s.owner.map().content_hash())),
+            _ => None,
+        }
+    }
+}
+
 struct OpenScene {
     owner: Owner,
     commands: mpsc::Receiver<Command>,
     handle: SceneHandle,
     link: SceneLink<SimJet>,
     close: signal::Sender<bool>,
+}
+
+/// One copy of the scene on a process, and the people editing through it.
+struct Copy {
+    /// The scene's name on this copy (both copies follow the log keyed [`SCENE`]).
+    name: String,
+    slot: SceneSlot,
+    clients: Vec<Client>,
+    /// A second copy closes at this world time (as a renamed scene's old name does).
+    until: Option<Duration>,
+    last_step: Duration,
 }
 
 /// What a process reports to the simulation after a step.
@@ -127,19 +168,25 @@ pub struct Process {
     pub status: Status,
     boot: Option<tokio::task::JoinHandle<Result<NodeName, ClusterError>>>,
     node_name: Option<NodeName>,
-    scene: SceneSlot,
+    /// The scene under its name (always wanted), and for a while a second copy of the same
+    /// log under another name: what a node serves while a rename reaches it (the old name
+    /// still open, the new one opened), each with its own clients.
+    copies: Vec<Copy>,
     /// World time until which the process is stopped (SIGSTOP).
     pub paused_until: Option<Duration>,
-    pub clients: Vec<Client>,
     metrics: Arc<Metrics>,
     config: OwnerConfig,
     next_session: u64,
-    last_step: Duration,
+    /// Close signals of second copies, kept until their tasks have ended.
+    closing: Vec<signal::Sender<bool>>,
+    /// The next edit number of the second copy's user (edits are told apart by user and
+    /// number, across second copies too).
+    second_next_k: u32,
     /// Whether it owned the scene when told to stop, and its sequence once stopped (the stop
     /// must leave a snapshot of it).
     pub stopped_leading: Option<u64>,
-    /// While stopping: the closed scene's signal, whose receivers (its tasks) end last.
-    stopping_close: Option<signal::Sender<bool>>,
+    /// While stopping: the closed copies' signals, whose receivers (their tasks) end last.
+    stopping_close: Vec<signal::Sender<bool>>,
 }
 
 impl Process {
@@ -185,24 +232,23 @@ impl Process {
             status: Status::Booting,
             boot: Some(boot),
             node_name: None,
-            scene: SceneSlot::Closed {
-                retry_at: Duration::ZERO,
-            },
+            copies: vec![Copy {
+                name: SCENE.to_string(),
+                slot: SceneSlot::Closed {
+                    retry_at: Duration::ZERO,
+                },
+                clients: users.into_iter().map(Client::new).collect(),
+                until: None,
+                last_step: Duration::ZERO,
+            }],
             paused_until: None,
-            clients: users
-                .into_iter()
-                .map(|user| Client {
-                    user,
-                    session: None,
-                    next_k: 0,
-                })
-                .collect(),
             metrics: Arc::new(Metrics::default()),
             config,
             next_session: 1,
-            last_step: Duration::ZERO,
+            closing: Vec::new(),
+            second_next_k: 0,
             stopped_leading: None,
-            stopping_close: None,
+            stopping_close: Vec::new(),
         }
     }
 
@@ -214,39 +260,76 @@ impl Process {
         self.paused_until.is_some_and(|t| now < t)
     }
 
-    /// Whether it serves the scene and its owner orders edits.
+    /// Whether a copy of the scene here has its owner ordering edits.
     pub fn leading(&self) -> bool {
-        match &self.scene {
-            SceneSlot::Open(s) => s
-                .handle
-                .info
-                .leading
-                .load(std::sync::atomic::Ordering::Relaxed),
-            _ => false,
-        }
+        self.copies.iter().any(|c| c.slot.leading())
     }
 
-    /// Its owner's sequence and map hash, while it serves the scene.
+    /// Its owner's sequence and map hash, while it serves the scene under its name.
     pub fn replica(&self) -> Option<(u64, u64)> {
-        match &self.scene {
-            SceneSlot::Open(s) => Some((s.owner.seq(), s.owner.map().content_hash())),
-            _ => None,
+        self.copies[0].slot.replica()
+    }
+
+    /// Every copy's sequence and map hash (a second copy's too).
+    pub fn replicas(&self) -> Vec<(u64, u64)> {
+        self.copies
+            .iter()
+            .filter_map(|c| c.slot.replica())
+            .collect()
+    }
+
+    /// The clients of the scene under its name.
+    pub fn clients(&self) -> impl Iterator<Item = &Client> {
+        self.copies[0].clients.iter()
+    }
+
+    /// Whether a second copy is open or opening.
+    pub fn has_second(&self) -> bool {
+        self.copies.len() > 1
+    }
+
+    /// Opens a second copy of the scene's log under another name, closed at world time
+    /// `until`, with one client of its own (user `10 id + 2`).
+    pub fn open_second(&mut self, until: Duration) {
+        if self.has_second() || self.status != Status::Up {
+            return;
         }
+        let name = format!("{SCENE}-renamed");
+        let slot = self.open(&name);
+        let user = 10 * self.id + 2;
+        // The second copy's client starts where an earlier one of its user stopped.
+        let next_k = self.second_next_k;
+        self.copies.push(Copy {
+            name,
+            slot,
+            clients: vec![Client {
+                user,
+                session: None,
+                next_k,
+            }],
+            until: Some(until),
+            last_step: Duration::ZERO,
+        });
     }
 
     /// Where its replica stands, for a report: sequence, log position, whether it leads.
     pub fn describe(&self) -> String {
-        match &self.scene {
-            SceneSlot::Open(s) => format!(
-                "seq {} pos {} leading {} lease owner {:?}",
-                s.owner.seq(),
-                s.owner.position(),
-                self.leading(),
-                s.link.owner.get()
-            ),
-            SceneSlot::Opening(..) => "opening".into(),
-            SceneSlot::Closed { .. } => "closed".into(),
+        let mut out = Vec::new();
+        for copy in &self.copies {
+            let state = match &copy.slot {
+                SceneSlot::Open(s) => format!(
+                    "seq {} pos {} leading {} lease owner {:?}",
+                    s.owner.seq(),
+                    s.owner.position(),
+                    copy.slot.leading(),
+                    s.link.owner.get()
+                ),
+                SceneSlot::Opening(..) => "opening".into(),
+                SceneSlot::Closed { .. } => "closed".into(),
+            };
+            out.push(format!("{}: {state}", copy.name));
         }
+        out.join("; ")
     }
 
     /// Runs the process's tasks up to world time `now`. A process waking from a pause finds
@@ -287,13 +370,18 @@ impl Process {
                 .push(format!("{}#{} stops: {why}", self.name, self.id));
             self.terminate(now);
         }
-        self.tend_scene(now, &mut events);
+        for i in 0..self.copies.len() {
+            self.tend_scene(i, now, &mut events);
+        }
+        self.close_second(now, &mut events);
         if let Status::Stopping { since } = self.status {
             self.finish_stop(now, since, &mut events);
             return events;
         }
         if self.status == Status::Up {
-            self.tend_clients(edit_chance, rng, &mut events);
+            for i in 0..self.copies.len() {
+                self.tend_clients(i, edit_chance, rng, &mut events);
+            }
         }
         events
     }
@@ -315,8 +403,10 @@ impl Process {
         }
     }
 
-    fn open(&mut self) {
+    /// Opens a copy of the scene's log (keyed [`SCENE`]) under `scene_name`.
+    fn open(&self, scene_name: &str) -> SceneSlot {
         let jet = self.jet.clone();
+        let scene_name = scene_name.to_string();
         let exec = Exec::Own(self.rt.clone());
         let name = self.name.clone();
         let instance = format!("{}#{}", self.name, self.id);
@@ -333,70 +423,63 @@ impl Process {
         let task = self.rt.spawn(async move {
             let loaded = jetlog::load(&jet, SCENE).await?;
             crate::cluster::open_scene(
-                &jet,
-                exec,
-                &name,
-                &instance,
-                SCENE.to_string(),
-                loaded,
-                metrics,
-                config,
-                clock,
+                &jet, exec, &name, &instance, scene_name, SCENE, loaded, metrics, config, clock,
                 closed,
             )
             .await
         });
-        self.scene = SceneSlot::Opening(task, close);
+        SceneSlot::Opening(task, close)
     }
 
-    fn tend_scene(&mut self, now: Duration, events: &mut Events) {
-        match &mut self.scene {
+    /// Copy `i`: opens it when closed (again after a failed open), takes it in when loaded, and steps its owner as the owner thread does.
+    fn tend_scene(&mut self, i: usize, now: Duration, events: &mut Events) {
+        let label = format!("{}#{} ({})", self.name, self.id, self.copies[i].name);
+        let mut slot = std::mem::replace(
+            &mut self.copies[i].slot,
+            SceneSlot::Closed {
+                retry_at: Duration::MAX,
+            },
+        );
+        match &mut slot {
             SceneSlot::Closed { retry_at } => {
                 if self.status == Status::Up && now >= *retry_at {
-                    self.open();
+                    slot = self.open(&self.copies[i].name);
                 }
             }
             SceneSlot::Opening(task, _) => {
-                if !task.is_finished() {
-                    return;
-                }
-                let SceneSlot::Opening(task, close) = std::mem::replace(
-                    &mut self.scene,
-                    SceneSlot::Closed {
-                        retry_at: now + Duration::from_secs(1),
-                    },
-                ) else {
-                    unreachable!()
-                };
-                match self.rt.block_on(task) {
-                    Ok(Ok(opened)) => {
-                        let Opened {
-                            owner,
-                            handle,
-                            commands,
-                            link,
-                        } = opened;
-                        events.notes.push(format!(
-                            "{}#{} opened the scene at {}",
-                            self.name,
-                            self.id,
-                            owner.seq()
-                        ));
-                        self.scene = SceneSlot::Open(Box::new(OpenScene {
-                            owner,
-                            commands,
-                            handle,
-                            link,
-                            close,
-                        }));
+                if task.is_finished() {
+                    let SceneSlot::Opening(task, close) = std::mem::replace(
+                        &mut slot,
+                        SceneSlot::Closed {
+                            retry_at: now + Duration::from_secs(1),
+                        },
+                    ) else {
+                        unreachable!()
+                    };
+                    match self.rt.block_on(task) {
+                        Ok(Ok(opened)) => {
+                            let Opened {
+                                owner,
+                                handle,
+                                commands,
+                                link,
+                            } = opened;
+                            events
+                                .notes
+                                .push(format!("{label} opened the scene at {}", owner.seq()));
+                            slot = SceneSlot::Open(Box::new(OpenScene {
+                                owner,
+                                commands,
+                                handle,
+                                link,
+                                close,
+                            }));
+                        }
+                        Ok(Err(e)) => events
+                            .notes
+                            .push(format!("{label} cannot open the scene: {e:#}")),
+                        Err(e) => events.notes.push(format!("{label} open failed: {e}")),
                     }
-                    Ok(Err(e)) => events.notes.push(format!(
-                        "{}#{} cannot open the scene: {e:#}",
-                        self.name, self.id
-                    )),
-                    Err(e) => events
-                        .notes
-                        .push(format!("{}#{} open failed: {e}", self.name, self.id)),
                 }
             }
             SceneSlot::Open(scene) => {
@@ -404,52 +487,82 @@ impl Process {
                 while let Ok(cmd) = scene.commands.try_recv() {
                     commands.push(cmd);
                 }
-                if commands.is_empty() && now.saturating_sub(self.last_step) < IDLE_STEP {
-                    return;
-                }
-                self.last_step = now;
-                // As the owner thread does (`scene::run`).
-                let stop = match scene.owner.step(commands, &mut PhaseClock::start()) {
-                    Ok(stop) => stop,
-                    Err(e) => {
-                        events
-                            .notes
-                            .push(format!("{}#{} owner error: {e}", self.name, self.id));
-                        scene.owner.fail_all(&e.to_string());
-                        true
-                    }
-                };
-                if stop {
-                    let mut rest = Vec::new();
-                    while let Ok(cmd) = scene.commands.try_recv() {
-                        rest.push(cmd);
-                    }
-                    if let Err(e) = scene.owner.stop(rest) {
-                        events
-                            .notes
-                            .push(format!("{}#{} stop error: {e}", self.name, self.id));
-                    }
-                    events.notes.push(format!(
-                        "{}#{} took the scene out of service at {}",
-                        self.name,
-                        self.id,
-                        scene.owner.seq()
-                    ));
-                    scene.close.send_replace(true);
-                    self.scene = SceneSlot::Closed {
-                        retry_at: now + Duration::from_secs(2),
+                let idle = now.saturating_sub(self.copies[i].last_step) < IDLE_STEP;
+                if !(commands.is_empty() && idle) {
+                    self.copies[i].last_step = now;
+                    // As the owner thread does (`scene::run`).
+                    let stop = match scene.owner.step(commands, &mut PhaseClock::start()) {
+                        Ok(stop) => stop,
+                        Err(e) => {
+                            events.notes.push(format!("{label} owner error: {e}"));
+                            scene.owner.fail_all(&e.to_string());
+                            true
+                        }
                     };
+                    if stop {
+                        let mut rest = Vec::new();
+                        while let Ok(cmd) = scene.commands.try_recv() {
+                            rest.push(cmd);
+                        }
+                        if let Err(e) = scene.owner.stop(rest) {
+                            events.notes.push(format!("{label} stop error: {e}"));
+                        }
+                        events.notes.push(format!(
+                            "{label} took the scene out of service at {}",
+                            scene.owner.seq()
+                        ));
+                        scene.close.send_replace(true);
+                        slot = SceneSlot::Closed {
+                            retry_at: now + Duration::from_secs(2),
+                        };
+                    }
                 }
             }
         }
+        self.copies[i].slot = slot;
     }
 
-    fn tend_clients(&mut self, edit_chance: f64, rng: &mut impl rand::Rng, events: &mut Events) {
-        let SceneSlot::Open(scene) = &self.scene else {
+    /// A second copy whose time is up closes the way a renamed scene's old name closes on a
+    /// node (`served::close`): its clients are cut off, its owner commits what it has and
+    /// stops, its lease (if it held it) is handed over.
+    fn close_second(&mut self, now: Duration, events: &mut Events) {
+        let due = self.copies.len() > 1
+            && self.copies[1]
+                .until
+                .is_some_and(|t| now >= t || self.status != Status::Up);
+        self.closing.retain(|c| !c.is_closed());
+        if !due {
+            return;
+        }
+        let mut copy = self.copies.pop().expect("checked");
+        for client in &mut copy.clients {
+            self.second_next_k = self.second_next_k.max(client.next_k);
+            if let Some(mut session) = client.session.take() {
+                read_acks(&mut session, &Limits::default(), events);
+                events.gave_up.extend(session.pending.values().copied());
+            }
+        }
+        let (_, close) = close_slot(copy.slot);
+        self.closing.extend(close);
+        events.notes.push(format!(
+            "{}#{} closed its second copy ({})",
+            self.name, self.id, copy.name
+        ));
+    }
+
+    fn tend_clients(
+        &mut self,
+        i: usize,
+        edit_chance: f64,
+        rng: &mut impl rand::Rng,
+        events: &mut Events,
+    ) {
+        let copy = &mut self.copies[i];
+        let SceneSlot::Open(scene) = &copy.slot else {
             return;
         };
         let limits = Limits::default();
-        for client in &mut self.clients {
+        for client in &mut copy.clients {
             if client.session.as_ref().is_some_and(|s| s.out.is_closed()) {
                 let session = client.session.take().expect("checked");
                 // Read what came before the close, then give up on the rest.
@@ -511,8 +624,9 @@ impl Process {
 
     /// Edits this process's clients are still waiting for.
     pub fn pending(&self) -> Vec<EditKey> {
-        self.clients
+        self.copies
             .iter()
+            .flat_map(|c| &c.clients)
             .filter_map(|c| c.session.as_ref())
             .flat_map(|s| s.pending.values().copied())
             .collect()
@@ -525,62 +639,38 @@ impl Process {
         if matches!(self.status, Status::Stopping { .. } | Status::Exited(_)) {
             return;
         }
-        for client in &mut self.clients {
-            client.session = None;
+        let mut closing = std::mem::take(&mut self.closing);
+        for mut copy in std::mem::take(&mut self.copies) {
+            for client in &mut copy.clients {
+                client.session = None;
+            }
+            let slot = std::mem::replace(
+                &mut copy.slot,
+                SceneSlot::Closed {
+                    retry_at: Duration::MAX,
+                },
+            );
+            let (led, close) = close_slot(slot);
+            if let Some(seq) = led {
+                self.stopped_leading = Some(self.stopped_leading.unwrap_or(0).max(seq));
+            }
+            closing.extend(close);
+            // The first copy stays, closed for good; a second one goes.
+            if self.copies.is_empty() {
+                self.copies.push(copy);
+            }
         }
-        let slot = std::mem::replace(
-            &mut self.scene,
-            SceneSlot::Closed {
-                retry_at: Duration::MAX,
-            },
-        );
-        if let SceneSlot::Opening(task, _) = &slot {
-            task.abort();
-        }
-        if let SceneSlot::Open(scene) = slot {
-            let mut scene = *scene;
-            if scene
-                .handle
-                .info
-                .leading
-                .load(std::sync::atomic::Ordering::Relaxed)
-            {
-                self.stopped_leading = Some(scene.owner.seq());
-            }
-            scene.close.send_replace(true);
-            let _ = scene.handle.try_send(Command::Shutdown);
-            let mut commands = Vec::new();
-            while let Ok(cmd) = scene.commands.try_recv() {
-                commands.push(cmd);
-            }
-            // As the owner thread does: the turn that holds the Shutdown, then the rest.
-            let _ = scene.owner.step(commands, &mut PhaseClock::start());
-            let mut rest = Vec::new();
-            while let Ok(cmd) = scene.commands.try_recv() {
-                rest.push(cmd);
-            }
-            let _ = scene.owner.stop(rest);
-            if let Some(seq) = &mut self.stopped_leading {
-                *seq = scene.owner.seq();
-            }
-            // Dropping the owner and its commands: the lease task hands the lease over.
-            drop(scene.owner);
-            drop(scene.commands);
-            // The close signal lives until the stop is finished (`finish_stop`).
-            self.scene = SceneSlot::Closed {
-                retry_at: Duration::MAX,
-            };
-            self.stopping_close = Some(scene.close);
-        }
+        // The close signals live until the stop is finished (`finish_stop`).
+        self.stopping_close = closing;
         self.status = Status::Stopping { since: now };
     }
 
     fn finish_stop(&mut self, now: Duration, since: Duration, events: &mut Events) {
-        let tasks_done = self.stopping_close.as_ref().is_none_or(|c| c.is_closed());
+        let tasks_done = self.stopping_close.iter().all(|c| c.is_closed());
         if !tasks_done && now.saturating_sub(since) < Duration::from_secs(30) {
             return;
         }
-        self.stopping_close = None;
+        self.stopping_close.clear();
         if let Some(name) = self.node_name.take() {
             self.rt.block_on(name.release());
         }
@@ -600,16 +690,57 @@ impl Process {
         // Dropped inside the process's runtime, the owner's log does not wait for (or finish)
         // an upload: a crash runs nothing more. The runtime is never driven again.
         let _inside = self.rt.enter();
-        for client in &mut self.clients {
+        self.copies.truncate(1);
+        for client in &mut self.copies[0].clients {
             client.session = None;
         }
-        self.scene = SceneSlot::Closed {
+        self.copies[0].slot = SceneSlot::Closed {
             retry_at: Duration::MAX,
         };
+        self.closing.clear();
         self.node_name = None;
-        self.stopping_close = None;
+        self.stopping_close.clear();
         self.boot = None;
         self.status = Status::Exited("killed".into());
+    }
+}
+
+/// Closes a copy the one way a node does (`served::close`): its tasks are told, its owner
+/// commits what it has, snapshots and stops (waiting for the upload); dropping the owner, the
+/// lease task hands a held lease over. The owner's sequence if it led, and the close signal
+/// (to keep until its tasks have ended).
+fn close_slot(slot: SceneSlot) -> (Option<u64>, Option<signal::Sender<bool>>) {
+    match slot {
+        SceneSlot::Closed { .. } => (None, None),
+        SceneSlot::Opening(task, _) => {
+            task.abort();
+            (None, None)
+        }
+        SceneSlot::Open(scene) => {
+            let mut scene = *scene;
+            let led = scene
+                .handle
+                .info
+                .leading
+                .load(std::sync::atomic::Ordering::Relaxed);
+            scene.close.send_replace(true);
+            let _ = scene.handle.try_send(Command::Shutdown);
+            let mut commands = Vec::new();
+            while let Ok(cmd) = scene.commands.try_recv() {
+                commands.push(cmd);
+            }
+            // As the owner thread does: the turn that holds the Shutdown, then the rest.
+            let _ = scene.owner.step(commands, &mut PhaseClock::start());
+            let mut rest = Vec::new();
+            while let Ok(cmd) = scene.commands.try_recv() {
+                rest.push(cmd);
+            }
+            let _ = scene.owner.stop(rest);
+            let seq = scene.owner.seq();
+            drop(scene.owner);
+            drop(scene.commands);
+            (led.then_some(seq), Some(scene.close))
+        }
     }
 }
 

@@ -62,8 +62,9 @@ fn the_cluster_survives_random_faults() {
             && stats.name_takeovers > 0
             && stats.outages > 0
             && stats.network_faults > 0
+            && stats.second_names > 0
             && stats.acks > ran,
-        "the seeds must pause owners just under their lease, kill and stop nodes, take names, take NATS down, break the network and acknowledge edits: {stats:?}"
+        "the seeds must pause owners just under their lease, kill and stop nodes, take names, take NATS down, break the network, serve a scene under two names on a node and acknowledge edits: {stats:?}"
     );
     if seeds >= 200 {
         assert!(
