@@ -3,7 +3,8 @@
 //! every node closes it and tells its people; it is kept while a new scene takes its name, and
 //! restored under another name through a third node with every acknowledged edit; renamed and
 //! reset with people on it through other nodes (told why, nothing lost, the old one kept); an
-//! uploaded model is served everywhere, and replaced by another.
+//! uploaded model is served everywhere, and replaced by another; a node with an auth file
+//! refuses whoever is not an admin, and a damaged upload changes nothing.
 
 mod common;
 mod nodes;
@@ -306,4 +307,36 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     let mut now = Client::connect(&url(&b, "carved"), None).await.unwrap();
     now.sync().await;
     assert_eq!(now.map.solid_voxels(), other.solid_voxels());
+
+    // A node with an auth file refuses whoever is not an admin; a damaged upload through it
+    // is refused and changes nothing.
+    let auth = files.path().join("auth");
+    std::fs::write(&auth, "root-secret admin Ops\nalice-secret editor Alice\n").unwrap();
+    let d = Node::start(&nats.url(), "d", &["--auth", &auth.display().to_string()]).await;
+    let nobody = refused(&admin(d.addr, &["delete", "carved", "--yes"], None).await);
+    assert!(nobody.contains("needs an admin token"), "{nobody}");
+    let alice = refused(&admin(d.addr, &["rename", "carved", "x"], Some("alice-secret")).await);
+    assert!(alice.contains("not an admin"), "{alice}");
+    let backup = files.path().join("carved.scene");
+    let backup_arg = backup.display().to_string();
+    ok(&admin(
+        d.addr,
+        &["backup", "carved", "--out", &backup_arg],
+        Some("root-secret"),
+    )
+    .await);
+    let whole = std::fs::read(&backup).unwrap();
+    std::fs::write(&backup, &whole[..whole.len() / 2]).unwrap();
+    let damaged = refused(
+        &admin(
+            d.addr,
+            &["upload", "carved", &backup_arg, "--replace"],
+            Some("root-secret"),
+        )
+        .await,
+    );
+    assert!(damaged.contains("nothing changed"), "{damaged}");
+    let mut still = Client::connect(&url(&a, "carved"), None).await.unwrap();
+    still.sync().await;
+    assert_eq!(still.map.content_hash(), now.map.content_hash());
 }
