@@ -9,7 +9,9 @@
 //! Controls: WASD to fly, Space/E up, Q/C down, mouse look while the middle button is held (or
 //! after Tab, which captures the cursor and aims with a crosshair at the centre); the wheel sets
 //! the speed. Left click removes, right click places, Ctrl+left paints; 1–8 pick a colour, `[` and
-//! `]` set the brush radius (0 edits single voxels, more carves or fills spheres). Ctrl+Z undoes
+//! `]` set the brush radius (0 edits single voxels, more carves or fills spheres). B, X, N, G, T
+//! and I pick the brush, box, line, fill, extrude and picker tools (box and line: drag from one
+//! corner to the other; Alt+click takes a colour with any tool). Ctrl+Z undoes
 //! your own latest edit, Ctrl+Shift+Z or Ctrl+Y redoes it. Where you look and point is shared
 //! with everyone in the scene (at most 20 times a second).
 
@@ -30,9 +32,11 @@ use winit::keyboard::{KeyCode, ModifiersState, PhysicalKey};
 use winit::window::{CursorGrabMode, Window, WindowId};
 
 pub use brickcast_client_core::camera::{FirstView, FlyCamera};
-use brickcast_client_core::camera::{PALETTE, movement};
+use brickcast_client_core::camera::{movement, palette_colour};
 use brickcast_client_core::shading::{NOTE_SECONDS, shading_key};
-use brickcast_client_core::tools::{Button, ray_edit, step_radius};
+use brickcast_client_core::tools::{
+    Action, Button, Context as ToolContext, Tool, Tools, step_radius,
+};
 
 use crate::follow::Follow;
 use crate::gpu::{BackendChoice, GpuContext, GpuScene, Tracer, new_instance};
@@ -109,7 +113,8 @@ struct App {
     cursor: (f64, f64),
     looking: bool,
     captured: bool,
-    colour: usize,
+    colour: Colour,
+    tools: Tools,
     radius: f32,
     last_frame: Instant,
     frames_since_title: u32,
@@ -185,7 +190,8 @@ pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()>
         cursor: (0.0, 0.0),
         looking: false,
         captured: false,
-        colour: 0,
+        colour: palette_colour(0),
+        tools: Tools::default(),
         radius: 0.0,
         last_frame: Instant::now(),
         frames_since_title: 0,
@@ -392,7 +398,6 @@ impl App {
                 notes.push(note.clone());
             }
             notes.push("Ctrl+Z undo, Ctrl+Y redo, F follow".into());
-            let (r, g, b) = PALETTE[self.colour];
             draw_overlay(
                 &mut self.overlay,
                 &OverlayInput {
@@ -402,7 +407,7 @@ impl App {
                         radius: self.radius,
                         ..c
                     }),
-                    colour: Colour::from_rgb8(r, g, b),
+                    colour: self.colour,
                     captured: self.captured,
                     notes,
                     following: self.follow.target,
@@ -453,10 +458,12 @@ impl App {
                 Some(Role::Viewer) => "viewer (read-only)",
                 None => "",
             };
-            let (r, g, b) = PALETTE[self.colour];
+            let [r, g, b] = self.colour.to_rgb8();
             let mut title = format!(
-                "brickcast — {state} — {:.1} fps — {role} — colour #{r:02x}{g:02x}{b:02x} (1-8), brush {} ([ ])",
-                self.fps, self.radius
+                "brickcast — {state} — {:.1} fps — {role} — {} (B X N G T I) — colour #{r:02x}{g:02x}{b:02x} (1-8, Alt+click) — brush {} ([ ])",
+                self.fps,
+                self.tools.tool.name(),
+                self.radius
             );
             if others > 0 {
                 title.push_str(&format!(" — {others} others here"));
@@ -475,26 +482,55 @@ impl App {
         Ok(())
     }
 
-    /// Sends the edit for a click at window position `at`.
-    fn click(&mut self, button: MouseButton) {
+    /// A press (`pressed`) or release of `button` at the pointer: what the tool in use does.
+    fn click(&mut self, button: MouseButton, pressed: bool) {
         let Some(projection) = self.projection else {
             return;
         };
-        if self.live.lock().role != Some(Role::Editor) {
-            tracing::info!("this connection may only watch; edits are ignored");
-            return;
-        }
-        let ray = self.pointer_ray(&projection);
-        let (r, g, b) = PALETTE[self.colour];
-        let colour = Colour::from_rgb8(r, g, b);
-        let paint = self.modifiers.control_key();
         let button = match button {
             MouseButton::Left => Button::Primary,
             MouseButton::Right => Button::Secondary,
             _ => return,
         };
-        self.live
-            .edit(vec![ray_edit(button, &ray, self.radius, paint, colour)]);
+        let pick = self.modifiers.alt_key();
+        let live = self.live.lock();
+        if live.role != Some(Role::Editor) && !(pick || self.tools.tool == Tool::Picker) {
+            drop(live);
+            if pressed {
+                tracing::info!("this connection may only watch; edits are ignored");
+            }
+            return;
+        }
+        let ray = self.pointer_ray(&projection);
+        let cx = ToolContext {
+            radius: self.radius,
+            paint: self.modifiers.control_key(),
+            pick,
+            colour: self.colour,
+            limits: &live.limits,
+            map: live.replica.as_ref().map(|r| &r.map),
+        };
+        let action = if pressed {
+            self.tools.press(button, &ray, &cx)
+        } else {
+            self.tools.release(&ray, &cx)
+        };
+        drop(live);
+        match action {
+            Action::Edit(op) => self.live.edit(vec![op]),
+            Action::Picked(colour) => {
+                self.colour = colour;
+                let [r, g, b] = colour.to_rgb8();
+                self.lighting_note = Some((
+                    format!("took colour #{r:02x}{g:02x}{b:02x}"),
+                    Instant::now(),
+                ));
+            }
+            Action::Nothing(why) if !why.is_empty() => {
+                self.lighting_note = Some((why.to_string(), Instant::now()));
+            }
+            Action::Started | Action::Nothing(_) => {}
+        }
     }
 
     /// The ray under the pointer (the crosshair at the centre while the cursor is captured).
@@ -603,8 +639,14 @@ impl ApplicationHandler for App {
                 }
                 let ctrl = self.modifiers.control_key();
                 let shift = self.modifiers.shift_key();
-                if let Some(note) = shading_key(&mut self.lighting, &format!("{code:?}")) {
+                let name = format!("{code:?}");
+                if let Some(note) = shading_key(&mut self.lighting, &name) {
                     self.lighting_note = Some((note, Instant::now()));
+                    return;
+                }
+                if !ctrl && let Some(tool) = Tool::from_key(&name) {
+                    self.tools.pick_tool(tool);
+                    self.lighting_note = Some((format!("tool: {}", tool.name()), Instant::now()));
                     return;
                 }
                 match code {
@@ -633,7 +675,7 @@ impl ApplicationHandler for App {
                             KeyCode::Digit8,
                         ];
                         if let Some(i) = digits.iter().position(|&d| d == code) {
-                            self.colour = i;
+                            self.colour = palette_colour(i);
                         }
                     }
                 }
@@ -641,8 +683,7 @@ impl ApplicationHandler for App {
             WindowEvent::CursorMoved { position, .. } => self.cursor = (position.x, position.y),
             WindowEvent::MouseInput { state, button, .. } => match (button, state) {
                 (MouseButton::Middle, s) => self.looking = s == ElementState::Pressed,
-                (b, ElementState::Pressed) => self.click(b),
-                _ => {}
+                (b, s) => self.click(b, s == ElementState::Pressed),
             },
             WindowEvent::MouseWheel { delta, .. } => {
                 let steps = match delta {

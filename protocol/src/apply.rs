@@ -8,13 +8,14 @@
 use crate::brick::{BRICK_EDGE, EMPTY_MASK, Mask, mask_set, voxel_bit};
 use crate::colour::Colour;
 use crate::map::{BrickMap, BrushMode, VoxelBox, box_brushes, sphere_bounds, sphere_brushes};
-use crate::trace::{Ray, trace};
-use crate::wire::{EditOp, Limits, RayAction, Rejection};
+use crate::region::{face_region, fill_region, line};
+use crate::trace::{Hit, Ray, trace};
+use crate::wire::{EditOp, Limits, RayAction, Rejection, Shape};
 
 /// An op that passed validation, with a ray op resolved to the voxel or brush it hits: what is
 /// left is certain to apply. Splitting the two lets the server stamp the map with a batch's
 /// sequence number only once something in the batch applies.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum Resolved {
     Set {
         pos: [u32; 3],
@@ -39,6 +40,21 @@ pub enum Resolved {
         mode: BrushMode,
         colour: Colour,
     },
+    /// Voxels a tool found (a fill's region, an extruded face, a line), each set, cleared or
+    /// painted as `mode` says with its own colour.
+    Voxels {
+        mode: BrushMode,
+        voxels: Vec<([u32; 3], Colour)>,
+    },
+}
+
+/// Where a two-point tool's end lands: filling starts from the empty cell in front of the
+/// hit, erasing and painting from the voxel hit.
+fn span_end(hit: &Hit, mode: BrushMode) -> Result<[u32; 3], Rejection> {
+    match mode {
+        BrushMode::Fill => hit.previous.ok_or(Rejection::NothingToPlace),
+        BrushMode::Erase | BrushMode::Paint => Ok(hit.voxel),
+    }
 }
 
 /// Validates `op` against the map's size and `limits` and resolves what it will do, without
@@ -105,6 +121,68 @@ pub fn resolve(map: &BrickMap, op: &EditOp, limits: &Limits) -> Result<Resolved,
                         colour,
                     }
                 }
+                RayAction::Fill { colour, limit } => Resolved::Voxels {
+                    mode: BrushMode::Paint,
+                    voxels: fill_region(map, hit.voxel, limit)?
+                        .into_iter()
+                        .map(|p| (p, colour))
+                        .collect(),
+                },
+                RayAction::Extrude { out, limit } => {
+                    let front = hit.previous.ok_or(Rejection::NothingToPlace)?;
+                    let normal: [i64; 3] =
+                        std::array::from_fn(|i| i64::from(front[i]) - i64::from(hit.voxel[i]));
+                    let face = face_region(map, hit.voxel, normal, limit)?;
+                    let voxels = face.into_iter().filter_map(|p| {
+                        let colour = map.get(p)?;
+                        if out {
+                            let ahead =
+                                std::array::from_fn(|i| (i64::from(p[i]) + normal[i]) as u32);
+                            Some((ahead, colour))
+                        } else {
+                            Some((p, colour))
+                        }
+                    });
+                    Resolved::Voxels {
+                        mode: if out {
+                            BrushMode::Fill
+                        } else {
+                            BrushMode::Erase
+                        },
+                        voxels: voxels.collect(),
+                    }
+                }
+            }
+        }
+        EditOp::Span {
+            from,
+            from_dir,
+            to,
+            to_dir,
+            shape,
+            mode,
+            colour,
+            extent,
+        } => {
+            let end = |origin, dir| {
+                let hit = trace(map, &Ray { origin, dir }).ok_or(Rejection::RayMissed)?;
+                span_end(&hit, mode)
+            };
+            let (a, b) = (end(from, from_dir)?, end(to, to_dir)?);
+            if (0..3).any(|i| a[i].abs_diff(b[i]) >= extent) {
+                return Err(Rejection::TooLarge);
+            }
+            match shape {
+                Shape::Box => Resolved::Box {
+                    min: std::array::from_fn(|i| a[i].min(b[i])),
+                    max: std::array::from_fn(|i| a[i].max(b[i])),
+                    mode,
+                    colour,
+                },
+                Shape::Line => Resolved::Voxels {
+                    mode,
+                    voxels: line(a, b).into_iter().map(|p| (p, colour)).collect(),
+                },
             }
         }
     })
@@ -129,6 +207,16 @@ pub fn apply_resolved(map: &mut BrickMap, op: Resolved) -> u64 {
             mode,
             colour,
         } => map.fill_box(min, max, mode, colour),
+        Resolved::Voxels { mode, voxels } => voxels
+            .into_iter()
+            .map(|(pos, colour)| {
+                u64::from(match mode {
+                    BrushMode::Fill => map.set(pos, colour),
+                    BrushMode::Erase => map.clear(pos),
+                    BrushMode::Paint => map.paint(pos, colour),
+                })
+            })
+            .sum(),
     }
 }
 
@@ -143,6 +231,16 @@ impl Resolved {
             Resolved::Box { min, max, .. } => (0..3)
                 .all(|i| min[i] <= max[i])
                 .then_some(VoxelBox { lo: min, hi: max }),
+            Resolved::Voxels { ref voxels, .. } => {
+                let (first, _) = voxels.first()?;
+                let (lo, hi) = voxels.iter().fold((*first, *first), |(lo, hi), (p, _)| {
+                    (
+                        std::array::from_fn(|i| lo[i].min(p[i])),
+                        std::array::from_fn(|i| hi[i].max(p[i])),
+                    )
+                });
+                Some(VoxelBox { lo, hi })
+            }
         }
     }
 
@@ -183,6 +281,11 @@ impl Resolved {
             } => box_brushes(min, max, within, |cell, brush| {
                 each(cell, brush, mode, colour)
             }),
+            Resolved::Voxels { mode, ref voxels } => {
+                for &(pos, colour) in voxels {
+                    voxel(pos, mode, colour);
+                }
+            }
         }
     }
 }
@@ -313,6 +416,149 @@ mod tests {
         assert_eq!(map.content_hash(), before);
     }
 
+    fn ray(origin: [f32; 3], action: RayAction) -> EditOp {
+        EditOp::Ray {
+            origin,
+            dir: [0.0, -1.0, 0.0],
+            action,
+        }
+    }
+
+    #[test]
+    fn a_fill_recolours_one_connected_colour_and_refuses_a_runaway() {
+        let mut map = ground();
+        let red = Colour::from_rgb8(255, 0, 0);
+        let blue = Colour::from_rgb8(0, 0, 255);
+        map.fill_box([10, 9, 10], [19, 9, 19], BrushMode::Paint, red);
+        map.set([30, 9, 30], red);
+        let limits = Limits::default();
+        let fill = |limit| {
+            ray(
+                [12.5, 60.0, 12.5],
+                RayAction::Fill {
+                    colour: blue,
+                    limit,
+                },
+            )
+        };
+        let before = map.content_hash();
+        assert_eq!(
+            apply_op(&mut map, &fill(99), &limits),
+            Err(Rejection::TooLarge)
+        );
+        assert_eq!(map.content_hash(), before, "a refused fill changes nothing");
+        assert_eq!(apply_op(&mut map, &fill(100), &limits), Ok(100));
+        assert_eq!(map.get([19, 9, 19]), Some(blue));
+        assert_eq!(map.get([30, 9, 30]), Some(red), "not connected");
+        assert_eq!(map.get([20, 9, 19]), Some(Colour::WHITE), "another colour");
+        assert_eq!(
+            apply_op(&mut map, &fill(0), &limits),
+            Err(Rejection::malformed("a tool's voxel limit is 0"))
+        );
+        assert_eq!(
+            apply_op(&mut map, &fill(limits.max_tool_voxels + 1), &limits),
+            Err(Rejection::TooLarge)
+        );
+        map.check_invariants().unwrap();
+    }
+
+    #[test]
+    fn a_face_extrudes_and_intrudes_with_its_colours() {
+        let mut map = BrickMap::new([32, 32, 32]).unwrap();
+        let red = Colour::from_rgb8(255, 0, 0);
+        map.fill_box([4, 0, 4], [9, 3, 9], BrushMode::Fill, Colour::WHITE);
+        map.set([5, 3, 5], red);
+        let limits = Limits::default();
+        let out = ray(
+            [6.5, 30.0, 6.5],
+            RayAction::Extrude {
+                out: true,
+                limit: 1000,
+            },
+        );
+        assert_eq!(apply_op(&mut map, &out, &limits), Ok(35));
+        assert_eq!(map.get([9, 4, 9]), Some(Colour::WHITE));
+        assert_eq!(map.get([5, 4, 5]), None, "another colour is another face");
+        assert_eq!(map.get([10, 4, 9]), None, "one layer, on the face only");
+        let side = EditOp::Ray {
+            origin: [30.5, 2.5, 6.5],
+            dir: [-1.0, 0.0, 0.0],
+            action: RayAction::Extrude {
+                out: false,
+                limit: 1000,
+            },
+        };
+        // The +x side is now five high (the extruded layer joined it) and six deep.
+        assert_eq!(apply_op(&mut map, &side, &limits), Ok(30));
+        assert_eq!(map.get([9, 2, 6]), None);
+        assert_eq!(map.get([8, 2, 6]), Some(Colour::WHITE));
+        let small = ray(
+            [6.5, 30.0, 6.5],
+            RayAction::Extrude {
+                out: true,
+                limit: 10,
+            },
+        );
+        assert_eq!(
+            apply_op(&mut map, &small, &limits),
+            Err(Rejection::TooLarge)
+        );
+        map.check_invariants().unwrap();
+    }
+
+    #[test]
+    fn spans_draw_boxes_and_lines_between_two_hits() {
+        let mut map = ground();
+        let red = Colour::from_rgb8(255, 0, 0);
+        let limits = Limits::default();
+        let span = |shape, mode, extent| EditOp::Span {
+            from: [2.5, 60.0, 3.5],
+            from_dir: [0.0, -1.0, 0.0],
+            to: [12.5, 60.0, 8.5],
+            to_dir: [0.0, -1.0, 0.0],
+            shape,
+            mode,
+            colour: red,
+            extent,
+        };
+        // Filling starts in front of the hits: a box one voxel high on the ground.
+        assert_eq!(
+            apply_op(&mut map, &span(Shape::Box, BrushMode::Fill, 64), &limits),
+            Ok(11 * 6)
+        );
+        assert_eq!(map.get([12, 10, 8]), Some(red));
+        assert_eq!(map.get([2, 10, 3]), Some(red));
+        // Erasing takes the voxels hit: now the red layer, as a line.
+        assert_eq!(
+            apply_op(&mut map, &span(Shape::Line, BrushMode::Erase, 64), &limits),
+            Ok(11)
+        );
+        assert_eq!(map.get([2, 10, 3]), None);
+        assert_eq!(map.get([12, 10, 8]), None);
+        assert_eq!(map.get([3, 10, 3]), Some(red), "beside the line");
+        let before = map.content_hash();
+        assert_eq!(
+            apply_op(&mut map, &span(Shape::Box, BrushMode::Paint, 10), &limits),
+            Err(Rejection::TooLarge),
+            "11 voxels along x is more than the extent allows"
+        );
+        assert_eq!(
+            apply_op(
+                &mut map,
+                &span(Shape::Box, BrushMode::Paint, limits.max_box_extent + 1),
+                &limits
+            ),
+            Err(Rejection::TooLarge)
+        );
+        let mut up = span(Shape::Box, BrushMode::Fill, 64);
+        if let EditOp::Span { to_dir, .. } = &mut up {
+            *to_dir = [0.0, 1.0, 0.0];
+        }
+        assert_eq!(apply_op(&mut map, &up, &limits), Err(Rejection::RayMissed));
+        assert_eq!(map.content_hash(), before);
+        map.check_invariants().unwrap();
+    }
+
     /// Planning an op brick by brick, over brick-aligned parts of the scene (what the server
     /// does for a heavy edit), ends exactly where applying it to the map does.
     #[test]
@@ -381,10 +627,36 @@ mod tests {
                 mode: BrushMode::Paint,
                 colour: red,
             },
+            EditOp::Ray {
+                origin: [40.5, 39.0, 20.5],
+                dir: [0.0, -1.0, 0.0],
+                action: RayAction::Fill {
+                    colour: Colour::from_rgb8(9, 9, 9),
+                    limit: 100_000,
+                },
+            },
+            EditOp::Ray {
+                origin: [50.5, 39.0, 22.5],
+                dir: [0.0, -1.0, 0.0],
+                action: RayAction::Extrude {
+                    out: true,
+                    limit: 100_000,
+                },
+            },
+            EditOp::Span {
+                from: [3.5, 39.0, 3.5],
+                from_dir: [0.0, -1.0, 0.0],
+                to: [60.5, 39.0, 30.5],
+                to_dir: [0.02, -1.0, 0.01],
+                shape: Shape::Line,
+                mode: BrushMode::Fill,
+                colour: red,
+                extent: 256,
+            },
         ];
         let limits = Limits::default();
         for op in ops {
-            let resolved = resolve(&map, &op, &limits).unwrap();
+            let resolved = resolve(&map, &op, &limits).unwrap_or_else(|e| panic!("{op:?}: {e}"));
             let mut bricks: HashMap<[u32; 3], (crate::brick::Mask, Vec<Colour>)> = HashMap::new();
             let mut scratch = [Colour::BLACK; 512];
             for z in (0..48).step_by(16) {

@@ -31,6 +31,7 @@ pub mod journal;
 pub mod lod;
 pub mod map;
 pub mod palette;
+pub mod region;
 pub mod render;
 pub mod replica;
 pub mod roster;

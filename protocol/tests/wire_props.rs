@@ -90,6 +90,8 @@ fn ray_action() -> impl Strategy<Value = RayAction> {
             radius,
             colour
         }),
+        (colour(), any::<u32>()).prop_map(|(colour, limit)| RayAction::Fill { colour, limit }),
+        (any::<bool>(), any::<u32>()).prop_map(|(out, limit)| RayAction::Extrude { out, limit }),
     ]
 }
 
@@ -117,6 +119,27 @@ fn edit_op() -> impl Strategy<Value = EditOp> {
             dir,
             action
         }),
+        (
+            (vec3(), vec3(), vec3(), vec3()),
+            prop_oneof![Just(Shape::Box), Just(Shape::Line)],
+            brush_mode(),
+            colour(),
+            any::<u32>()
+        )
+            .prop_map(
+                |((from, from_dir, to, to_dir), shape, mode, colour, extent)| {
+                    EditOp::Span {
+                        from,
+                        from_dir,
+                        to,
+                        to_dir,
+                        shape,
+                        mode,
+                        colour,
+                        extent,
+                    }
+                }
+            ),
     ]
 }
 
@@ -230,9 +253,14 @@ fn limits() -> impl Strategy<Value = Limits> {
         finite().prop_filter("positive", |r| *r > 0.0),
         1..=u32::MAX,
         1..=u32::MAX,
-        (any::<u32>(), any::<u64>(), 1..=MAX_PRESENCE_HZ),
+        (
+            any::<u32>(),
+            any::<u64>(),
+            1..=MAX_PRESENCE_HZ,
+            1..=u32::MAX,
+        ),
     )
-        .prop_map(|(f, o, b, r, e, s, (steps, bytes, hz))| Limits {
+        .prop_map(|(f, o, b, r, e, s, (steps, bytes, hz, tool))| Limits {
             max_frame_bytes: f,
             max_ops_per_batch: o,
             max_bricks_per_frame: b,
@@ -242,6 +270,7 @@ fn limits() -> impl Strategy<Value = Limits> {
             max_undo_steps: steps,
             max_undo_bytes: bytes,
             presence_hz: hz,
+            max_tool_voxels: tool,
         })
 }
 
@@ -558,7 +587,7 @@ fn raw_frame<T: serde::Serialize>(value: &T) -> Vec<u8> {
 
 #[test]
 fn hello_carries_the_protocol_version() {
-    assert_eq!(PROTOCOL_VERSION, 5);
+    assert_eq!(PROTOCOL_VERSION, 6);
     let bytes = encode_client(&hello()).expect("encode");
     match decode_client(&bytes, &Limits::default()).expect("decode") {
         ClientMsg::Hello { protocol, .. } => assert_eq!(protocol, PROTOCOL_VERSION),
@@ -1281,6 +1310,50 @@ fn validate_checks_bounds_numbers_and_sizes() {
         check(ray([0.0; 3], down, ray_sphere(-1.0))),
         Err(Rejection::InvalidNumber)
     );
+
+    // The tools: a fill's or extrude's limit within the server's, a span's extent within its
+    // largest box and both its rays sound.
+    let fill = |limit| RayAction::Fill { colour: c, limit };
+    assert_eq!(check(ray([0.0; 3], down, fill(1))), Ok(()));
+    assert_eq!(
+        check(ray([0.0; 3], down, fill(limits.max_tool_voxels + 1))),
+        Err(Rejection::TooLarge)
+    );
+    assert!(matches!(
+        check(ray([0.0; 3], down, fill(0))),
+        Err(Rejection::Malformed(_))
+    ));
+    let extrude = RayAction::Extrude {
+        out: true,
+        limit: limits.max_tool_voxels,
+    };
+    assert_eq!(check(ray([0.0; 3], down, extrude)), Ok(()));
+    let span = |to_dir, extent| EditOp::Span {
+        from: [1.0; 3],
+        from_dir: down,
+        to: [-50.0, 3.0, 9.0],
+        to_dir,
+        shape: Shape::Box,
+        mode: BrushMode::Fill,
+        colour: c,
+        extent,
+    };
+    assert_eq!(check(span(down, 16)), Ok(()));
+    assert_eq!(
+        check(span(down, limits.max_box_extent + 1)),
+        Err(Rejection::TooLarge)
+    );
+    assert!(matches!(check(span(down, 0)), Err(Rejection::Malformed(_))));
+    assert_eq!(check(span([0.0; 3], 16)), Err(Rejection::InvalidNumber));
+    assert_eq!(
+        check(span([f32::NAN, 1.0, 0.0], 16)),
+        Err(Rejection::InvalidNumber)
+    );
+    // Charged for what they may do: a fill twice its limit, a box its extent cubed.
+    let size = [512, 512, 512];
+    let walk = 1536;
+    assert_eq!(ray([0.0; 3], down, fill(1000)).work(size), walk + 2000);
+    assert_eq!(span(down, 16).work(size), 2 * walk + 16 * 16 * 16);
 }
 
 #[test]

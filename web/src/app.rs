@@ -12,7 +12,7 @@ use std::rc::Rc;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
-use brickcast_client_core::camera::{FirstView, FlyCamera, PALETTE, movement};
+use brickcast_client_core::camera::{FirstView, FlyCamera, movement, palette_colour};
 use brickcast_client_core::follow::Follow;
 use brickcast_client_core::gpu::tracer::PendingFrame;
 use brickcast_client_core::gpu::{
@@ -23,7 +23,9 @@ use brickcast_client_core::overlay::{OverlayInput, draw as draw_overlay};
 use brickcast_client_core::present::{Presenter, acquire, sync_scene};
 use brickcast_client_core::session::{ClientSeq, Session, Status};
 use brickcast_client_core::shading::{NOTE_SECONDS, SHADING_KEYS, shading_key};
-use brickcast_client_core::tools::{Button, ray_edit, step_radius};
+use brickcast_client_core::tools::{
+    Action, Button, Context as ToolContext, Tool, Tools, step_radius,
+};
 use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, UserId, View};
 use brickcast_protocol::{Camera, Colour, Lighting, Projection};
 use wasm_bindgen::JsCast;
@@ -124,7 +126,11 @@ pub struct App {
     pub locked: bool,
     /// Canvas position of the pointer (CSS pixels).
     pub pointer: (f64, f64),
-    colour: usize,
+    colour: Colour,
+    /// The tool in use, and a drag in progress (box, line).
+    pub tools: Tools,
+    /// Alt held at the last press: any tool picks a colour.
+    pub alt: bool,
     radius: f32,
     follow: Follow,
     overlay: Canvas,
@@ -219,7 +225,9 @@ impl App {
             ctrl: false,
             locked: false,
             pointer: (0.0, 0.0),
-            colour: 0,
+            colour: palette_colour(0),
+            tools: Tools::default(),
+            alt: false,
             radius: 0.0,
             follow: Follow::default(),
             overlay: Canvas::new(1, 1),
@@ -350,10 +358,18 @@ impl App {
                 .and_then(|d| d.parse::<usize>().ok())
             {
                 Some(d @ 1..=8) => {
-                    self.colour = d - 1;
+                    self.set_colour(palette_colour(d - 1));
                     true
                 }
-                _ => false,
+                _ => match Tool::from_key(code) {
+                    Some(tool) if !ctrl => {
+                        self.tools.pick_tool(tool);
+                        page::set_attr("tools", "data-tool", tool.name());
+                        self.note(format!("tool: {}", tool.name()));
+                        true
+                    }
+                    _ => false,
+                },
             },
         };
         let moves = brickcast_client_core::camera::MOVE_KEYS
@@ -432,24 +448,57 @@ impl App {
         p.ray(x, y)
     }
 
-    /// A click (or tap) of `button` at the pointer: the native viewer's tools.
-    pub fn click(&mut self, button: Button) {
-        if self.session.role != Some(Role::Editor) {
-            page::set_text("note", "this link only lets you watch; edits are ignored");
+    /// A press (`pressed`) or release of `button` at the pointer: what the tool in use does
+    /// (the native viewer's tools). A click is a press and a release in one place.
+    pub fn click(&mut self, button: Button, pressed: bool) {
+        let picking = self.alt || self.tools.tool == Tool::Picker;
+        if self.session.role != Some(Role::Editor) && !picking {
+            if pressed {
+                page::set_text("note", "this link only lets you watch; edits are ignored");
+            }
             return;
         }
         let Some(p) = self.projection else { return };
         let ray = self.pointer_ray(&p);
-        let (r, g, b) = PALETTE[self.colour];
-        let op = ray_edit(
-            button,
-            &ray,
-            self.radius,
-            self.ctrl,
-            Colour::from_rgb8(r, g, b),
-        );
-        let msg = self.seq.edit(vec![op]);
-        self.send(&msg);
+        let cx = ToolContext {
+            radius: self.radius,
+            paint: self.ctrl,
+            pick: self.alt,
+            colour: self.colour,
+            limits: &self.session.limits,
+            map: self.session.replica.as_ref().map(|r| &r.map),
+        };
+        let action = if pressed {
+            self.tools.press(button, &ray, &cx)
+        } else {
+            self.tools.release(&ray, &cx)
+        };
+        match action {
+            Action::Edit(op) => {
+                let msg = self.seq.edit(vec![op]);
+                self.send(&msg);
+            }
+            Action::Picked(colour) => {
+                self.set_colour(colour);
+                let [r, g, b] = colour.to_rgb8();
+                self.note(format!("took colour #{r:02x}{g:02x}{b:02x}"));
+            }
+            Action::Nothing(why) if !why.is_empty() => self.note(why.to_string()),
+            Action::Started | Action::Nothing(_) => {}
+        }
+    }
+
+    /// Draws with `colour` from now on (the page's colour chooser shows it).
+    pub fn set_colour(&mut self, colour: Colour) {
+        self.colour = colour;
+        let [r, g, b] = colour.to_rgb8();
+        page::set_value("colour", &format!("#{r:02x}{g:02x}{b:02x}"));
+    }
+
+    /// A note on the status line for a few seconds.
+    fn note(&mut self, text: String) {
+        self.lighting_note = Some((text, page::now_ms()));
+        page::set_text("status", &self.status_line());
     }
 
     /// Shares view and cursor at the server's presence rate, when they changed.
@@ -540,9 +589,10 @@ impl App {
         }
         match self.session.role {
             Some(Role::Editor) => {
-                let (r, g, b) = PALETTE[self.colour];
+                let [r, g, b] = self.colour.to_rgb8();
                 line.push_str(&format!(
-                    " · editor · colour #{r:02x}{g:02x}{b:02x} · brush {}",
+                    " · editor · {} · colour #{r:02x}{g:02x}{b:02x} · brush {}",
+                    self.tools.tool.name(),
                     self.radius
                 ));
             }
@@ -645,7 +695,6 @@ impl App {
                 notes.push(undo.clone());
             }
             notes.extend(lighting_note);
-            let (r, g, b) = PALETTE[self.colour];
             draw_overlay(
                 &mut self.overlay,
                 &OverlayInput {
@@ -655,7 +704,7 @@ impl App {
                         radius: self.radius,
                         ..c
                     }),
-                    colour: Colour::from_rgb8(r, g, b),
+                    colour: self.colour,
                     captured: self.locked,
                     notes,
                     following: self.follow.target,

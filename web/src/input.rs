@@ -2,7 +2,8 @@
 //!
 //! The native viewer's keys (named by `KeyboardEvent.code`, see `camera::MOVE_KEYS`). The mouse
 //! differs where a page must: a drag looks around (a click that did not move edits: left
-//! removes, right places, Ctrl+left paints), a double click locks the pointer for mouse-look with
+//! removes, right places, Ctrl+left paints; with the box and line tools a drag draws from one
+//! corner to the other instead; Alt+click takes a colour), a double click locks the pointer for mouse-look with
 //! a crosshair (Escape releases it, as browsers require). Touch: one finger drags to look and
 //! taps to edit, two fingers drag to fly forward and back.
 
@@ -83,12 +84,22 @@ pub fn listen(app: &Rc<RefCell<App>>) -> Result<(), JsValue> {
         let drag = drag.clone();
         on(&canvas, "mousedown", move |e: MouseEvent| {
             let (x, y) = (f64::from(e.offset_x()), f64::from(e.offset_y()));
-            app.borrow_mut().pointer = (x, y);
+            let mut a = app.borrow_mut();
+            a.pointer = (x, y);
+            a.ctrl = e.ctrl_key() || e.meta_key();
+            a.alt = e.alt_key();
             *drag.borrow_mut() = Drag {
                 down: Some((x, y, e.button())),
                 last: (x, y),
                 ..Drag::default()
             };
+            // Box and line: the press is a corner, the drag draws rather than looks.
+            if a.tools.tool.drags()
+                && !a.alt
+                && let Some(button) = button_of(e.button())
+            {
+                a.click(button, true);
+            }
             e.prevent_default();
         })?;
     }
@@ -108,7 +119,7 @@ pub fn listen(app: &Rc<RefCell<App>>) -> Result<(), JsValue> {
                 if (x - x0).hypot(y - y0) > CLICK_SLOP {
                     d.moved = true;
                 }
-                if d.moved {
+                if d.moved && !a.tools.dragging() {
                     a.look(x - d.last.0, y - d.last.1);
                 }
             }
@@ -121,15 +132,18 @@ pub fn listen(app: &Rc<RefCell<App>>) -> Result<(), JsValue> {
         on(&canvas, "mouseup", move |e: MouseEvent| {
             let mut a = app.borrow_mut();
             a.ctrl = e.ctrl_key() || e.meta_key();
+            a.alt = e.alt_key();
             let d = std::mem::take(&mut *drag.borrow_mut());
             let locked = a.locked;
-            match d.down {
-                Some((_, _, button)) if !d.moved || locked => match button {
-                    0 => a.click(Button::Primary),
-                    2 => a.click(Button::Secondary),
-                    _ => {}
-                },
-                _ => {}
+            let Some(button) = d.down.and_then(|(_, _, b)| button_of(b)) else {
+                return;
+            };
+            if a.tools.dragging() {
+                // The other corner of a box or line.
+                a.click(button, false);
+            } else if !d.moved || locked {
+                a.click(button, true);
+                a.click(button, false);
             }
         })?;
     }
@@ -160,6 +174,15 @@ pub fn listen(app: &Rc<RefCell<App>>) -> Result<(), JsValue> {
         })?;
     }
     touch(app, &canvas, drag)
+}
+
+/// The tool button a mouse button is (left, right).
+fn button_of(button: i16) -> Option<Button> {
+    match button {
+        0 => Some(Button::Primary),
+        2 => Some(Button::Secondary),
+        _ => None,
+    }
 }
 
 fn touch(
@@ -241,7 +264,9 @@ fn touch(
             e.prevent_default();
             let d = std::mem::take(&mut *drag.borrow_mut());
             if d.down.is_some() && !d.moved && e.touches().length() == 0 {
-                app.borrow_mut().click(Button::Primary);
+                let mut a = app.borrow_mut();
+                a.click(Button::Primary, true);
+                a.click(Button::Primary, false);
             }
         })?;
     }

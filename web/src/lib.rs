@@ -78,6 +78,19 @@ impl Viewer {
         app.ctrl = false;
     }
 
+    /// Draws with colour `hex` (`#rrggbb`, the page's colour chooser) from now on.
+    pub fn set_colour(&self, hex: &str) -> Result<(), JsValue> {
+        let colour = brickcast_protocol::Colour::parse_hex(hex)
+            .ok_or_else(|| JsValue::from_str(&format!("{hex:?} is not a colour (#rrggbb)")))?;
+        self.app.borrow_mut().set_colour(colour);
+        Ok(())
+    }
+
+    /// The tool in use (`brush`, `box`, `line`, `fill`, `extrude`, `picker`).
+    pub fn tool(&self) -> String {
+        self.app.borrow().tools.tool.name().to_string()
+    }
+
     /// Traces at 1/`divisor` of the canvas's resolution from now on; 0 lets it adapt again.
     pub fn set_scale(&self, divisor: u32) {
         self.app.borrow_mut().scale.pin(divisor);

@@ -49,3 +49,21 @@ pub fn now_ms() -> f64 {
         .and_then(|w| w.performance())
         .map_or(0.0, |p| p.now())
 }
+
+/// Sets attribute `name` of element `id`, when the page has it.
+pub fn set_attr(id: &str, name: &str, value: &str) {
+    if let Some(e) = element(id) {
+        let _ = e.set_attribute(name, value);
+    }
+}
+
+/// Sets the value of input `id` (the colour chooser), when the page has it.
+pub fn set_value(id: &str, value: &str) {
+    if let Some(e) = document()
+        .and_then(|d| d.get_element_by_id(id))
+        .and_then(|e| e.dyn_into::<web_sys::HtmlInputElement>().ok())
+        && e.value() != value
+    {
+        e.set_value(value);
+    }
+}

@@ -36,6 +36,12 @@ pub const PALETTE: [(u8, u8, u8); 8] = [
     (0x50, 0x48, 0x40),
 ];
 
+/// Colour `i` of [`PALETTE`] (wrapping).
+pub fn palette_colour(i: usize) -> brickcast_protocol::Colour {
+    let (r, g, b) = PALETTE[i % PALETTE.len()];
+    brickcast_protocol::Colour::from_rgb8(r, g, b)
+}
+
 /// A free-flying camera: position plus yaw/pitch, y up.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FlyCamera {

@@ -149,6 +149,8 @@ pub struct Session {
     pub role: Option<Role>,
     /// Largest brush radius the server accepts.
     pub max_radius: f32,
+    /// The limits the server announced (the tools size their edits by them).
+    pub limits: Limits,
     /// Presence messages the server accepts per second.
     pub presence_hz: u32,
     /// Edit ops the server rejected, with the reason of the latest one.
@@ -178,6 +180,7 @@ impl Default for Session {
             status: Status::Connecting,
             role: None,
             max_radius: 0.0,
+            limits: Limits::default(),
             presence_hz: 1,
             rejected: 0,
             last_rejection: None,
@@ -227,6 +230,7 @@ impl Session {
         self.status = Status::Syncing;
         self.role = Some(w.role);
         self.max_radius = w.limits.max_brush_radius;
+        self.limits = w.limits.clone();
         self.presence_hz = w.limits.presence_hz;
         self.connects += 1;
         self.roster.welcome(w.you.clone(), &w.peers);

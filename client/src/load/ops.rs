@@ -244,7 +244,9 @@ mod tests {
                                 && origin[0] <= area.max[0] as f32 + 1.0
                         );
                     }
-                    EditOp::Box { .. } => panic!("no box ops are generated"),
+                    EditOp::Box { .. } | EditOp::Span { .. } => {
+                        panic!("no box or span ops are generated")
+                    }
                 }
                 // Every generated op is valid; rays may miss only if the area were empty.
                 changed += brickcast_protocol::apply::apply_op(&mut map, &op, &limits)

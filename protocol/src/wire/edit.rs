@@ -27,6 +27,23 @@ pub enum RayAction {
         radius: f32,
         colour: Colour,
     },
+    /// Flood fill: recolour the hit voxel and every voxel of its colour connected to it
+    /// through faces. Refused ([`Rejection::TooLarge`]) when that region holds more than
+    /// `limit` voxels (at most [`Limits::max_tool_voxels`]), so a fill never runs away.
+    Fill { colour: Colour, limit: u32 },
+    /// Face extrude (`out`) or intrude: the face under the ray and every face of the same
+    /// plane and colour connected to it (voxels side by side whose neighbour in front is
+    /// empty) grow by one layer of that colour, or lose that layer. At most `limit` voxels.
+    Extrude { out: bool, limit: u32 },
+}
+
+/// What a two-point edit ([`EditOp::Span`]) draws between its two points.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Shape {
+    /// The box with the two points as opposite corners.
+    Box,
+    /// A line one voxel thick from one point to the other.
+    Line,
 }
 
 /// One requested change to the scene, in voxel coordinates.
@@ -61,6 +78,21 @@ pub enum EditOp {
         origin: [f32; 3],
         dir: [f32; 3],
         action: RayAction,
+    },
+    /// A box or a line between the voxels two rays hit (a drag from one to the other), both
+    /// resolved by the server's tracer like [`EditOp::Ray`]: filling starts from the empty
+    /// cells in front of the hits, erasing and painting from the voxels hit. `extent` is the
+    /// most voxels the shape may span along an axis (at most [`Limits::max_box_extent`]): the
+    /// server charges for that much and refuses a larger one.
+    Span {
+        from: [f32; 3],
+        from_dir: [f32; 3],
+        to: [f32; 3],
+        to_dir: [f32; 3],
+        shape: Shape,
+        mode: BrushMode,
+        colour: Colour,
+        extent: u32,
     },
 }
 
@@ -111,20 +143,59 @@ impl EditOp {
                 dir,
                 action,
             } => {
-                if !origin.iter().chain(&dir).all(|v| v.is_finite()) {
-                    return Err(Rejection::InvalidNumber);
-                }
-                let len2: f64 = dir.iter().map(|&d| f64::from(d) * f64::from(d)).sum();
-                if len2 <= 1e-12 {
-                    return Err(Rejection::InvalidNumber);
-                }
+                check_ray(origin, dir)?;
                 match action {
                     RayAction::Sphere { radius, .. } => check_radius(radius, limits),
+                    RayAction::Fill { limit, .. } | RayAction::Extrude { limit, .. } => {
+                        if limit == 0 {
+                            Err(Rejection::malformed("a tool's voxel limit is 0"))
+                        } else if limit > limits.max_tool_voxels {
+                            Err(Rejection::TooLarge)
+                        } else {
+                            Ok(())
+                        }
+                    }
                     RayAction::Remove | RayAction::Place { .. } | RayAction::Paint { .. } => Ok(()),
+                }
+            }
+            EditOp::Span {
+                from,
+                from_dir,
+                to,
+                to_dir,
+                extent,
+                ..
+            } => {
+                check_ray(from, from_dir)?;
+                check_ray(to, to_dir)?;
+                if extent == 0 {
+                    Err(Rejection::malformed("a span's extent is 0"))
+                } else if extent > limits.max_box_extent {
+                    Err(Rejection::TooLarge)
+                } else {
+                    Ok(())
                 }
             }
         }
     }
+
+    /// Whether applying the op reads the map (a ray's target, a fill's region): such ops are
+    /// resolved in the turn that applies them, never planned ahead.
+    pub fn reads_map(&self) -> bool {
+        matches!(self, EditOp::Ray { .. } | EditOp::Span { .. })
+    }
+}
+
+/// A ray's numbers: finite, and a direction that is not zero.
+fn check_ray(origin: [f32; 3], dir: [f32; 3]) -> Result<(), Rejection> {
+    if !origin.iter().chain(&dir).all(|v| v.is_finite()) {
+        return Err(Rejection::InvalidNumber);
+    }
+    let len2: f64 = dir.iter().map(|&d| f64::from(d) * f64::from(d)).sum();
+    if len2 <= 1e-12 {
+        return Err(Rejection::InvalidNumber);
+    }
+    Ok(())
 }
 
 /// Whether `f` holds on every axis.
@@ -135,7 +206,8 @@ fn per_axis<A: Copy, B: Copy>(a: [A; 3], b: [B; 3], f: impl Fn(A, B) -> bool) ->
 impl EditOp {
     /// An upper bound on the work applying the op costs the server, in voxels visited, for a
     /// scene of `scene_size`: 1 for a single voxel, the bounding box (clipped to the scene) for
-    /// a brush, and for a ray the voxels it may cross plus its brush. Brushes rewrite whole
+    /// a brush, for a ray the voxels it may cross plus its brush (a fill or extrude: twice its
+    /// voxel limit), and for a span two rays plus the box (or line) of its extent. Brushes rewrite whole
     /// bricks, so the box is what they cost whether or not a voxel changes.
     ///
     /// The server charges edits by this rather than by op count (one sphere of radius 64 costs
@@ -176,9 +248,22 @@ impl EditOp {
                     RayAction::Sphere { radius, .. } => {
                         sphere(scene_size.map(|s| s as f32 * 0.5), radius)
                     }
+                    // The region it may change; finding it reads about as many again.
+                    RayAction::Fill { limit, .. } | RayAction::Extrude { limit, .. } => {
+                        2 * u64::from(limit)
+                    }
                     _ => 1,
                 };
                 walk + brush
+            }
+            EditOp::Span { shape, extent, .. } => {
+                let walk: u64 = scene_size.iter().map(|&s| u64::from(s)).sum();
+                let side = |i: usize| u64::from(extent.min(scene_size[i]).max(1));
+                let drawn = match shape {
+                    Shape::Box => side(0) * side(1) * side(2),
+                    Shape::Line => side(0) + side(1) + side(2),
+                };
+                2 * walk + drawn
             }
         }
     }

@@ -34,6 +34,8 @@ pub struct Limits {
     pub max_undo_bytes: u64,
     /// Presence messages a client may send per second, and presence frames the server sends.
     pub presence_hz: u32,
+    /// Most voxels one fill or extrude may change (its op's `limit` is at most this).
+    pub max_tool_voxels: u32,
 }
 
 impl Default for Limits {
@@ -48,6 +50,7 @@ impl Default for Limits {
             max_undo_steps: 256,
             max_undo_bytes: 64 << 20,
             presence_hz: 20,
+            max_tool_voxels: 1 << 20,
         }
     }
 }
@@ -67,6 +70,7 @@ impl Limits {
             max_undo_steps: u32::MAX,
             max_undo_bytes: u64::MAX,
             presence_hz: MAX_PRESENCE_HZ,
+            max_tool_voxels: u32::MAX,
         }
     }
 
@@ -116,6 +120,9 @@ impl Limits {
         }
         if self.max_edits_per_second == 0 {
             return invalid("max_edits_per_second", 0.0, "must be at least 1");
+        }
+        if self.max_tool_voxels == 0 {
+            return invalid("max_tool_voxels", 0.0, "must be at least 1");
         }
         if self.presence_hz == 0 || self.presence_hz > MAX_PRESENCE_HZ {
             return invalid(

@@ -41,7 +41,7 @@ pub use collab::{
     Cursor, MAX_DISPLAY_NAME_BYTES, MAX_PEERS_PER_FRAME, Peer, PeerId, PeerState, Refusal, UserId,
     View,
 };
-pub use edit::{BrushMode, EditOp, RayAction, Rejection};
+pub use edit::{BrushMode, EditOp, RayAction, Rejection, Shape};
 pub use error::WireError;
 pub use limits::{Limits, MAX_PRESENCE_HZ};
 pub use message::{Budget, ClientMsg, ErrorCode, OpRejection, Role, ServerMsg};
@@ -53,8 +53,10 @@ pub use names::{MAX_MARKS_PER_LETTER, check_display_name, clean_display_name};
 /// 2 added identity (`Hello.user`, `Welcome.you`/`peers`), presence, undo/redo and the history
 /// and presence limits. 3 added `Refusal::NameTaken`. 4 sends each brick's colours as its
 /// exact colour block ([`crate::palette`]) instead of every voxel's RGB565. 5 added working
-/// sets: `Hello.budget`, `Follow`, `Regions` and `Coarse`.
-pub const PROTOCOL_VERSION: u32 = 5;
+/// sets: `Hello.budget`, `Follow`, `Regions` and `Coarse`. 6 added the editing tools: flood
+/// fill and face extrude ([`RayAction::Fill`], [`RayAction::Extrude`]), boxes and lines
+/// between two rays ([`EditOp::Span`]) and `Limits::max_tool_voxels`.
+pub const PROTOCOL_VERSION: u32 = 6;
 
 /// Largest frame either side will ever encode or decode, whatever a server announces. It is also
 /// bincode's decode limit, the ceiling on what a length prefix can make the decoder reserve.

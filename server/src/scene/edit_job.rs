@@ -11,8 +11,8 @@
 //! replays them whole, to the same bricks) and acknowledges it.
 //!
 //! Only messages whose every op is resolved without the map are planned so: a ray op's target
-//! depends on the map as the turn that applies it finds it, so a message with one is applied
-//! whole, in one turn, as before.
+//! (and a fill's region, a span's ends: `EditOp::reads_map`) depends on the map as the turn
+//! that applies it finds it, so a message with one is applied whole, in one turn, as before.
 
 use std::collections::BTreeSet;
 
@@ -81,7 +81,7 @@ impl EditJob {
 
 impl Owner {
     /// Whether an edit message from `to`, editing as `editor`, is planned across turns: heavy
-    /// enough and free of ray ops. If so it is queued as a job (answered when it is applied)
+    /// enough and free of ops that read the map. If so it is queued as a job (answered when it is applied)
     /// and given back as `None`; otherwise its ops and gate place come back to be applied now.
     pub(super) fn slice_edit(
         &mut self,
@@ -100,7 +100,7 @@ impl Owner {
             .fold(0u64, |sum, op| sum.saturating_add(op.work(size)));
         if !self.may_slice(to)
             || work < u64::from(self.config.slice_bricks).saturating_mul(512)
-            || ops.iter().any(|op| matches!(op, EditOp::Ray { .. }))
+            || ops.iter().any(EditOp::reads_map)
         {
             return Some((ops, admitted));
         }

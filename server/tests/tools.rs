@@ -1,0 +1,228 @@
+//! The editing tools against a real server on loopback (issue #34): flood fill, face extrude
+//! and intrude, boxes and lines between two rays, each resolved on the server's copy and seen
+//! by another editor; a fill too large for its limit is refused and changes nothing; two
+//! people filling one region at once end with one colour on every copy; a tool's edit is one
+//! undo step.
+
+mod common;
+
+use brickcast_protocol::wire::{BrushMode, EditOp, RayAction, Rejection, ServerMsg, Shape};
+use brickcast_protocol::{BrickMap, Colour};
+use common::admin_cli::{admin, ok};
+use common::{Client, TestServer, colour};
+
+const ALICE: u64 = 0xa11ce;
+const BOB: u64 = 0xb0b;
+
+/// A ray straight down onto column (x, z).
+fn down(x: u32, z: u32) -> ([f32; 3], [f32; 3]) {
+    ([x as f32 + 0.5, 63.5, z as f32 + 0.5], [0.0, -1.0, 0.0])
+}
+
+fn ray(x: u32, z: u32, action: RayAction) -> EditOp {
+    let (origin, dir) = down(x, z);
+    EditOp::Ray {
+        origin,
+        dir,
+        action,
+    }
+}
+
+fn span(a: [u32; 2], b: [u32; 2], shape: Shape, mode: BrushMode, c: Colour) -> EditOp {
+    let (from, from_dir) = down(a[0], a[1]);
+    let (to, to_dir) = down(b[0], b[1]);
+    EditOp::Span {
+        from,
+        from_dir,
+        to,
+        to_dir,
+        shape,
+        mode,
+        colour: c,
+        extent: 64,
+    }
+}
+
+fn seq_of(ack: &ServerMsg) -> u64 {
+    match ack {
+        ServerMsg::Ack {
+            seq: Some(s),
+            rejected,
+            ..
+        } if rejected.is_empty() => *s,
+        ServerMsg::Undone { seq: Some(s), .. } => *s,
+        other => panic!("not applied whole: {other:?}"),
+    }
+}
+
+/// Voxels of `map` in the box `lo..=hi` that have colour `c`.
+fn count(map: &BrickMap, lo: [u32; 3], hi: [u32; 3], c: Option<Colour>) -> usize {
+    let mut n = 0;
+    for z in lo[2]..=hi[2] {
+        for y in lo[1]..=hi[1] {
+            for x in lo[0]..=hi[0] {
+                n += usize::from(map.get([x, y, z]) == c);
+            }
+        }
+    }
+    n
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn each_tool_resolves_on_the_server_and_every_copy_agrees() {
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    ok(&admin(
+        server.addr,
+        &["create", "tools", "--size", "64,64,64"],
+        None,
+    )
+    .await);
+    let url = server.url("tools");
+    let mut alice = Client::as_user(&url, None, ALICE, "alice").await.unwrap();
+    let mut bob = Client::as_user(&url, None, BOB, "bob").await.unwrap();
+    alice.sync().await;
+    bob.sync().await;
+    let (white, red, blue) = (colour(7), colour(1), colour(5));
+
+    // A white floor with a red 4×4 patch.
+    let floor = alice
+        .edit(vec![
+            EditOp::Box {
+                min: [0, 0, 0],
+                max: [63, 0, 63],
+                mode: BrushMode::Fill,
+                colour: white,
+            },
+            EditOp::Box {
+                min: [10, 0, 10],
+                max: [13, 0, 13],
+                mode: BrushMode::Paint,
+                colour: red,
+            },
+        ])
+        .await;
+    seq_of(&floor);
+
+    // Fill: the patch turns blue on Bob's copy too; the floor around it stays white.
+    let fill = alice
+        .edit(vec![ray(
+            11,
+            11,
+            RayAction::Fill {
+                colour: blue,
+                limit: 16,
+            },
+        )])
+        .await;
+    let filled = seq_of(&fill);
+    bob.catch_up(filled).await;
+    alice.catch_up(filled).await;
+    assert_eq!(count(&bob.map, [10, 0, 10], [13, 0, 13], Some(blue)), 16);
+    assert_eq!(bob.map.get([14, 0, 13]), Some(white));
+
+    // A fill of the whole floor with a limit of 100 is refused and changes nothing.
+    let before = alice.map.content_hash();
+    let refused = alice
+        .edit(vec![ray(
+            40,
+            40,
+            RayAction::Fill {
+                colour: red,
+                limit: 100,
+            },
+        )])
+        .await;
+    let ServerMsg::Ack { seq, rejected, .. } = &refused else {
+        panic!("{refused:?}")
+    };
+    assert_eq!(*seq, None, "{refused:?}");
+    assert_eq!(rejected[0].reason, Rejection::TooLarge);
+    assert_eq!(alice.map.content_hash(), before);
+
+    // Extrude: the blue patch grows a blue layer; Bob sees it.
+    let extrude = alice
+        .edit(vec![ray(
+            12,
+            12,
+            RayAction::Extrude {
+                out: true,
+                limit: 1000,
+            },
+        )])
+        .await;
+    bob.catch_up(seq_of(&extrude)).await;
+    assert_eq!(count(&bob.map, [10, 1, 10], [13, 1, 13], Some(blue)), 16);
+
+    // Bob drags a red box on the floor and erases a line through it.
+    let boxed = bob
+        .edit(vec![span(
+            [30, 30],
+            [34, 32],
+            Shape::Box,
+            BrushMode::Fill,
+            red,
+        )])
+        .await;
+    alice.catch_up(seq_of(&boxed)).await;
+    assert_eq!(count(&alice.map, [30, 1, 30], [34, 1, 32], Some(red)), 15);
+    let line = bob
+        .edit(vec![span(
+            [30, 30],
+            [34, 30],
+            Shape::Line,
+            BrushMode::Erase,
+            red,
+        )])
+        .await;
+    alice.catch_up(seq_of(&line)).await;
+    assert_eq!(count(&alice.map, [30, 1, 30], [34, 1, 30], None), 5);
+    assert_eq!(count(&alice.map, [30, 1, 31], [34, 1, 32], Some(red)), 10);
+
+    // Both fill Bob's box at once, in different colours: the fill ordered second recolours
+    // the region as the first left it, so one colour wins on every copy.
+    let (green, yellow) = (colour(2), colour(3));
+    let a = alice
+        .send_edit(vec![ray(
+            32,
+            31,
+            RayAction::Fill {
+                colour: green,
+                limit: 100,
+            },
+        )])
+        .await;
+    let b = bob
+        .send_edit(vec![ray(
+            32,
+            32,
+            RayAction::Fill {
+                colour: yellow,
+                limit: 100,
+            },
+        )])
+        .await;
+    let (a, b) = (seq_of(&alice.ack(a).await), seq_of(&bob.ack(b).await));
+    let last = a.max(b);
+    alice.catch_up(last).await;
+    bob.catch_up(last).await;
+    assert_eq!(alice.map.content_hash(), bob.map.content_hash());
+    let winner = if b > a { yellow } else { green };
+    assert_eq!(count(&bob.map, [30, 1, 31], [34, 1, 32], Some(winner)), 10);
+
+    // Each tool's edit is one undo step: Alice's first undo takes back her fill (what Bob's
+    // fill changed since stays his), her second the whole extruded layer.
+    let first = alice.undo(false).await;
+    assert!(matches!(first, ServerMsg::Undone { .. }), "{first:?}");
+    let second = seq_of(&alice.undo(false).await);
+    bob.catch_up(second).await;
+    assert_eq!(
+        count(&bob.map, [10, 1, 10], [13, 1, 13], None),
+        16,
+        "the extruded layer is gone"
+    );
+    let mut fresh = Client::connect(&url, None).await.unwrap();
+    fresh.sync().await;
+    assert_eq!(fresh.map.content_hash(), bob.map.content_hash());
+    server.shutdown().await.unwrap();
+}
