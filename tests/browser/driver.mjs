@@ -5,7 +5,8 @@
 //   node driver.mjs '{"webgpu": true}'
 //
 // Commands: {op: "goto", url} · {op: "wait", js, timeout_ms} (until js is truthy) ·
-// {op: "eval", js} · {op: "click", x, y, button} · {op: "key", key} ·
+// {op: "eval", js} · {op: "click", x, y, button, modifiers} · {op: "drag", from: [x, y],
+// to: [x, y], button} · {op: "key", key} ·
 // {op: "screenshot", path} · {op: "close"}
 import { chromium } from 'playwright-core';
 import readline from 'node:readline';
@@ -40,7 +41,15 @@ async function run(cmd) {
     case 'eval':
       return await page.evaluate(cmd.js);
     case 'click':
+      for (const m of cmd.modifiers ?? []) await page.keyboard.down(m);
       await page.mouse.click(cmd.x, cmd.y, { button: cmd.button ?? 'left' });
+      for (const m of cmd.modifiers ?? []) await page.keyboard.up(m);
+      return null;
+    case 'drag':
+      await page.mouse.move(cmd.from[0], cmd.from[1]);
+      await page.mouse.down({ button: cmd.button ?? 'left' });
+      await page.mouse.move(cmd.to[0], cmd.to[1], { steps: 8 });
+      await page.mouse.up({ button: cmd.button ?? 'left' });
       return null;
     case 'key':
       await page.keyboard.press(cmd.key);

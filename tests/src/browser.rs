@@ -177,6 +177,18 @@ impl Browser {
             .map(|_| ())
     }
 
+    /// A click with keys held (`"Alt"`, `"Control"`).
+    pub fn click_with(&mut self, x: f64, y: f64, button: &str, modifiers: &[&str]) -> Result<()> {
+        self.call(json!({"op": "click", "x": x, "y": y, "button": button, "modifiers": modifiers}))
+            .map(|_| ())
+    }
+
+    /// Presses `button` at `from`, moves to `to` and releases it there.
+    pub fn drag(&mut self, from: [f64; 2], to: [f64; 2], button: &str) -> Result<()> {
+        self.call(json!({"op": "drag", "from": from, "to": to, "button": button}))
+            .map(|_| ())
+    }
+
     pub fn screenshot(&mut self, path: &std::path::Path) -> Result<()> {
         self.call(json!({"op": "screenshot", "path": path}))
             .map(|_| ())

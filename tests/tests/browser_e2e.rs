@@ -293,6 +293,53 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
     });
     assert!(undone, "Ctrl+Z in the page undid its voxel");
 
+    // The box tool: X, then a right-button drag across the middle of the canvas fills a box
+    // of more than one voxel on the ground (resolved by the server); Ctrl+Z takes it back.
+    browser.call(serde_json::json!({"op": "key", "key": "x"}))?;
+    browser.wait("window.brickcast.tool() === 'box'", 5_000)?;
+    browser.drag([120.0, 90.0], [200.0, 100.0], "right")?;
+    let mut boxed = 0;
+    let drew = wait_until(Duration::from_secs(20), || {
+        boxed = fetch(&server.url("demo"))
+            .map(|r| r.map.solid_voxels())
+            .unwrap_or(0);
+        boxed > before.solid_voxels() + 1
+    });
+    assert!(
+        drew,
+        "the page's box drag filled a box ({} → {boxed})",
+        before.solid_voxels()
+    );
+    browser.call(serde_json::json!({"op": "key", "key": "Control+z"}))?;
+    let undone = wait_until(Duration::from_secs(20), || {
+        fetch(&server.url("demo")).is_ok_and(|r| r.map.solid_voxels() == before.solid_voxels())
+    });
+    assert!(undone, "Ctrl+Z took the box back as one step");
+
+    // Alt+click takes the colour under the pointer into the colour well (the page's copy may
+    // round colours by up to 12/255: `?colours=exact` is not set).
+    let hit = browser
+        .trace(9, 9, [cx, 60.5, cz], [cx, 0.0, cz + 0.01], 60.0)?
+        .hits[4 * 9 + 4]
+        .context("the centre pixel hits the ground")?;
+    let want = before
+        .get(hit)
+        .context("the ground under the centre")?
+        .to_rgb8();
+    browser.click_with(160.0, 90.0, "left", &["Alt"])?;
+    let well = browser.wait(
+        "document.getElementById('colour').value !== '#d93b3b' && document.getElementById('colour').value",
+        5_000,
+    )?;
+    let well = well.as_str().unwrap_or_default().to_string();
+    let got = brickcast_protocol::Colour::parse_hex(&well)
+        .with_context(|| format!("the well holds {well:?}"))?
+        .to_rgb8();
+    assert!(
+        (0..3).all(|i| got[i].abs_diff(want[i]) <= 16),
+        "picked {well} for {want:?}"
+    );
+
     // A native user present with a view shows in the page's roster, and F follows its camera.
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()

@@ -364,7 +364,7 @@ impl App {
                 _ => match Tool::from_key(code) {
                     Some(tool) if !ctrl => {
                         self.tools.pick_tool(tool);
-                        page::set_attr("tools", "data-tool", tool.name());
+                        page::set_attr("toolbox", "data-tool", tool.name());
                         self.note(format!("tool: {}", tool.name()));
                         true
                     }
@@ -569,12 +569,11 @@ impl App {
             self.fps_at = now;
             page::set_text("status", &self.status_line());
             // Editing tools only for an editor, and not over a message that must be read.
-            page::show(
-                "tools",
-                self.session.role == Some(Role::Editor)
-                    && self.gpu_error.is_none()
-                    && !page::shown("message"),
-            );
+            let tools = self.session.role == Some(Role::Editor)
+                && self.gpu_error.is_none()
+                && !page::shown("message");
+            page::show("tools", tools);
+            page::show("toolbox", tools);
         }
     }
 
