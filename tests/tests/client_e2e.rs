@@ -387,10 +387,10 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
         "a left click removes exactly the voxel under the cursor"
     );
 
-    // Keys: colour 5, brush radius 2; the title shows both.
+    // Keys: colour 5 (#3b8ed9, drawn as RGB565: #398ed6), brush radius 2; the title shows both.
     x(&["windowfocus", &window]).expect("focus");
     for (key, shows) in [
-        ("5", "#3b8ed9"),
+        ("5", "#398ed6"),
         ("bracketright", "brush 1"),
         ("bracketright", "brush 2"),
     ] {
@@ -403,7 +403,7 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
     }
     let t = title();
     assert!(
-        t.contains("#3b8ed9") && t.contains("brush 2"),
+        t.contains("#398ed6") && t.contains("brush 2"),
         "keys did not change colour and brush; title: {t}"
     );
     // A lighting key says what it switched (on screen, and in the title).
@@ -429,6 +429,54 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
     assert!(
         viewer.0.try_wait().expect("status").is_none(),
         "viewer died"
+    );
+
+    // The box tool: X, then a right-button drag fills a box between the two faces (the
+    // server resolves both ends); the title names the tool.
+    x(&["key", "x"]).expect("key");
+    assert!(
+        wait_until(Duration::from_secs(10), || title().contains("— box")),
+        "X did not pick the box tool; title: {}",
+        title()
+    );
+    let before_box = info();
+    x(&[
+        "mousemove",
+        "--window",
+        &window,
+        "150",
+        "120",
+        "mousedown",
+        "3",
+        "mousemove",
+        "--window",
+        &window,
+        "250",
+        "150",
+        "mouseup",
+        "3",
+    ])
+    .expect("drag");
+    assert!(
+        wait_until(Duration::from_secs(20), || number(&info(), "voxels")
+            > number(&before_box, "voxels") + 1),
+        "a right-button drag with the box tool filled no box"
+    );
+    // Alt+click takes the colour under the pointer, and draws with it from then on.
+    x(&["keydown", "alt", "click", "1", "keyup", "alt"]).expect("alt click");
+    let mut took = String::new();
+    assert!(
+        wait_until(Duration::from_secs(10), || {
+            let t = title();
+            took = t
+                .split("took colour ")
+                .nth(1)
+                .map(|c| c.chars().take(7).collect())
+                .unwrap_or_default();
+            !took.is_empty() && t.contains(&format!("colour {took} (1-8"))
+        }),
+        "Alt+click took no colour; title: {}",
+        title()
     );
 
     x(&["key", "Escape"]).expect("escape");
