@@ -11,7 +11,8 @@
 //! the speed. Left click removes, right click places, Ctrl+left paints; 1–8 pick a colour, `[` and
 //! `]` set the brush radius (0 edits single voxels, more carves or fills spheres). B, X, N, G, T
 //! and I pick the brush, box, line, fill, extrude and picker tools (box and line: drag from one
-//! corner to the other; Alt+click takes a colour with any tool). Ctrl+Z undoes
+//! corner to the other; Alt+click takes a colour with any tool); P then six hex digits types any
+//! RGB colour. Ctrl+Z undoes
 //! your own latest edit, Ctrl+Shift+Z or Ctrl+Y redoes it. Where you look and point is shared
 //! with everyone in the scene (at most 20 times a second).
 
@@ -35,7 +36,7 @@ pub use brickcast_client_core::camera::{FirstView, FlyCamera};
 use brickcast_client_core::camera::{movement, palette_colour};
 use brickcast_client_core::shading::{NOTE_SECONDS, shading_key};
 use brickcast_client_core::tools::{
-    Action, Button, Context as ToolContext, Tool, Tools, step_radius,
+    Action, Button, Context as ToolContext, HexEntry, HexKey, Tool, Tools, step_radius,
 };
 
 use crate::follow::Follow;
@@ -115,6 +116,8 @@ struct App {
     captured: bool,
     colour: Colour,
     tools: Tools,
+    /// A colour being typed (P, then six hex digits).
+    hex: HexEntry,
     radius: f32,
     last_frame: Instant,
     frames_since_title: u32,
@@ -192,6 +195,7 @@ pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()>
         captured: false,
         colour: palette_colour(0),
         tools: Tools::default(),
+        hex: HexEntry::default(),
         radius: 0.0,
         last_frame: Instant::now(),
         frames_since_title: 0,
@@ -459,8 +463,12 @@ impl App {
                 None => "",
             };
             let [r, g, b] = self.colour.to_rgb8();
+            let colour = match self.hex.shown() {
+                Some(typed) => format!("colour {typed} (typing; Esc gives up)"),
+                None => format!("colour #{r:02x}{g:02x}{b:02x} (1-8, P #hex, Alt+click)"),
+            };
             let mut title = format!(
-                "brickcast — {state} — {:.1} fps — {role} — {} (B X N G T I) — colour #{r:02x}{g:02x}{b:02x} (1-8, Alt+click) — brush {} ([ ])",
+                "brickcast — {state} — {:.1} fps — {role} — {} (B X N G T I) — {colour} — brush {} ([ ])",
                 self.fps,
                 self.tools.tool.name(),
                 self.radius
@@ -631,6 +639,26 @@ impl ApplicationHandler for App {
                 };
                 if event.state == ElementState::Released {
                     self.keys.remove(&code);
+                    return;
+                }
+                // P, then six hex digits: a colour (the digits are not flying keys meanwhile).
+                if !event.repeat {
+                    match self.hex.key(&format!("{code:?}")) {
+                        HexKey::Ignored => {}
+                        HexKey::Typing => return,
+                        HexKey::Done(colour) => {
+                            self.colour = colour;
+                            let [r, g, b] = colour.to_rgb8();
+                            self.lighting_note =
+                                Some((format!("colour #{r:02x}{g:02x}{b:02x}"), Instant::now()));
+                            return;
+                        }
+                        HexKey::Cancelled => {
+                            self.lighting_note = Some(("colour unchanged".into(), Instant::now()));
+                            return;
+                        }
+                    }
+                } else if self.hex.typing() {
                     return;
                 }
                 self.keys.insert(code);

@@ -478,6 +478,17 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
         "Alt+click took no colour; title: {}",
         title()
     );
+    // P and six hex digits type a colour (the digits are not flying or palette keys then).
+    for key in ["p", "1", "2", "3", "a", "b", "c"] {
+        x(&["key", key]).expect("key");
+    }
+    let [r, g, b] = brickcast_protocol::Colour::from_rgb8(0x12, 0x3a, 0xbc).to_rgb8();
+    let typed = format!("colour #{r:02x}{g:02x}{b:02x} (1-8");
+    assert!(
+        wait_until(Duration::from_secs(10), || title().contains(&typed)),
+        "P 123abc did not set the colour; title: {}",
+        title()
+    );
 
     x(&["key", "Escape"]).expect("escape");
     let status = viewer.wait_exit(Duration::from_secs(20)).expect("wait");

@@ -97,7 +97,7 @@ impl Tool {
     ];
 
     /// The tool a key (its `KeyboardEvent.code` name) picks: B brush, X box, N line, G fill,
-    /// T extrude, I picker.
+    /// T extrude, I picker. (P types a colour: [`HexEntry`].)
     pub fn from_key(code: &str) -> Option<Tool> {
         Some(match code {
             "KeyB" => Tool::Brush,
@@ -336,6 +336,80 @@ fn span_locally(map: Option<&BrickMap>, a: &Ray, b: &Ray, mode: BrushMode) -> Op
     (0..3).map(|i| a[i].abs_diff(b[i]) + 1).max()
 }
 
+/// Typing a colour as six hex digits (the native viewer's RGB chooser: P, then the digits;
+/// Backspace takes one back, Escape gives up). Keys by their `KeyboardEvent.code` name.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct HexEntry {
+    /// The digits typed so far, while typing.
+    digits: Option<String>,
+}
+
+/// What a key did to a [`HexEntry`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum HexKey {
+    /// Not typing, and the key does not start it: the key is the viewer's as usual.
+    Ignored,
+    /// Typing (the key was taken).
+    Typing,
+    /// Six digits: draw with this colour.
+    Done(Colour),
+    /// Escape: typing ended, nothing chosen.
+    Cancelled,
+}
+
+impl HexEntry {
+    /// The key that starts typing.
+    pub const START: &'static str = "KeyP";
+
+    /// Whether digits are being typed (the viewer's other keys wait).
+    pub fn typing(&self) -> bool {
+        self.digits.is_some()
+    }
+
+    /// What is typed so far, for the title or status line (`#3b8e__`).
+    pub fn shown(&self) -> Option<String> {
+        let digits = self.digits.as_ref()?;
+        Some(format!("#{digits:_<6}"))
+    }
+
+    pub fn key(&mut self, code: &str) -> HexKey {
+        let Some(digits) = &mut self.digits else {
+            if code == Self::START {
+                self.digits = Some(String::new());
+                return HexKey::Typing;
+            }
+            return HexKey::Ignored;
+        };
+        let digit = code
+            .strip_prefix("Digit")
+            .or_else(|| code.strip_prefix("Numpad"))
+            .or_else(|| {
+                code.strip_prefix("Key")
+                    .filter(|k| matches!(*k, "A" | "B" | "C" | "D" | "E" | "F"))
+            });
+        match (code, digit) {
+            ("Escape", _) => {
+                self.digits = None;
+                HexKey::Cancelled
+            }
+            ("Backspace", _) => {
+                digits.pop();
+                HexKey::Typing
+            }
+            (_, Some(d)) if d.len() == 1 && d.chars().all(|c| c.is_ascii_hexdigit()) => {
+                digits.push_str(&d.to_ascii_lowercase());
+                if digits.len() < 6 {
+                    return HexKey::Typing;
+                }
+                let colour = Colour::parse_hex(digits);
+                self.digits = None;
+                colour.map_or(HexKey::Cancelled, HexKey::Done)
+            }
+            _ => HexKey::Typing,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -363,6 +437,35 @@ mod tests {
             limits,
             map: Some(map),
         }
+    }
+
+    #[test]
+    fn a_colour_is_typed_as_six_hex_digits() {
+        let mut hex = HexEntry::default();
+        assert_eq!(
+            hex.key("KeyW"),
+            HexKey::Ignored,
+            "not typing: flying keys fly"
+        );
+        assert_eq!(hex.key("KeyP"), HexKey::Typing);
+        for code in ["Digit3", "KeyB", "Digit8", "KeyE", "KeyX", "Digit9"] {
+            assert_eq!(hex.key(code), HexKey::Typing, "{code}");
+        }
+        assert_eq!(
+            hex.shown().as_deref(),
+            Some("#3b8e9_"),
+            "X is not a hex digit"
+        );
+        assert_eq!(hex.key("Backspace"), HexKey::Typing);
+        assert_eq!(hex.key("KeyD"), HexKey::Typing);
+        assert_eq!(
+            hex.key("Numpad9"),
+            HexKey::Done(Colour::from_rgb8(0x3b, 0x8e, 0xd9))
+        );
+        assert!(!hex.typing());
+        assert_eq!(hex.key("KeyP"), HexKey::Typing);
+        assert_eq!(hex.key("Escape"), HexKey::Cancelled);
+        assert_eq!(hex.shown(), None);
     }
 
     #[test]
