@@ -521,7 +521,7 @@ impl App {
         let action = if pressed {
             self.tools.press(button, &ray, &cx)
         } else {
-            self.tools.release(&ray, &cx)
+            self.tools.release(button, &ray, &cx)
         };
         drop(live);
         match action {
@@ -633,6 +633,8 @@ impl ApplicationHandler for App {
                 }
             }
             WindowEvent::ModifiersChanged(m) => self.modifiers = m.state(),
+            // A drag whose release goes to another window is forgotten.
+            WindowEvent::Focused(false) => self.tools.cancel(),
             WindowEvent::KeyboardInput { event, .. } => {
                 let PhysicalKey::Code(code) = event.physical_key else {
                     return;

@@ -2,8 +2,9 @@
 //! face, a line between two voxels. Resolved on the map being edited (`apply.rs`), so two
 //! people using tools at once never disagree about what a tool covered.
 
-use std::collections::{HashSet, VecDeque};
+use std::collections::{HashMap, VecDeque};
 
+use crate::brick::{BRICK_EDGE, voxel_bit};
 use crate::map::BrickMap;
 use crate::wire::Rejection;
 
@@ -41,7 +42,7 @@ fn search(
     limit: u32,
     keep: impl Fn([u32; 3]) -> bool,
 ) -> Result<Vec<[u32; 3]>, Rejection> {
-    let mut seen: HashSet<[u32; 3]> = HashSet::new();
+    let mut seen = Seen::default();
     let mut queue = VecDeque::new();
     let mut out = Vec::new();
     seen.insert(start);
@@ -53,7 +54,7 @@ fn search(
         }
         for &s in steps {
             if let Some(next) = step(map, pos, s)
-                && !seen.contains(&next)
+                && !seen.contains(next)
                 && keep(next)
             {
                 seen.insert(next);
@@ -62,6 +63,36 @@ fn search(
         }
     }
     Ok(out)
+}
+
+/// The voxels a search has seen: a 512-bit mask per brick, so a region of a million voxels
+/// costs a few thousand hashed keys and about 64 bytes per brick, not a hashed key and ~40
+/// bytes per voxel.
+#[derive(Default)]
+struct Seen {
+    bricks: HashMap<[u32; 3], [u64; 8]>,
+}
+
+impl Seen {
+    fn at(pos: [u32; 3]) -> ([u32; 3], usize) {
+        let e = BRICK_EDGE;
+        (
+            pos.map(|p| p / e),
+            voxel_bit(pos[0] % e, pos[1] % e, pos[2] % e) as usize,
+        )
+    }
+
+    fn contains(&self, pos: [u32; 3]) -> bool {
+        let (cell, bit) = Seen::at(pos);
+        self.bricks
+            .get(&cell)
+            .is_some_and(|m| m[bit / 64] & (1 << (bit % 64)) != 0)
+    }
+
+    fn insert(&mut self, pos: [u32; 3]) {
+        let (cell, bit) = Seen::at(pos);
+        self.bricks.entry(cell).or_default()[bit / 64] |= 1 << (bit % 64);
+    }
 }
 
 /// The solid voxels of `start`'s colour connected to it through faces (`start` first).

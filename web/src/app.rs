@@ -471,7 +471,7 @@ impl App {
         let action = if pressed {
             self.tools.press(button, &ray, &cx)
         } else {
-            self.tools.release(&ray, &cx)
+            self.tools.release(button, &ray, &cx)
         };
         match action {
             Action::Edit(op) => {

@@ -76,7 +76,9 @@ pub fn listen(app: &Rc<RefCell<App>>) -> Result<(), JsValue> {
     {
         let app = app.clone();
         on(&window, "blur", move |_: web_sys::Event| {
-            app.borrow_mut().release_keys();
+            let mut a = app.borrow_mut();
+            a.release_keys();
+            a.tools.cancel();
         })?;
     }
     {
@@ -145,6 +147,15 @@ pub fn listen(app: &Rc<RefCell<App>>) -> Result<(), JsValue> {
                 a.click(button, true);
                 a.click(button, false);
             }
+        })?;
+    }
+    {
+        // A drag that leaves the canvas ends there: its release would not be heard.
+        let app = app.clone();
+        let drag = drag.clone();
+        on(&canvas, "mouseleave", move |_: MouseEvent| {
+            app.borrow_mut().tools.cancel();
+            *drag.borrow_mut() = Drag::default();
         })?;
     }
     on(&canvas, "contextmenu", move |e: MouseEvent| {

@@ -171,6 +171,11 @@ pub struct Context<'a> {
 /// Room left for deltas still on their way when an edit is sized from the local copy.
 const MARGIN_VOXELS: u32 = 8;
 
+/// Most voxels a viewer searches its own copy for when it sizes a fill or an extrude, whatever
+/// the server allows: a server announcing a huge limit does not make a click freeze the
+/// viewer (a larger region is then not sent).
+pub const MAX_LOCAL_TOOL_VOXELS: u32 = 1 << 22;
+
 /// The tool in use and a drag in progress.
 #[derive(Debug, Default)]
 pub struct Tools {
@@ -196,8 +201,10 @@ impl Tools {
         self.start = None;
     }
 
-    /// A press of `button` along `ray`.
+    /// A press of `button` along `ray`. A drag still in progress (its release never came:
+    /// the pointer left the window, another button) is forgotten.
     pub fn press(&mut self, button: Button, ray: &Ray, cx: &Context) -> Action {
+        self.start = None;
         if cx.pick || self.tool == Tool::Picker {
             return pick(ray, cx);
         }
@@ -213,11 +220,15 @@ impl Tools {
         }
     }
 
-    /// The release of a button along `ray`: ends a drag.
-    pub fn release(&mut self, ray: &Ray, cx: &Context) -> Action {
-        let Some((button, from)) = self.start.take() else {
+    /// The release of `released` along `ray`: ends the drag that button started.
+    pub fn release(&mut self, released: Button, ray: &Ray, cx: &Context) -> Action {
+        let Some((button, from)) = self.start else {
             return Action::Nothing("");
         };
+        if button != released {
+            return Action::Nothing("");
+        }
+        self.start = None;
         let mode = match (button, cx.paint) {
             (Button::Secondary, _) => BrushMode::Fill,
             (Button::Primary, true) => BrushMode::Paint,
@@ -272,7 +283,7 @@ fn limit_for(
 }
 
 fn fill(ray: &Ray, cx: &Context) -> Action {
-    let max = cx.limits.max_tool_voxels;
+    let max = cx.limits.max_tool_voxels.min(MAX_LOCAL_TOOL_VOXELS);
     let limit = match cx.map {
         Some(map) => match trace(map, ray) {
             Some(hit) => match limit_for(fill_region(map, hit.voxel, max), max) {
@@ -294,7 +305,7 @@ fn fill(ray: &Ray, cx: &Context) -> Action {
 }
 
 fn extrude(button: Button, ray: &Ray, cx: &Context) -> Action {
-    let max = cx.limits.max_tool_voxels;
+    let max = cx.limits.max_tool_voxels.min(MAX_LOCAL_TOOL_VOXELS);
     let limit = match cx.map {
         Some(map) => match trace(map, ray) {
             Some(hit) => {
@@ -490,7 +501,12 @@ mod tests {
             Action::Started
         );
         assert!(tools.dragging());
-        let Action::Edit(op) = tools.release(&down(12.5, 6.5), &c) else {
+        // Another button's release does not end it.
+        assert_eq!(
+            tools.release(Button::Primary, &down(12.5, 6.5), &c),
+            Action::Nothing("")
+        );
+        let Action::Edit(op) = tools.release(Button::Secondary, &down(12.5, 6.5), &c) else {
             panic!("no edit")
         };
         assert!(!tools.dragging());
@@ -501,6 +517,21 @@ mod tests {
         // The server's reading of it: a box one voxel high on the ground.
         assert_eq!(apply_op(&mut map, &op, &limits), Ok(11 * 5));
         assert_eq!(map.get([12, 4, 6]), Some(Colour::from_rgb8(255, 0, 0)));
+        // A drag whose release never came is forgotten by the next press: an Alt+click then
+        // picks a colour, and its release draws nothing.
+        let c = cx(&map, &limits);
+        tools.press(Button::Primary, &down(2.5, 2.5), &c);
+        let mut alt = cx(&map, &limits);
+        alt.pick = true;
+        assert!(matches!(
+            tools.press(Button::Primary, &down(20.5, 20.5), &alt),
+            Action::Picked(_)
+        ));
+        assert!(!tools.dragging());
+        assert_eq!(
+            tools.release(Button::Primary, &down(20.5, 20.5), &alt),
+            Action::Nothing("")
+        );
     }
 
     #[test]

@@ -198,6 +198,10 @@ fn check_ray(origin: [f32; 3], dir: [f32; 3]) -> Result<(), Rejection> {
     Ok(())
 }
 
+/// What one voxel of a fill's or an extrude's limit is charged, in brush voxels: finding the
+/// region reads each voxel and its six neighbours.
+pub const TOOL_VOXEL_WORK: u64 = 8;
+
 /// Whether `f` holds on every axis.
 fn per_axis<A: Copy, B: Copy>(a: [A; 3], b: [B; 3], f: impl Fn(A, B) -> bool) -> bool {
     a.into_iter().zip(b).all(|(a, b)| f(a, b))
@@ -206,8 +210,9 @@ fn per_axis<A: Copy, B: Copy>(a: [A; 3], b: [B; 3], f: impl Fn(A, B) -> bool) ->
 impl EditOp {
     /// An upper bound on the work applying the op costs the server, in voxels visited, for a
     /// scene of `scene_size`: 1 for a single voxel, the bounding box (clipped to the scene) for
-    /// a brush, for a ray the voxels it may cross plus its brush (a fill or extrude: twice its
-    /// voxel limit), and for a span two rays plus the box (or line) of its extent. Brushes rewrite whole
+    /// a brush, for a ray the voxels it may cross plus its brush (a fill or extrude:
+    /// [`TOOL_VOXEL_WORK`] per voxel of its limit), and for a span two rays plus the box (or
+    /// line) of its extent. Brushes rewrite whole
     /// bricks, so the box is what they cost whether or not a voxel changes.
     ///
     /// The server charges edits by this rather than by op count (one sphere of radius 64 costs
@@ -248,9 +253,11 @@ impl EditOp {
                     RayAction::Sphere { radius, .. } => {
                         sphere(scene_size.map(|s| s as f32 * 0.5), radius)
                     }
-                    // The region it may change; finding it reads about as many again.
+                    // The region it may change, and finding it: each voxel of it is read
+                    // with its six neighbours, queued and marked, about eight brush voxels'
+                    // worth of work.
                     RayAction::Fill { limit, .. } | RayAction::Extrude { limit, .. } => {
-                        2 * u64::from(limit)
+                        TOOL_VOXEL_WORK * u64::from(limit)
                     }
                     _ => 1,
                 };

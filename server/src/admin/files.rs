@@ -93,7 +93,14 @@ pub async fn upload(
         blocking(move || read_upload(&name, &body)).await?
     };
     let _turn = app.scenes.opening.lock().await;
-    let exists = app.has_scene(&name).await;
+    let exists = match &app.node {
+        // The cluster's list as it is now, not as this node last looked at it.
+        Some(node) => crate::cluster::catalog::scene_entry(&node.cluster, &name)
+            .await
+            .map_err(super::scenes::from_cluster)?
+            .is_some(),
+        None => app.has_scene(&name).await,
+    };
     if let Some(node) = &app.node {
         if exists && query.replace {
             let why = format!("scene {name} was replaced by an administrator: reconnect to see it");

@@ -512,6 +512,7 @@ pub(super) fn from_cluster(e: ClusterError) -> AdminError {
             AdminError::Conflict(format!("scene {name} already exists in the cluster"))
         }
         ClusterError::UnknownScene(name) => AdminError::UnknownScene(name),
+        ClusterError::Busy(why) => AdminError::Conflict(why),
         e => AdminError::TryAgain(e.to_string()),
     }
 }

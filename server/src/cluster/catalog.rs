@@ -20,6 +20,15 @@ pub async fn scene_names(jet: &impl Jet) -> Result<Vec<String>, ClusterError> {
 
 /// What the scene list says of one scene; `None` when the cluster has no such scene.
 pub async fn scene_entry(jet: &impl Jet, name: &str) -> Result<Option<SceneEntry>, ClusterError> {
+    Ok(scene_entry_at(jet, name).await?.map(|(entry, _)| entry))
+}
+
+/// [`scene_entry`] with the entry's revision, for a change that must not undo another
+/// node's change made meanwhile (compare-and-set).
+pub async fn scene_entry_at(
+    jet: &impl Jet,
+    name: &str,
+) -> Result<Option<(SceneEntry, u64)>, ClusterError> {
     if !crate::store::valid_scene_name(name) {
         return Ok(None);
     }
@@ -31,8 +40,15 @@ pub async fn scene_entry(jet: &impl Jet, name: &str) -> Result<Option<SceneEntry
         return Ok(None);
     };
     serde_json::from_slice(&entry.value)
-        .map(Some)
+        .map(|e| Some((e, entry.revision)))
         .map_err(|e| ClusterError::Nats(format!("the scene list's entry for {name}: {e}")))
+}
+
+/// Someone changed the scene list under a change of this node's: nothing of it is left.
+pub(super) fn changed_meanwhile(name: &str) -> ClusterError {
+    ClusterError::Busy(format!(
+        "scene {name} was changed through another node meanwhile; nothing was done: look again and retry"
+    ))
 }
 
 /// Every log key the scene list uses, live scenes' and kept deleted scenes' alike.
@@ -90,10 +106,12 @@ fn unix_ms() -> u64 {
 }
 
 /// Adds a scene to the cluster: its stream, a first snapshot, then its entry in the scene
-/// list (last, so no node opens a scene that is not complete). `replace` first deletes a
-/// scene of that name: its log and snapshot, for good (nodes serving it close it when they
-/// see its entry name another log). A deleted scene kept under the same name keeps its own
-/// log: the new scene gets a log key of its own ([`fresh_log_key`]).
+/// list (last, so no node opens a scene that is not complete). A deleted scene kept under the
+/// same name keeps its own log: the new scene gets a log key of its own ([`fresh_log_key`]).
+/// `replace` replaces a scene of that name for good (`import --replace`): the new log is
+/// made first under a key of its own, the entry is switched to it in one compare-and-set
+/// (nodes serving the old scene close it when they see the entry name another log), then
+/// the old log and snapshots are dropped.
 pub async fn create_scene(
     jet: &impl Jet,
     name: &str,
@@ -105,23 +123,48 @@ pub async fn create_scene(
             "scene name {name:?} is invalid"
         )));
     }
-    let old = scene_entry(jet, name).await?;
+    let old = scene_entry_at(jet, name).await?;
     if old.is_some() && !replace {
         return Err(ClusterError::SceneExists(name.into()));
     }
-    if let Some(old) = &old {
-        jet.kv_delete(Bucket::Scenes, name, None)
-            .await
-            .map_err(|e| ClusterError::Nats(format!("removing the old scene: {e}")))?;
-        let _ = jet.delete_stream(old.log_key(name)).await;
-        snapshot::delete_all(jet, old.log_key(name)).await;
-    }
+    // Chosen while the old entry still holds its key: never the old scene's key again.
     let key = fresh_log_key(jet, name, unix_ms()).await?;
     log::create(jet, &key, map)
         .await
         .map_err(|e| ClusterError::Nats(e.to_string()))?;
     let entry = SceneEntry::new(name, map.size(), &key);
-    put_new(jet, name, &entry).await
+    let written = match &old {
+        None => put_new(jet, name, &entry).await,
+        Some((_, revision)) => {
+            let value = serde_json::to_vec(&entry)
+                .map_err(|e| ClusterError::Nats(format!("scene entry: {e}")))?;
+            match jet
+                .kv_update(Bucket::Scenes, name, Bytes::from(value), *revision)
+                .await
+            {
+                Ok(_) => Ok(()),
+                Err(PortError::Conflict(_)) => Err(changed_meanwhile(name)),
+                Err(e) => Err(ClusterError::Nats(format!("replacing the scene: {e}"))),
+            }
+        }
+    };
+    if let Err(e) = written {
+        // The new log belongs to no entry: drop it rather than leave it behind.
+        drop_log(jet, &key).await;
+        return Err(e);
+    }
+    if let Some((old, _)) = &old
+        && !log_key_live(jet, old.log_key(name)).await?
+    {
+        drop_log(jet, old.log_key(name)).await;
+    }
+    Ok(())
+}
+
+/// Drops a log's stream and snapshots (whatever is there; doing it twice is harmless).
+pub(super) async fn drop_log(jet: &impl Jet, key: &str) {
+    let _ = jet.delete_stream(key).await;
+    snapshot::delete_all(jet, key).await;
 }
 
 /// Writes a new scene list entry; a name taken meanwhile is [`ClusterError::SceneExists`].
@@ -145,9 +188,10 @@ pub(super) async fn put_new(
 }
 
 /// Renames scene `from` to `to`: the entry moves (written under `to` first, then taken from
-/// `from`), the log, snapshots and lease stay under their key, so nothing is copied and no
-/// edit is lost. Nodes serving `from` close it when they see it gone; one serving both for
-/// a moment runs two replicas of one log, which the log's fence keeps to one writer.
+/// `from` if nobody changed it meanwhile, else the move is undone), the log, snapshots and
+/// lease stay under their key, so nothing is copied and no edit is lost. Nodes serving
+/// `from` close it when they see it gone; one serving both for a moment runs two replicas of
+/// one log, which the log's fence keeps to one writer.
 pub async fn rename_scene(
     jet: &impl Jet,
     from: &str,
@@ -156,15 +200,24 @@ pub async fn rename_scene(
     if !crate::store::valid_scene_name(to) {
         return Err(ClusterError::Nats(format!("scene name {to:?} is invalid")));
     }
-    let Some(entry) = scene_entry(jet, from).await? else {
+    let Some((entry, revision)) = scene_entry_at(jet, from).await? else {
         return Err(ClusterError::UnknownScene(from.into()));
     };
     let moved = SceneEntry::new(to, entry.size, entry.log_key(from));
     put_new(jet, to, &moved).await?;
-    jet.kv_delete(Bucket::Scenes, from, None)
-        .await
-        .map_err(|e| ClusterError::Nats(format!("taking the old name out of the list: {e}")))?;
-    Ok(moved)
+    match jet.kv_delete(Bucket::Scenes, from, Some(revision)).await {
+        Ok(()) => Ok(moved),
+        Err(e) => {
+            // Reset, deleted or renamed through another node meanwhile: undo the move.
+            if let Ok(Some((_, new))) = scene_entry_at(jet, to).await {
+                let _ = jet.kv_delete(Bucket::Scenes, to, Some(new)).await;
+            }
+            Err(match e {
+                PortError::Conflict(_) | PortError::NotFound(_) => changed_meanwhile(from),
+                e => ClusterError::Nats(format!("taking the old name out of the list: {e}")),
+            })
+        }
+    }
 }
 
 #[cfg(test)]

@@ -4,17 +4,20 @@
 //! Deleting takes the scene's entry out of the scene list (`brickcast_scenes`), so no node
 //! opens it again and the nodes serving it close it (`served.rs`), and writes it back under
 //! a key no scene name can be, `deleted=<unix ms>=<name>` (scene names have no `=`), with
-//! when it is kept until. Its log stream and snapshots stay under its name: restoring puts the
-//! entry back (under the same name: the stream is named after the scene), and a new scene of
-//! that name is refused while the old one is kept. When the time is up any node drops the
-//! stream, the snapshots and the entry ([`purge`], every minute; doing it twice is harmless).
+//! when it is kept until. Its log stream and snapshots stay under its log key
+//! ([`SceneEntry`]): restoring puts the entry back, under its name or another, and a new
+//! scene may take the name meanwhile (it gets a log key of its own). When the time is up any
+//! node drops the entry, then the stream and snapshots ([`purge`], every minute; doing it
+//! twice is harmless). Every step that takes an entry away does so only at the revision it
+//! read (compare-and-set), so two nodes acting on one scene at once never both succeed: the
+//! loser undoes what it wrote and says so.
 
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 
 use super::entry::Size;
 use super::jet::{Bucket, Jet, PortError};
-use super::{ClusterError, SceneEntry, catalog, snapshot};
+use super::{ClusterError, SceneEntry, catalog};
 
 const PREFIX: &str = "deleted=";
 
@@ -94,7 +97,7 @@ pub async fn delete_keeping(
     now_ms: u64,
     keep_s: u64,
 ) -> Result<Deleted, ClusterError> {
-    let Some(entry) = catalog::scene_entry(jet, name).await? else {
+    let Some((entry, revision)) = catalog::scene_entry_at(jet, name).await? else {
         return Err(ClusterError::UnknownScene(name.into()));
     };
     let deleted = Deleted {
@@ -107,17 +110,32 @@ pub async fn delete_keeping(
     };
     let value = serde_json::to_vec(&deleted)
         .map_err(|e| ClusterError::Nats(format!("deleted scene entry: {e}")))?;
-    jet.kv_create(Bucket::Scenes, &deleted.key, Bytes::from(value))
+    let kept = jet
+        .kv_create(Bucket::Scenes, &deleted.key, Bytes::from(value))
         .await
         .map_err(nats("keeping the deleted scene"))?;
-    jet.kv_delete(Bucket::Scenes, name, None)
-        .await
-        .map_err(nats("taking the scene out of the list"))?;
-    Ok(deleted)
+    match jet.kv_delete(Bucket::Scenes, name, Some(revision)).await {
+        Ok(()) => Ok(deleted),
+        Err(e) => {
+            // Changed through another node since it was read: keep nothing twice.
+            let _ = jet
+                .kv_delete(Bucket::Scenes, &deleted.key, Some(kept))
+                .await;
+            Err(match e {
+                PortError::Conflict(_) | PortError::NotFound(_) => catalog::changed_meanwhile(name),
+                e => nats("taking the scene out of the list")(e),
+            })
+        }
+    }
 }
 
 /// The deleted scenes still kept, oldest first.
 pub async fn list(jet: &impl Jet) -> Result<Vec<Deleted>, ClusterError> {
+    Ok(list_at(jet).await?.into_iter().map(|(d, _)| d).collect())
+}
+
+/// [`list`] with each entry's revision.
+async fn list_at(jet: &impl Jet) -> Result<Vec<(Deleted, u64)>, ClusterError> {
     let keys = jet
         .kv_keys(Bucket::Scenes)
         .await
@@ -132,11 +150,11 @@ pub async fn list(jet: &impl Jet) -> Result<Vec<Deleted>, ClusterError> {
             continue;
         };
         match serde_json::from_slice::<Deleted>(&entry.value) {
-            Ok(d) if d.key == key => out.push(d),
+            Ok(d) if d.key == key => out.push((d, entry.revision)),
             _ => tracing::warn!(key, "skipping an unreadable deleted scene entry"),
         }
     }
-    out.sort_by_key(|d| (d.deleted_at, d.key.clone()));
+    out.sort_by_key(|(d, _)| (d.deleted_at, d.key.clone()));
     Ok(out)
 }
 
@@ -152,7 +170,8 @@ pub async fn restore(
     key: &str,
     name: Option<&str>,
 ) -> Result<(Deleted, String), ClusterError> {
-    let Some(deleted) = list(jet).await?.into_iter().find(|d| d.key == key) else {
+    let Some((deleted, revision)) = list_at(jet).await?.into_iter().find(|(d, _)| d.key == key)
+    else {
         return Err(ClusterError::UnknownScene(key.into()));
     };
     let name = name.unwrap_or(&deleted.name).to_string();
@@ -163,19 +182,29 @@ pub async fn restore(
     }
     let entry = SceneEntry::new(&name, deleted.size, deleted.log_key());
     catalog::put_new(jet, &name, &entry).await?;
-    jet.kv_delete(Bucket::Scenes, key, None)
-        .await
-        .map_err(nats("removing the deleted scene's entry"))?;
-    Ok((deleted, name))
+    match jet.kv_delete(Bucket::Scenes, key, Some(revision)).await {
+        Ok(()) => Ok((deleted, name)),
+        Err(e) => {
+            // Purged or restored through another node meanwhile: the scene is not put back.
+            if let Ok(Some((_, new))) = catalog::scene_entry_at(jet, &name).await {
+                let _ = jet.kv_delete(Bucket::Scenes, &name, Some(new)).await;
+            }
+            Err(match e {
+                PortError::Conflict(_) | PortError::NotFound(_) => ClusterError::Busy(format!(
+                    "the deleted scene {key} was purged or restored through another node meanwhile"
+                )),
+                e => nats("removing the deleted scene's entry")(e),
+            })
+        }
+    }
 }
 
 /// Drops the deleted scenes kept until before `now` (unix seconds): their logs, snapshots and
 /// entries. Returns those dropped.
 pub async fn purge(jet: &impl Jet, now: u64) -> Result<Vec<Deleted>, ClusterError> {
     let mut dropped = Vec::new();
-    for d in list(jet).await? {
-        if d.kept_until < now {
-            drop_one(jet, &d).await?;
+    for (d, revision) in list_at(jet).await? {
+        if d.kept_until < now && drop_one(jet, &d, revision).await? {
             dropped.push(d);
         }
     }
@@ -184,23 +213,33 @@ pub async fn purge(jet: &impl Jet, now: u64) -> Result<Vec<Deleted>, ClusterErro
 
 /// Drops the deleted scene kept as `key` now, for good.
 pub async fn purge_key(jet: &impl Jet, key: &str) -> Result<Deleted, ClusterError> {
-    let Some(d) = list(jet).await?.into_iter().find(|d| d.key == key) else {
+    let Some((d, revision)) = list_at(jet).await?.into_iter().find(|(d, _)| d.key == key) else {
         return Err(ClusterError::UnknownScene(key.into()));
     };
-    drop_one(jet, &d).await?;
+    if !drop_one(jet, &d, revision).await? {
+        return Err(ClusterError::Busy(format!(
+            "the deleted scene {key} was purged or restored through another node meanwhile"
+        )));
+    }
     Ok(d)
 }
 
-async fn drop_one(jet: &impl Jet, d: &Deleted) -> Result<(), ClusterError> {
-    // The entry last: a purge cut short is done again by the next one.
-    // A log a live scene uses (an entry written by hand, or a rename raced) stays.
-    if !catalog::log_key_live(jet, d.log_key()).await? {
-        let _ = jet.delete_stream(d.log_key()).await;
-        snapshot::delete_all(jet, d.log_key()).await;
+/// Drops a kept scene: its entry first, at the revision read (so a restore through another
+/// node meanwhile wins, and this one does nothing: false), then its log and snapshots unless
+/// a live scene or another kept one uses its key. A purge cut short after its entry leaves
+/// the log behind (disk, never a scene without its log).
+async fn drop_one(jet: &impl Jet, d: &Deleted, revision: u64) -> Result<bool, ClusterError> {
+    match jet.kv_delete(Bucket::Scenes, &d.key, Some(revision)).await {
+        Ok(()) => {}
+        Err(PortError::Conflict(_) | PortError::NotFound(_)) => return Ok(false),
+        Err(e) => return Err(nats("dropping a deleted scene's entry")(e)),
     }
-    jet.kv_delete(Bucket::Scenes, &d.key, None)
-        .await
-        .map_err(nats("dropping a deleted scene's entry"))
+    let key = d.log_key();
+    let kept_elsewhere = list(jet).await?.iter().any(|o| o.log_key() == key);
+    if !kept_elsewhere && !catalog::log_key_live(jet, key).await? {
+        catalog::drop_log(jet, key).await;
+    }
+    Ok(true)
 }
 
 #[cfg(test)]

@@ -108,6 +108,9 @@ pub enum ClusterError {
     SceneExists(String),
     #[error("the cluster has no scene {0}")]
     UnknownScene(String),
+    /// Another node changed what this change was about meanwhile; nothing was done.
+    #[error("{0}")]
+    Busy(String),
     #[error("cluster: {0}")]
     Nats(String),
 }

@@ -20,7 +20,7 @@ use brickcast_protocol::apply::{Resolved, resolve};
 use brickcast_protocol::brick::{BRICK_EDGE, BrickData, EMPTY_MASK, Mask};
 use brickcast_protocol::journal::diff_bricks;
 use brickcast_protocol::map::{VoxelBox, brush_brick};
-use brickcast_protocol::wire::{EditOp, OpRejection};
+use brickcast_protocol::wire::{EditOp, OpRejection, Shape};
 use brickcast_protocol::{BrickMap, Colour};
 
 use super::history::{BrickChange, History, Image};
@@ -94,6 +94,15 @@ impl Owner {
         let (Some(user), AckTo::Session(session)) = (editor, to) else {
             return Some((ops, admitted));
         };
+        // A message of one box between two rays (what the box tool sends) is resolved now, on
+        // the map this turn has (the one it would be applied to), and goes on as the box it
+        // is: a large one is planned across turns like any box, and the log holds the box,
+        // whatever the map is when it is replayed. (In a longer message an earlier op could
+        // change what the rays hit: such messages are applied whole, as they came.)
+        let ops = match <[EditOp; 1]>::try_from(ops) {
+            Ok([op]) => vec![self.boxed_span(op)],
+            Err(ops) => ops,
+        };
         let size = self.map.size();
         let work: u64 = ops
             .iter()
@@ -147,6 +156,34 @@ impl Owner {
         job.chunks = chunks_of(&job.resolved, &self.map);
         self.jobs.push_back(Job::Edit(job));
         None
+    }
+
+    /// `op` as a plain [`EditOp::Box`] when it is a box between two rays that resolves on the
+    /// map as it is; any other op (or one that will be refused) as it came.
+    fn boxed_span(&self, op: EditOp) -> EditOp {
+        if !matches!(
+            op,
+            EditOp::Span {
+                shape: Shape::Box,
+                ..
+            }
+        ) {
+            return op;
+        }
+        match resolve(&self.map, &op, &self.config.limits) {
+            Ok(Resolved::Box {
+                min,
+                max,
+                mode,
+                colour,
+            }) => EditOp::Box {
+                min,
+                max,
+                mode,
+                colour,
+            },
+            _ => op,
+        }
     }
 
     /// The first job, an edit.
@@ -494,6 +531,57 @@ mod tests {
         assert_eq!(replies(&mut a).len(), 2);
         assert_eq!(owner.map().content_hash(), bobs);
         assert_ne!(bobs, empty);
+    }
+
+    /// A large box drawn between two rays (the box tool) is planned across turns like any
+    /// box: resolved when it is ordered, logged as the box it is, so recovery replays it to
+    /// the same map even though later edits change what its rays would hit.
+    #[test]
+    fn a_large_box_between_two_rays_is_planned_across_turns() {
+        let mut reference = BrickMap::new([128, 64, 128]).unwrap();
+        reference.fill_box([0, 0, 0], [127, 3, 127], BrushMode::Fill, Colour::WHITE);
+        // A post whose top the second ray hits.
+        reference.fill_box([100, 4, 90], [100, 39, 90], BrushMode::Fill, Colour::BLACK);
+        let scene = Scene::new(&reference);
+        let metrics = scene.metrics.clone();
+        let mut owner = scene.owner(64);
+        let mut a = join(&mut owner, 1, A);
+        let mut clock = PhaseClock::start();
+        let red = Colour::from_rgb8(200, 0, 0);
+        let span = EditOp::Span {
+            from: [2.5, 60.0, 2.5],
+            from_dir: [0.0, -1.0, 0.0],
+            to: [100.5, 60.0, 90.5],
+            to_dir: [0.0, -1.0, 0.0],
+            shape: brickcast_protocol::wire::Shape::Box,
+            mode: BrushMode::Fill,
+            colour: red,
+            extent: 128,
+        };
+        owner
+            .step(vec![edit(1, 1, vec![span])], &mut clock)
+            .unwrap();
+        assert!(owner.has_jobs(), "the box is being planned");
+        while owner.has_jobs() {
+            owner.step(Vec::new(), &mut clock).unwrap();
+        }
+        assert_eq!(metrics.edits_sliced.load(Relaxed), 1);
+        assert_eq!(replies(&mut a).len(), 1);
+        // From the cell in front of one hit (on the ground) to the other's (on the post).
+        let limits = Limits::default();
+        let boxed = EditOp::Box {
+            min: [2, 4, 2],
+            max: [100, 40, 90],
+            mode: BrushMode::Fill,
+            colour: red,
+        };
+        apply_op(&mut reference, &boxed, &limits).unwrap();
+        assert_eq!(owner.map().content_hash(), reference.content_hash());
+        // Another box on top would move the rays' hits: the log holds the box, not the rays.
+        let hash = owner.map().content_hash();
+        drop(owner);
+        let owner = scene.owner(64);
+        assert_eq!(owner.map().content_hash(), hash);
     }
 
     /// A scene stopping right after a heavy edit finished still applies its user's commands

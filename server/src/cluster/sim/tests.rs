@@ -221,3 +221,82 @@ fn a_scene_from_before_heads_loads_and_its_next_snapshot_starts_one() {
         assert_eq!(snapshot::newest(&jet, SCENE).await, Some((1, 1, 0)));
     });
 }
+
+/// The scene list under changes through two nodes at once (issue #32): a rename whose source
+/// was reset meanwhile is undone, not left pointing two names at logs; a kept scene is only
+/// purged with the log another kept or live scene uses left alone; a restore of a kept scene
+/// purged meanwhile puts nothing back; `import --replace` gives the name a new log key, so
+/// the nodes serving the old scene see it replaced.
+#[test]
+fn the_scene_list_refuses_changes_that_crossed() {
+    use crate::cluster::jet::{Bucket, Jet};
+    use crate::cluster::{catalog, deleted};
+
+    let (world, rt, base) = simulated_jet(3);
+    let jet = jet::SimJet {
+        world: world.clone(),
+        process: 1,
+        clock: Arc::new(jet::ProcessClock { base, rate: 1.0 }),
+    };
+    let map = initial_scene();
+    rt.block_on(async {
+        catalog::create_scene(&jet, "a", &map, false).await.unwrap();
+        // A rename that read `a` before it was reset through another node: its delete at the
+        // revision read fails, and the new name is taken back.
+        let (entry, old) = catalog::scene_entry_at(&jet, "a").await.unwrap().unwrap();
+        let replaced = crate::cluster::SceneEntry::new("a", entry.size, "a=99");
+        let value = bytes::Bytes::from(serde_json::to_vec(&replaced).unwrap());
+        jet.kv_update(Bucket::Scenes, "a", value, old)
+            .await
+            .unwrap();
+        let moved = crate::cluster::SceneEntry::new("b", entry.size, "a");
+        catalog::put_new(&jet, "b", &moved).await.unwrap();
+        let crossed = jet.kv_delete(Bucket::Scenes, "a", Some(old)).await;
+        assert!(crossed.is_err(), "a stale revision deletes nothing");
+        let back = catalog::scene_entry(&jet, "a").await.unwrap().unwrap();
+        assert_eq!(back.log_key("a"), "a=99", "the reset stands");
+        // Through the function itself: `a` is renamed at the revision it reads.
+        jet.kv_delete(Bucket::Scenes, "b", None).await.unwrap();
+        let renamed = catalog::rename_scene(&jet, "a", "b").await.unwrap();
+        assert_eq!(renamed.log_key("b"), "a=99");
+        assert!(catalog::scene_entry(&jet, "a").await.unwrap().is_none());
+
+        // `import --replace` gives the name a new log key, never the one it replaces (here
+        // the name itself, which the old log no longer holds once it is dropped).
+        catalog::create_scene(&jet, "d", &map, false).await.unwrap();
+        catalog::create_scene(&jet, "d", &map, true).await.unwrap();
+        let d = catalog::scene_entry(&jet, "d").await.unwrap().unwrap();
+        assert_ne!(
+            d.log_key("d"),
+            "d",
+            "nodes serving the old d must see another log"
+        );
+        catalog::create_scene(&jet, "b", &map, true).await.unwrap();
+        let now = catalog::scene_entry(&jet, "b").await.unwrap().unwrap();
+        assert_ne!(now.log_key("b"), "a=99");
+
+        // Two kept scenes of one log (a delete that crossed a restore): purging one leaves
+        // the log the other still needs.
+        let kept = deleted::delete_keeping(&jet, "b", 1_000, 60).await.unwrap();
+        let key = now.log_key("b").to_string();
+        let twin = deleted::Deleted {
+            key: "deleted=2000=b".into(),
+            deleted_at: 2,
+            ..kept.clone()
+        };
+        let value = bytes::Bytes::from(serde_json::to_vec(&twin).unwrap());
+        jet.kv_create(Bucket::Scenes, &twin.key, value)
+            .await
+            .unwrap();
+        deleted::purge_key(&jet, &kept.key).await.unwrap();
+        assert!(
+            crate::cluster::log::load(&jet, &key).await.is_ok(),
+            "the log the other kept scene uses is still there"
+        );
+        // A restore of a kept scene purged meanwhile: nothing put back.
+        deleted::purge_key(&jet, &twin.key).await.unwrap();
+        let gone = deleted::restore(&jet, &twin.key, Some("c")).await;
+        assert!(gone.is_err());
+        assert!(catalog::scene_entry(&jet, "c").await.unwrap().is_none());
+    });
+}
