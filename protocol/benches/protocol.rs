@@ -90,6 +90,52 @@ fn edits(c: &mut Criterion) {
     group.finish();
 }
 
+/// The editing tools against the brush they are priced against (issue #34): a flood fill of
+/// a 512×512 floor of one colour (262,144 voxels: finding the region, and the whole op as the
+/// server applies it) next to painting the same voxels with a box brush.
+fn tools(c: &mut Criterion) {
+    use brickcast_protocol::apply::apply_op;
+    use brickcast_protocol::region::fill_region;
+    use brickcast_protocol::wire::{EditOp, RayAction};
+
+    let mut group = c.benchmark_group("tools");
+    group.sample_size(10);
+    group.measurement_time(Duration::from_secs(6));
+    let mut floor = BrickMap::new([512, 8, 512]).expect("a scene");
+    let (a, b) = (Colour(0x7BEF), Colour(0x001F));
+    floor.fill_box([0, 0, 0], [511, 0, 511], BrushMode::Fill, a);
+    let voxels = 512 * 512;
+    group.throughput(Throughput::Elements(voxels));
+    group.bench_function("fill_region_262k", |bench| {
+        bench.iter(|| black_box(fill_region(&floor, [3, 0, 7], 1 << 20).map(|r| r.len())))
+    });
+    let limits = Limits::default();
+    let mut map = floor.clone();
+    let mut now = a;
+    group.bench_function("fill_op_262k", |bench| {
+        bench.iter(|| {
+            now = if now == a { b } else { a };
+            let op = EditOp::Ray {
+                origin: [3.5, 7.5, 7.5],
+                dir: [0.0, -1.0, 0.0],
+                action: RayAction::Fill {
+                    colour: now,
+                    limit: limits.max_tool_voxels,
+                },
+            };
+            black_box(apply_op(&mut map, &op, &limits))
+        })
+    });
+    let mut map = floor.clone();
+    group.bench_function("paint_box_262k", |bench| {
+        bench.iter(|| {
+            now = if now == a { b } else { a };
+            black_box(map.fill_box([0, 0, 0], [511, 0, 511], BrushMode::Paint, now))
+        })
+    });
+    group.finish();
+}
+
 fn tracer(c: &mut Criterion) {
     let mut group = c.benchmark_group("trace");
     group.sample_size(20);
@@ -185,5 +231,5 @@ fn wire(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, edits, tracer, wire);
+criterion_group!(benches, edits, tools, tracer, wire);
 criterion_main!(benches);

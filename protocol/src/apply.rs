@@ -40,12 +40,24 @@ pub enum Resolved {
         mode: BrushMode,
         colour: Colour,
     },
-    /// Voxels a tool found (a fill's region, an extruded face, a line), each set, cleared or
-    /// painted as `mode` says with its own colour.
+    /// Voxels a tool found (a fill's region, an extruded face, a line), set, cleared or
+    /// painted as `mode` says: a brush mask per brick, in cell order.
     Voxels {
         mode: BrushMode,
-        voxels: Vec<([u32; 3], Colour)>,
+        colour: Colour,
+        bricks: Vec<([u32; 3], Mask)>,
     },
+}
+
+/// `voxels` as a brush mask per brick, in cell order (the order they are applied in).
+fn brushes_of(voxels: Vec<[u32; 3]>) -> Vec<([u32; 3], Mask)> {
+    let mut bricks: std::collections::BTreeMap<[u32; 3], Mask> = std::collections::BTreeMap::new();
+    for p in voxels {
+        let e = BRICK_EDGE;
+        let brush = bricks.entry(p.map(|c| c / e)).or_insert(EMPTY_MASK);
+        mask_set(brush, voxel_bit(p[0] % e, p[1] % e, p[2] % e), true);
+    }
+    bricks.into_iter().collect()
 }
 
 /// Where a two-point tool's end lands: filling starts from the empty cell in front of the
@@ -123,33 +135,35 @@ pub fn resolve(map: &BrickMap, op: &EditOp, limits: &Limits) -> Result<Resolved,
                 }
                 RayAction::Fill { colour, limit } => Resolved::Voxels {
                     mode: BrushMode::Paint,
-                    voxels: fill_region(map, hit.voxel, limit)?
-                        .into_iter()
-                        .map(|p| (p, colour))
-                        .collect(),
+                    colour,
+                    bricks: brushes_of(fill_region(map, hit.voxel, limit)?),
                 },
                 RayAction::Extrude { out, limit } => {
                     let front = hit.previous.ok_or(Rejection::NothingToPlace)?;
                     let normal: [i64; 3] =
                         std::array::from_fn(|i| i64::from(front[i]) - i64::from(hit.voxel[i]));
                     let face = face_region(map, hit.voxel, normal, limit)?;
-                    let voxels = face.into_iter().filter_map(|p| {
-                        let colour = map.get(p)?;
-                        if out {
-                            let ahead =
-                                std::array::from_fn(|i| (i64::from(p[i]) + normal[i]) as u32);
-                            Some((ahead, colour))
-                        } else {
-                            Some((p, colour))
-                        }
-                    });
+                    // A face is one colour (`face_region`).
+                    let colour = face
+                        .first()
+                        .and_then(|&p| map.get(p))
+                        .unwrap_or(Colour::BLACK);
+                    let voxels = if out {
+                        // In front of each: inside the map, as `face_region` found it.
+                        face.into_iter()
+                            .map(|p| std::array::from_fn(|i| (i64::from(p[i]) + normal[i]) as u32))
+                            .collect()
+                    } else {
+                        face
+                    };
                     Resolved::Voxels {
                         mode: if out {
                             BrushMode::Fill
                         } else {
                             BrushMode::Erase
                         },
-                        voxels: voxels.collect(),
+                        colour,
+                        bricks: brushes_of(voxels),
                     }
                 }
             }
@@ -181,7 +195,8 @@ pub fn resolve(map: &BrickMap, op: &EditOp, limits: &Limits) -> Result<Resolved,
                 },
                 Shape::Line => Resolved::Voxels {
                     mode,
-                    voxels: line(a, b).into_iter().map(|p| (p, colour)).collect(),
+                    colour,
+                    bricks: brushes_of(line(a, b)),
                 },
             }
         }
@@ -207,15 +222,13 @@ pub fn apply_resolved(map: &mut BrickMap, op: Resolved) -> u64 {
             mode,
             colour,
         } => map.fill_box(min, max, mode, colour),
-        Resolved::Voxels { mode, voxels } => voxels
-            .into_iter()
-            .map(|(pos, colour)| {
-                u64::from(match mode {
-                    BrushMode::Fill => map.set(pos, colour),
-                    BrushMode::Erase => map.clear(pos),
-                    BrushMode::Paint => map.paint(pos, colour),
-                })
-            })
+        Resolved::Voxels {
+            mode,
+            colour,
+            bricks,
+        } => bricks
+            .iter()
+            .map(|(cell, brush)| map.apply_brush(*cell, brush, mode, colour))
             .sum(),
     }
 }
@@ -231,15 +244,21 @@ impl Resolved {
             Resolved::Box { min, max, .. } => (0..3)
                 .all(|i| min[i] <= max[i])
                 .then_some(VoxelBox { lo: min, hi: max }),
-            Resolved::Voxels { ref voxels, .. } => {
-                let (first, _) = voxels.first()?;
-                let (lo, hi) = voxels.iter().fold((*first, *first), |(lo, hi), (p, _)| {
+            Resolved::Voxels { ref bricks, .. } => {
+                let e = BRICK_EDGE;
+                let mut cells = bricks.iter().map(|(c, _)| *c);
+                let first = cells.next()?;
+                let (lo, hi) = cells.fold((first, first), |(lo, hi), c| {
                     (
-                        std::array::from_fn(|i| lo[i].min(p[i])),
-                        std::array::from_fn(|i| hi[i].max(p[i])),
+                        std::array::from_fn(|i| lo[i].min(c[i])),
+                        std::array::from_fn(|i| hi[i].max(c[i])),
                     )
                 });
-                Some(VoxelBox { lo, hi })
+                // The bricks' box (the voxels' box, rounded out to whole bricks).
+                Some(VoxelBox {
+                    lo: lo.map(|c| c * e),
+                    hi: hi.map(|c| c * e + e - 1),
+                })
             }
         }
     }
@@ -281,9 +300,18 @@ impl Resolved {
             } => box_brushes(min, max, within, |cell, brush| {
                 each(cell, brush, mode, colour)
             }),
-            Resolved::Voxels { mode, ref voxels } => {
-                for &(pos, colour) in voxels {
-                    voxel(pos, mode, colour);
+            Resolved::Voxels {
+                mode,
+                colour,
+                ref bricks,
+            } => {
+                for (cell, brush) in bricks {
+                    let lo = cell.map(|c| c * BRICK_EDGE);
+                    let hi = lo.map(|c| c + BRICK_EDGE - 1);
+                    let inside = (0..3).all(|i| lo[i] <= within.hi[i] && hi[i] >= within.lo[i]);
+                    if inside {
+                        each(*cell, brush, mode, colour);
+                    }
                 }
             }
         }

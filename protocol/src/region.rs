@@ -4,7 +4,8 @@
 
 use std::collections::{HashMap, VecDeque};
 
-use crate::brick::{BRICK_EDGE, voxel_bit};
+use crate::brick::{BRICK_EDGE, EMPTY_MASK, Mask, mask_get, mask_set, rank, voxel_bit};
+use crate::colour::Colour;
 use crate::map::BrickMap;
 use crate::wire::Rejection;
 
@@ -32,20 +33,20 @@ fn step(map: &BrickMap, pos: [u32; 3], step: [i64; 3]) -> Option<[u32; 3]> {
     Some(out)
 }
 
-/// Breadth-first from `start` through the neighbours `next` gives, keeping those `keep`
-/// accepts; more than `limit` kept is [`Rejection::TooLarge`] (nothing is changed by a
-/// refused tool). The order is the search's: the same on every copy of the same map.
+/// Breadth-first from `start` through the neighbours `steps` give, keeping those `keep`
+/// accepts (it reads voxels through the [`Local`] it is handed); more than `limit` kept is
+/// [`Rejection::TooLarge`] (nothing is changed by a refused tool). The order is the search's:
+/// the same on every copy of the same map.
 fn search(
-    map: &BrickMap,
+    local: &mut Local,
     start: [u32; 3],
     steps: &[[i64; 3]],
     limit: u32,
-    keep: impl Fn([u32; 3]) -> bool,
+    keep: impl Fn(&mut Local, [u32; 3]) -> bool,
 ) -> Result<Vec<[u32; 3]>, Rejection> {
-    let mut seen = Seen::default();
     let mut queue = VecDeque::new();
     let mut out = Vec::new();
-    seen.insert(start);
+    local.see(start);
     queue.push_back(start);
     while let Some(pos) = queue.pop_front() {
         out.push(pos);
@@ -53,11 +54,11 @@ fn search(
             return Err(Rejection::TooLarge);
         }
         for &s in steps {
-            if let Some(next) = step(map, pos, s)
-                && !seen.contains(next)
-                && keep(next)
+            if let Some(next) = step(local.map, pos, s)
+                && !local.seen(next)
+                && keep(local, next)
             {
-                seen.insert(next);
+                local.see(next);
                 queue.push_back(next);
             }
         }
@@ -65,33 +66,63 @@ fn search(
     Ok(out)
 }
 
-/// The voxels a search has seen: a 512-bit mask per brick, so a region of a million voxels
-/// costs a few thousand hashed keys and about 64 bytes per brick, not a hashed key and ~40
-/// bytes per voxel.
-#[derive(Default)]
-struct Seen {
-    bricks: HashMap<[u32; 3], [u64; 8]>,
+/// The bricks a search reads, decoded once each (mask and colours), with a 512-bit mask per
+/// brick of what it has seen, and the brick it read last at hand: most neighbours are in
+/// the same brick, so most reads hash nothing. A region of a million voxels costs a few
+/// thousand decoded bricks, not seven map lookups and a hashed key per voxel.
+struct Local<'a> {
+    map: &'a BrickMap,
+    index: HashMap<[u32; 3], usize>,
+    bricks: Vec<(Mask, Vec<Colour>, Mask)>,
+    last: Option<([u32; 3], usize)>,
 }
 
-impl Seen {
-    fn at(pos: [u32; 3]) -> ([u32; 3], usize) {
+impl<'a> Local<'a> {
+    fn new(map: &'a BrickMap) -> Local<'a> {
+        Local {
+            map,
+            index: HashMap::new(),
+            bricks: Vec::new(),
+            last: None,
+        }
+    }
+
+    /// The brick holding `pos` (decoded on first use), and `pos`'s bit in it.
+    fn at(&mut self, pos: [u32; 3]) -> (usize, u32) {
         let e = BRICK_EDGE;
-        (
-            pos.map(|p| p / e),
-            voxel_bit(pos[0] % e, pos[1] % e, pos[2] % e) as usize,
-        )
+        let cell = pos.map(|p| p / e);
+        let bit = voxel_bit(pos[0] % e, pos[1] % e, pos[2] % e);
+        if let Some((c, i)) = self.last
+            && c == cell
+        {
+            return (i, bit);
+        }
+        let (map, bricks) = (self.map, &mut self.bricks);
+        let i = *self.index.entry(cell).or_insert_with(|| {
+            let (mask, colours) = map
+                .brick(cell)
+                .map_or((EMPTY_MASK, Vec::new()), |b| (b.mask, b.colours));
+            bricks.push((mask, colours, EMPTY_MASK));
+            bricks.len() - 1
+        });
+        self.last = Some((cell, i));
+        (i, bit)
     }
 
-    fn contains(&self, pos: [u32; 3]) -> bool {
-        let (cell, bit) = Seen::at(pos);
-        self.bricks
-            .get(&cell)
-            .is_some_and(|m| m[bit / 64] & (1 << (bit % 64)) != 0)
+    fn get(&mut self, pos: [u32; 3]) -> Option<Colour> {
+        let (i, bit) = self.at(pos);
+        let (mask, colours, _) = &self.bricks[i];
+        mask_get(mask, bit).then(|| colours[rank(mask, bit) as usize])
     }
 
-    fn insert(&mut self, pos: [u32; 3]) {
-        let (cell, bit) = Seen::at(pos);
-        self.bricks.entry(cell).or_default()[bit / 64] |= 1 << (bit % 64);
+    fn seen(&mut self, pos: [u32; 3]) -> bool {
+        let (i, bit) = self.at(pos);
+        mask_get(&self.bricks[i].2, bit)
+    }
+
+    fn see(&mut self, pos: [u32; 3]) {
+        let (i, bit) = self.at(pos);
+        mask_set(&mut self.bricks[i].2, bit, true);
     }
 }
 
@@ -101,11 +132,12 @@ pub fn fill_region(
     start: [u32; 3],
     limit: u32,
 ) -> Result<Vec<[u32; 3]>, Rejection> {
-    let Some(colour) = map.get(start) else {
+    let mut local = Local::new(map);
+    let Some(colour) = local.get(start) else {
         return Ok(Vec::new());
     };
-    search(map, start, &NEIGHBOURS, limit, |p| {
-        map.get(p) == Some(colour)
+    search(&mut local, start, &NEIGHBOURS, limit, |l, p| {
+        l.get(p) == Some(colour)
     })
 }
 
@@ -119,14 +151,14 @@ pub fn face_region(
     normal: [i64; 3],
     limit: u32,
 ) -> Result<Vec<[u32; 3]>, Rejection> {
-    let Some(colour) = map.get(start) else {
+    let mut local = Local::new(map);
+    let Some(colour) = local.get(start) else {
         return Ok(Vec::new());
     };
-    let open = |p: [u32; 3]| {
-        map.get(p) == Some(colour)
-            && step(map, p, normal).is_some_and(|front| map.get(front).is_none())
+    let open = |l: &mut Local, p: [u32; 3]| {
+        l.get(p) == Some(colour) && step(map, p, normal).is_some_and(|front| l.get(front).is_none())
     };
-    if !open(start) {
+    if !open(&mut local, start) {
         return Ok(Vec::new());
     }
     let in_plane: Vec<[i64; 3]> = NEIGHBOURS
@@ -134,7 +166,7 @@ pub fn face_region(
         .copied()
         .filter(|s| (0..3).all(|i| s[i] == 0 || normal[i] == 0))
         .collect();
-    search(map, start, &in_plane, limit, open)
+    search(&mut local, start, &in_plane, limit, open)
 }
 
 /// The voxels of a line from `a` to `b`, both included, one voxel thick (each step moves one

@@ -1349,11 +1349,11 @@ fn validate_checks_bounds_numbers_and_sizes() {
         check(span([f32::NAN, 1.0, 0.0], 16)),
         Err(Rejection::InvalidNumber)
     );
-    // Charged for what they may do: a fill eight brush voxels a voxel of its limit, a box
-    // its extent cubed.
+    // Charged for what they may do: a fill 32 brush voxels a voxel of its limit, a box its
+    // extent cubed.
     let size = [512, 512, 512];
     let walk = 1536;
-    assert_eq!(ray([0.0; 3], down, fill(1000)).work(size), walk + 8000);
+    assert_eq!(ray([0.0; 3], down, fill(1000)).work(size), walk + 32_000);
     assert_eq!(span(down, 16).work(size), 2 * walk + 16 * 16 * 16);
 }
 

@@ -198,9 +198,10 @@ fn check_ray(origin: [f32; 3], dir: [f32; 3]) -> Result<(), Rejection> {
     Ok(())
 }
 
-/// What one voxel of a fill's or an extrude's limit is charged, in brush voxels: finding the
-/// region reads each voxel and its six neighbours.
-pub const TOOL_VOXEL_WORK: u64 = 8;
+/// What one voxel of a fill's or an extrude's limit is charged, in brush voxels: finding and
+/// changing a region costs about 33 times what painting the same voxels with a box brush does
+/// (`cargo bench -p brickcast-protocol --bench protocol -- tools/`, BENCHMARKS.md).
+pub const TOOL_VOXEL_WORK: u64 = 32;
 
 /// Whether `f` holds on every axis.
 fn per_axis<A: Copy, B: Copy>(a: [A; 3], b: [B; 3], f: impl Fn(A, B) -> bool) -> bool {
@@ -253,9 +254,7 @@ impl EditOp {
                     RayAction::Sphere { radius, .. } => {
                         sphere(scene_size.map(|s| s as f32 * 0.5), radius)
                     }
-                    // The region it may change, and finding it: each voxel of it is read
-                    // with its six neighbours, queued and marked, about eight brush voxels'
-                    // worth of work.
+                    // The region it may change, and finding it (see `TOOL_VOXEL_WORK`).
                     RayAction::Fill { limit, .. } | RayAction::Extrude { limit, .. } => {
                         TOOL_VOXEL_WORK * u64::from(limit)
                     }

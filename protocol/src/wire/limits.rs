@@ -50,7 +50,8 @@ impl Default for Limits {
             max_undo_steps: 256,
             max_undo_bytes: 64 << 20,
             presence_hz: 20,
-            max_tool_voxels: 1 << 20,
+            // Charged `TOOL_VOXEL_WORK` each: half of a server's default work per edit.
+            max_tool_voxels: 1 << 19,
         }
     }
 }
