@@ -61,8 +61,8 @@ fn brushes_of(voxels: Vec<[u32; 3]>) -> Vec<([u32; 3], Mask)> {
 }
 
 /// Where a two-point tool's end lands: filling starts from the empty cell in front of the
-/// hit, erasing and painting from the voxel hit.
-fn span_end(hit: &Hit, mode: BrushMode) -> Result<[u32; 3], Rejection> {
+/// hit, erasing and painting from the voxel hit. (Viewers size a span with it too.)
+pub fn span_end(hit: &Hit, mode: BrushMode) -> Result<[u32; 3], Rejection> {
     match mode {
         BrushMode::Fill => hit.previous.ok_or(Rejection::NothingToPlace),
         BrushMode::Erase | BrushMode::Paint => Ok(hit.voxel),

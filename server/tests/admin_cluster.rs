@@ -20,6 +20,22 @@ fn url(node: &Node, scene: &str) -> String {
     format!("ws://{}/scenes/{scene}/ws", node.addr)
 }
 
+/// Sets one voxel through `client` and waits until its own copy holds it: a forwarded edit's
+/// answer may come before this node's replica applied the turn. The edit's sequence.
+async fn set_and_see(client: &mut Client, pos: [u32; 3], c: u32) -> u64 {
+    let ack = client
+        .edit(vec![EditOp::Set {
+            pos,
+            colour: colour(c),
+        }])
+        .await;
+    let ServerMsg::Ack { seq: Some(seq), .. } = ack else {
+        panic!("{ack:?}")
+    };
+    client.catch_up(seq).await;
+    seq
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     let nats = Nats::start(true);
@@ -36,18 +52,8 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
     assert!(made["voxels"].as_u64().unwrap() > 0, "{made}");
     let mut on_b = Client::connect(&url(&b, "isle"), None).await.unwrap();
     on_b.sync().await;
-    let ack = on_b
-        .edit(vec![EditOp::Set {
-            pos: [5, 30, 5],
-            colour: colour(3),
-        }])
-        .await;
-    let ServerMsg::Ack { seq: Some(seq), .. } = ack else {
-        panic!("{ack:?}")
-    };
-    // A forwarded edit's answer may come before the delta of its turn: both clients are
-    // waited for up to its sequence (in the sync or after it).
-    on_b.catch_up(seq).await;
+    // Both clients are waited for up to the edit's sequence (in the sync or after it).
+    let seq = set_and_see(&mut on_b, [5, 30, 5], 3).await;
     let mut on_c = Client::connect(&url(&c, "isle"), None).await.unwrap();
     on_c.sync().await;
     on_c.catch_up(seq).await;
@@ -110,17 +116,7 @@ async fn an_admin_manages_the_scenes_of_a_cluster_through_any_node() {
         hash,
         "renamed with its contents"
     );
-    let ack = renamed
-        .edit(vec![EditOp::Set {
-            pos: [6, 30, 6],
-            colour: colour(4),
-        }])
-        .await;
-    let ServerMsg::Ack { seq: Some(seq), .. } = ack else {
-        panic!("{ack:?}")
-    };
-    // The owner's answer may come before this node's replica applied the turn.
-    renamed.catch_up(seq).await;
+    set_and_see(&mut renamed, [6, 30, 6], 4).await;
     let edited = renamed.map.content_hash();
     let taken = refused(&admin(a.addr, &["rename", "islet", "isle"], None).await);
     assert!(taken.contains("already exists"), "{taken}");

@@ -14,6 +14,7 @@
 //! work budgets for about what the edit does, and a region too large for the server's limit
 //! is refused here, with the reason, before anything is sent.
 
+use brickcast_protocol::apply::span_end;
 use brickcast_protocol::map::BrickMap;
 use brickcast_protocol::region::{face_region, fill_region};
 use brickcast_protocol::wire::{BrushMode, EditOp, Limits, RayAction, Shape};
@@ -336,13 +337,7 @@ fn extrude(button: Button, ray: &Ray, cx: &Context) -> Action {
 /// server resolves them (`brickcast_protocol::apply`); `None` when the local copy cannot tell.
 fn span_locally(map: Option<&BrickMap>, a: &Ray, b: &Ray, mode: BrushMode) -> Option<u32> {
     let map = map?;
-    let end = |ray: &Ray| {
-        let hit = trace(map, ray)?;
-        match mode {
-            BrushMode::Fill => hit.previous,
-            BrushMode::Erase | BrushMode::Paint => Some(hit.voxel),
-        }
-    };
+    let end = |ray: &Ray| span_end(&trace(map, ray)?, mode).ok();
     let (a, b) = (end(a)?, end(b)?);
     (0..3).map(|i| a[i].abs_diff(b[i]) + 1).max()
 }
