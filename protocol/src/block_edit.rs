@@ -30,9 +30,16 @@ pub(crate) struct Changed {
 }
 
 /// Applies `edit` to the block at the start of `chunk` (its slot's whole chunk, so a block may
-/// grow into the rest), which holds `n` voxels. `None`: not done here; nothing was written.
-pub(crate) fn edit_in_place(chunk: &mut [u16], n: usize, r: usize, edit: Edit) -> Option<Changed> {
-    let mut coding = coding_of_words(chunk).ok()?;
+/// grow into the rest), which holds `n` voxels and is coded as `coding` (its header, read by
+/// the caller). `None`: not done here; nothing was written.
+pub(crate) fn edit_in_place(
+    chunk: &mut [u16],
+    mut coding: Coding,
+    n: usize,
+    r: usize,
+    edit: Edit,
+) -> Option<Changed> {
+    debug_assert_eq!(coding_of_words(chunk).ok(), Some(coding));
     let before = coding.words(n);
     let mut first_palette_change = None;
     if let (Coding::Palette { bits, entries }, Edit::Recolour(c) | Edit::Insert(c)) = (coding, edit)
@@ -186,7 +193,8 @@ mod tests {
                 Edit::Remove => { want.remove(r); }
             }
             let old = chunk.clone();
-            if let Some(changed) = edit_in_place(&mut chunk, n, r, edit) {
+            let coding = coding_of_words(&chunk).unwrap();
+            if let Some(changed) = edit_in_place(&mut chunk, coding, n, r, edit) {
                 // Every word that changed is in the range handed to the GPU uploader.
                 let end = changed.words.max(changed.before);
                 for (i, (a, b)) in old.iter().zip(&chunk).enumerate() {

@@ -61,6 +61,17 @@ pub fn popcount(mask: &Mask) -> u32 {
     mask.iter().map(|w| w.count_ones()).sum()
 }
 
+/// [`rank`] and [`popcount`] in one pass over the mask: (solid voxels below `bit`, solid
+/// voxels in all).
+#[inline]
+pub fn rank_and_count(mask: &Mask, bit: u32) -> (u32, u32) {
+    let word = (bit >> 6) as usize;
+    let counts: [u32; 8] = std::array::from_fn(|i| mask[i].count_ones());
+    let below =
+        counts[..word].iter().sum::<u32>() + (mask[word] & ((1u64 << (bit & 63)) - 1)).count_ones();
+    (below, counts.iter().sum())
+}
+
 /// Number of solid voxels with a bit index below `bit`: the colour slot of voxel `bit`.
 #[inline]
 pub fn rank(mask: &Mask, bit: u32) -> u32 {
@@ -146,5 +157,10 @@ mod tests {
         for_each_bit(&mask, |b| seen.push(b));
         assert_eq!(seen, vec![0, 5, 63, 64, 200, 511]);
         assert_eq!(rank(&FULL_MASK, 511), 511);
+        for b in [0, 5, 6, 63, 64, 65, 200, 511] {
+            assert_eq!(rank_and_count(&mask, b), (rank(&mask, b), 6), "bit {b}");
+        }
+        assert_eq!(rank_and_count(&FULL_MASK, 511), (511, 512));
+        assert_eq!(rank_and_count(&EMPTY_MASK, 300), (0, 0));
     }
 }

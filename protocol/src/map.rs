@@ -23,7 +23,7 @@
 
 use crate::brick::{
     BRICK_EDGE, BRICK_VOXELS, BrickData, EMPTY, EMPTY_MASK, Mask, for_each_bit, mask_get,
-    mask_is_empty, mask_set, popcount, rank, voxel_bit,
+    mask_is_empty, mask_set, popcount, rank, rank_and_count, voxel_bit,
 };
 use crate::colour::Colour;
 
@@ -677,11 +677,11 @@ impl BrickMap {
         };
         let s = slot as usize;
         let solid = mask_get(&self.masks[s], bit);
-        let r = rank(&self.masks[s], bit) as usize;
+        // A random edit's time is its cache misses (the cell, the mask, the block): each is
+        // read once here and handed on, not looked up again.
+        let (r, n) = rank_and_count(&self.masks[s], bit);
+        let (r, n) = (r as usize, n as usize);
         let block = self.block(slot);
-        // Where a raw block keeps this voxel, read beside the header rather than after it: the
-        // two cache misses overlap (a random edit's time is its misses).
-        std::hint::black_box(block.get(1 + r).copied());
         let coding = crate::palette::coding_of_words(block).ok();
         let one = match coding {
             Some(crate::palette::Coding::One) => block.get(1).copied().map(Colour),
@@ -690,11 +690,11 @@ impl BrickMap {
         match (mode, solid) {
             (BrushMode::Paint | BrushMode::Erase, false) => return false,
             (BrushMode::Fill | BrushMode::Paint, true)
-                if crate::palette::colour_at_words(block, r) == Some(colour) =>
+                if coding.and_then(|c| c.colour_at(block, r)) == Some(colour) =>
             {
                 return false;
             }
-            (BrushMode::Erase, true) if popcount(&self.masks[s]) == 1 => {
+            (BrushMode::Erase, true) if n == 1 => {
                 self.remove_slot(slot);
                 return true;
             }
@@ -710,10 +710,12 @@ impl BrickMap {
                 }
                 self.mark_slot(slot);
             }
-            _ if self.edit_block_in_place(slot, bit, r, mode, solid, colour) => {}
+            _ if coding.is_some_and(|coding| {
+                self.edit_block_in_place(slot, bit, (r, n), coding, mode, colour)
+            }) => {}
             _ => {
                 let mut scratch = [Colour::BLACK; VOXELS + 1];
-                let len = popcount(&self.masks[s]) as usize;
+                let len = n;
                 self.slot_colours(slot, (&mut scratch[..VOXELS]).try_into().expect("512"));
                 let mut mask = self.masks[s];
                 let n = match (mode, solid) {
@@ -758,14 +760,15 @@ impl BrickMap {
 
     /// A single voxel's edit (voxel `bit`, the `r`th solid one of its brick) made in its
     /// brick's block where it lies (`crate::block_edit`): whether it was. Not in a copy with a
-    /// colour bound (its blocks are re-coded whole).
+    /// colour bound (its blocks are re-coded whole). `n`: the brick's solid voxels; `coding`:
+    /// its block's.
     fn edit_block_in_place(
         &mut self,
         slot: u32,
         bit: u32,
-        r: usize,
+        (r, n): (usize, usize),
+        coding: crate::palette::Coding,
         mode: BrushMode,
-        solid: bool,
         colour: Colour,
     ) -> bool {
         use crate::block_edit::{Edit, edit_in_place};
@@ -773,8 +776,7 @@ impl BrickMap {
             return false;
         }
         let s = slot as usize;
-        let n = popcount(&self.masks[s]) as usize;
-        let edit = match (mode, solid) {
+        let edit = match (mode, mask_get(&self.masks[s], bit)) {
             (BrushMode::Erase, true) => Edit::Remove,
             (BrushMode::Fill | BrushMode::Paint, true) => Edit::Recolour(colour),
             (BrushMode::Fill, false) => Edit::Insert(colour),
@@ -782,7 +784,8 @@ impl BrickMap {
         };
         let base = self.colour_base[s] as usize;
         let cap = usize::from(self.slot_capacity[s]);
-        let Some(changed) = edit_in_place(&mut self.colours[base..base + cap], n, r, edit) else {
+        let Some(changed) = edit_in_place(&mut self.colours[base..base + cap], coding, n, r, edit)
+        else {
             return false;
         };
         match edit {

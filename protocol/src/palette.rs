@@ -282,20 +282,33 @@ pub fn colour_at(bytes: &[u8], rank: usize) -> Option<Colour> {
 /// [`colour_at`] over 16-bit words: the CPU tracer's read of the colour pool, the same steps
 /// as `brick_colour` in `shaders/trace.wgsl`.
 pub fn colour_at_words(words: &[u16], rank: usize) -> Option<Colour> {
-    let w = match Coding::of_header(*words.first()?).ok()? {
-        Coding::Blocks { bits } => return crate::blocks::colour_at(words.get(1..)?, bits, rank),
-        Coding::One => words.get(1),
-        Coding::Raw => words.get(1 + rank),
-        Coding::Palette { bits, entries } => {
-            let at = rank * bits as usize;
-            let index = (words.get(1 + entries + at / 16)? >> (at % 16)) & ((1 << bits) - 1);
-            if usize::from(index) >= entries {
-                return None;
+    Coding::of_header(*words.first()?)
+        .ok()?
+        .colour_at(words, rank)
+}
+
+impl Coding {
+    /// The colour of the voxel of rank `rank` in `words`, a block coded this way (its header
+    /// read already); `None` where the block is cut short or an index is past its palette.
+    #[inline]
+    pub fn colour_at(self, words: &[u16], rank: usize) -> Option<Colour> {
+        let w = match self {
+            Coding::Blocks { bits } => {
+                return crate::blocks::colour_at(words.get(1..)?, bits, rank);
             }
-            words.get(1 + usize::from(index))
-        }
-    };
-    w.copied().map(Colour)
+            Coding::One => words.get(1),
+            Coding::Raw => words.get(1 + rank),
+            Coding::Palette { bits, entries } => {
+                let at = rank * bits as usize;
+                let index = (words.get(1 + entries + at / 16)? >> (at % 16)) & ((1 << bits) - 1);
+                if usize::from(index) >= entries {
+                    return None;
+                }
+                words.get(1 + usize::from(index))
+            }
+        };
+        w.copied().map(Colour)
+    }
 }
 
 /// Codes `colours` in bounded-error blocks into `out` (cleared first) where that is smaller
