@@ -97,7 +97,8 @@ impl Replica {
     /// Lets this copy code bricks in lossy blocks within `bound` per channel (0–255 scale)
     /// from now on and after every reset ([`BrickMap::set_colour_bound`]); `None`: exact. Set
     /// it before the sync: bricks already held keep their coding. Every brick arrives whole
-    /// and exact from the server, so errors never compound.
+    /// and exact from the server, so errors never compound. A copy that follows a working set
+    /// holds it exact whatever the bound: the server plans it in exact bytes.
     pub fn set_colour_bound(&mut self, bound: Option<u32>) {
         self.colour_bound = bound;
         self.map.set_colour_bound(bound);
@@ -316,6 +317,11 @@ impl Replica {
         if self.held.is_none() {
             let (scene, size) = (self.scene.clone(), self.map.size());
             self.clear(&scene, size)?;
+            // The server plans a working set in the bytes of exact blocks
+            // (`working_set::region_bytes`), so lossy blocks would only leave part of the
+            // budget unused; coding them was most of what a page spent taking a working set
+            // in. Held exact (the next `clear`, for a whole scene, brings the bound back).
+            self.map.set_colour_bound(None);
             self.held = Some(Held::new(&self.map));
         }
         let Some(held) = &mut self.held else {
@@ -519,6 +525,60 @@ mod tests {
             })
             .is_err()
         );
+    }
+
+    /// A copy that keeps colours within a bound still holds a working set exact: the server
+    /// plans it in exact bytes, so lossy blocks would buy nothing the budget uses (and were most
+    /// of a page's work taking a 16k world in). A whole scene after it is bounded again.
+    #[test]
+    fn a_working_set_is_held_exact_whatever_the_colour_bound() {
+        let mut r = Replica::new("demo", [512, 64, 512]).unwrap();
+        r.set_colour_bound(Some(12));
+        let rule = Rule {
+            eye: [0, 0, 0],
+            near: 1,
+            top: 4,
+        };
+        r.apply(&ServerMsg::Follow {
+            eye: rule.eye,
+            near: rule.near,
+            top: rule.top,
+        })
+        .unwrap();
+        let dims = r.map.region_dims();
+        let cells = r.map.cell_dims();
+        let (level, cell) = (MIN_STAND_IN_LEVEL..=rule.top)
+            .flat_map(|l| {
+                let [x, y, z] = cells.map(|c| c.div_ceil(1 << l));
+                (0..z).flat_map(move |k| {
+                    (0..y).flat_map(move |j| (0..x).map(move |i| (l, [i, j, k])))
+                })
+            })
+            .find(|&(l, c)| rule.holds(dims, l, c))
+            .expect("a coarse brick the rule holds");
+        // 512 voxels on a smooth ramp: every colour distinct (raw exact), and what a bound of
+        // 12 codes in lossy blocks.
+        let ramp = BrickData {
+            cell,
+            mask: crate::brick::FULL_MASK,
+            colours: (0..512u16)
+                .map(|i| Colour(((i / 16) << 11) | ((i % 64) << 5)))
+                .collect(),
+        };
+        r.apply(&ServerMsg::Coarse {
+            level,
+            bricks: blob(std::slice::from_ref(&ramp)),
+            empty: vec![],
+        })
+        .unwrap();
+        let codings: Vec<_> = (0..r.map.slot_count())
+            .filter(|&s| r.map.masks()[s as usize] != crate::brick::EMPTY_MASK)
+            .map(|s| crate::palette::coding_of_words(r.map.block(s)).unwrap())
+            .collect();
+        assert_eq!(codings, vec![crate::palette::Coding::Raw], "held exact");
+        // Another scene, held whole: bounded as asked.
+        r.welcome("other", [64, 64, 64], 0).unwrap();
+        assert_eq!(r.map.colour_bound(), Some(12));
     }
 
     /// What a hostile or confused server sends a working set is an error, never a panic, and

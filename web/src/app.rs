@@ -727,11 +727,13 @@ impl App {
             in_flight.store(false, Ordering::Relaxed);
         });
         self.frames += 1;
+        // Coarse stand-ins are a picture too: a working set shows its far levels first (as
+        // `brickcast fly` counts its first picture at the first coarse or level-0 bricks).
         let has_bricks = self
             .session
             .replica
             .as_ref()
-            .is_some_and(|r| r.map.brick_count() > 0);
+            .is_some_and(|r| r.map.brick_count() > 0 || r.map.stand_in_count() > 0);
         self.pending_picture = traced && has_bricks;
         self.pending_synced = traced && synced;
         Ok(())
