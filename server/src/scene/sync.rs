@@ -92,12 +92,16 @@ impl Owner {
         // While the levels are being built the session is welcomed now and synced later.
         let view = self.levels.map_at(&self.map, level);
         let size = brickcast_protocol::lod::level_size(self.map.size(), level);
-        // No eye in the Hello (the page: it places its camera once the Welcome names the
-        // size): the eye of a viewer's first camera (`Camera::overview`, the client core's
-        // `FirstView`), so that camera's first report is no jump that starts the sync over.
-        let camera = budget
-            .and_then(|b| b.eye)
-            .unwrap_or(brickcast_protocol::Camera::overview(size).eye);
+        // No eye in the Hello. A working set starts at the eye of a viewer's first camera
+        // (`Camera::overview`, the client core's `FirstView`; the page places its camera only
+        // once the Welcome names the size), so that camera's first report is no jump that
+        // starts the working set over. A whole scene streams from above its centre.
+        let camera = match budget {
+            Some(b) => b
+                .eye
+                .unwrap_or(brickcast_protocol::Camera::overview(size).eye),
+            None => [size[0] as f32 * 0.5, size[1] as f32, size[2] as f32 * 0.5],
+        };
         out.wake_owner_with(self.wake.clone());
         out.gate_with(self.durability.clone());
         out.set_following(budget.is_some());
