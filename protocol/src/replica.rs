@@ -135,9 +135,11 @@ impl Replica {
         self.map.record_gpu_changes(on);
     }
 
-    /// Where a reconnect can resume from: the sequence of a complete copy, if there is one.
+    /// Where a reconnect can resume from: the sequence of a complete copy of the whole scene,
+    /// if there is one. A working set does not resume: the server starts it again from the
+    /// camera, and the next connection may be served the whole scene instead.
     pub fn resume_point(&self) -> Option<u64> {
-        self.synced.then_some(self.seq)
+        (self.synced && self.held.is_none()).then_some(self.seq)
     }
 
     /// Whether the map was replaced since the last call (the GPU copy must start over).
@@ -149,15 +151,20 @@ impl Replica {
     /// history is shorter than ours (a different store), is dropped. So is an incomplete copy
     /// (a sync cut short): the connection did not resume from it (see
     /// [`Replica::resume_point`]), so the server sends every brick but not the removals, and
-    /// bricks removed meanwhile would stay in the copy forever.
+    /// bricks removed meanwhile would stay in the copy forever. So is a working set: the server
+    /// starts one again from the camera (a `Follow`), or serves this connection the whole
+    /// scene, which a copy still holding coarse stand-ins would refuse.
     pub fn welcome(
         &mut self,
         scene: &str,
         size: [u32; 3],
         server_seq: u64,
     ) -> Result<(), ReplicaError> {
-        let foreign =
-            scene != self.scene || size != self.map.size() || server_seq < self.seq || !self.synced;
+        let foreign = scene != self.scene
+            || size != self.map.size()
+            || server_seq < self.seq
+            || !self.synced
+            || self.held.is_some();
         if foreign {
             self.clear(scene, size)?;
         }
@@ -579,6 +586,43 @@ mod tests {
         // Another scene, held whole: bounded as asked.
         r.welcome("other", [64, 64, 64], 0).unwrap();
         assert_eq!(r.map.colour_bound(), Some(12));
+    }
+
+    /// A copy that held a working set and connects again may be served the whole scene (its
+    /// budget now holds it whole): the Welcome drops the working set, and the whole-scene sync
+    /// is taken, not refused. Nor does a working set claim a resume.
+    #[test]
+    fn a_working_set_reconnected_to_a_whole_scene_is_dropped_at_the_welcome() {
+        let mut r = Replica::new("demo", [128, 64, 128]).unwrap();
+        r.set_colour_bound(Some(12));
+        r.apply(&ServerMsg::Follow {
+            eye: [0, 0, 0],
+            near: 3,
+            top: 4,
+        })
+        .unwrap();
+        let near = brick_at([1, 1, 1], Colour(5));
+        r.apply(&ServerMsg::Regions {
+            regions: vec![[0, 0, 0]],
+            bricks: blob(std::slice::from_ref(&near)),
+        })
+        .unwrap();
+        r.apply(&ServerMsg::SyncDone { seq: 4 }).unwrap();
+        assert!(r.synced && r.held().is_some());
+        assert_eq!(r.resume_point(), None, "a working set does not resume");
+        r.welcome("demo", [128, 64, 128], 4).unwrap();
+        assert!(r.held().is_none(), "the working set is dropped");
+        let far = brick_at([7, 1, 7], Colour(9));
+        r.apply(&ServerMsg::SyncBatch {
+            bricks: blob(&[near, far]),
+            sent: 2,
+            total: 2,
+        })
+        .expect("the whole scene's sync is taken");
+        r.apply(&ServerMsg::SyncDone { seq: 4 }).unwrap();
+        assert_eq!(r.map.brick_count(), 2);
+        assert_eq!(r.map.colour_bound(), Some(12));
+        assert_eq!(r.resume_point(), Some(4));
     }
 
     /// What a hostile or confused server sends a working set is an error, never a panic, and
