@@ -30,6 +30,9 @@ use crate::map::{BrickMap, MIN_STAND_IN_LEVEL, MapError, REGION_CELLS, box_point
 use crate::wire::BrickRef;
 use crate::working_set::Rule;
 
+mod table;
+use table::{Coarse, CoarseTable};
+
 /// What the server must send when the rule changes: everything wanted that is not held.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Plan {
@@ -130,7 +133,7 @@ const SHELL_MOVE: u32 = 2;
 fn each_candidate(dims: [u32; 3], old: Option<&Rule>, new: &Rule, mut f: impl FnMut([u32; 3])) {
     let m = old.map(|o| chebyshev(o.eye, new.eye));
     if !shells_apply(old, new) {
-        box_points([0; 3], dims).for_each(f);
+        each_in_box([0; 3], dims, f);
         return;
     }
     let m = m.unwrap_or(0);
@@ -205,6 +208,8 @@ pub trait Incoming {
     fn check(&self, map: &BrickMap) -> Result<(), MapError>;
     /// Stores it as a level-0 brick of `map`.
     fn put(&self, map: &mut BrickMap) -> Result<(), MapError>;
+    /// Stores it as a coarse brick of `map` ([`BrickMap::add_coarse`]); returns its slot.
+    fn add_coarse(&self, map: &mut BrickMap) -> Result<u32, MapError>;
 }
 
 impl Incoming for BrickData {
@@ -222,6 +227,9 @@ impl Incoming for BrickData {
     }
     fn put(&self, map: &mut BrickMap) -> Result<(), MapError> {
         map.put_brick(self)
+    }
+    fn add_coarse(&self, map: &mut BrickMap) -> Result<u32, MapError> {
+        map.add_coarse(self.mask, &self.colours)
     }
 }
 
@@ -241,18 +249,13 @@ impl Incoming for BrickRef<'_> {
     fn put(&self, map: &mut BrickMap) -> Result<(), MapError> {
         map.put_coded(self.cell, self.mask, BrickRef::colours(self), self.block())
     }
+    fn add_coarse(&self, map: &mut BrickMap) -> Result<u32, MapError> {
+        map.add_coarse_coded(self.mask, BrickRef::colours(self), self.block())
+    }
 }
 
 /// A region that shows nothing yet.
 const NOTHING: u8 = u8::MAX;
-
-/// A coarse brick the client holds: its slot (`None`: the brick is empty) and how many regions
-/// show it.
-#[derive(Debug, Clone, Copy)]
-struct Coarse {
-    slot: Option<u32>,
-    shown_by: u32,
-}
 
 /// The client's working set: what it shows where, kept beside the map it fills (the
 /// replica's), which every method takes.
@@ -262,7 +265,22 @@ pub struct Held {
     region_dims: [u32; 3],
     /// Per region (linear index): the level it shows, or [`NOTHING`].
     shown: Vec<u8>,
-    coarse: rustc_hash::FxHashMap<(u32, [u32; 3]), Coarse>,
+    coarse: CoarseTable,
+    /// Regions a coarse brick is about to be shown in (kept to save an allocation per brick).
+    scratch: Vec<[u32; 3]>,
+}
+
+/// Calls `f` with each point of the box `lo..hi` (x fastest), as [`box_points`] lists them,
+/// in plain loops: a first working set visits about a million coarse cells' boxes, most of one
+/// region, where the chained iterators cost more than the work.
+fn each_in_box(lo: [u32; 3], hi: [u32; 3], mut f: impl FnMut([u32; 3])) {
+    for z in lo[2]..hi[2] {
+        for y in lo[1]..hi[1] {
+            for x in lo[0]..hi[0] {
+                f([x, y, z]);
+            }
+        }
+    }
 }
 
 impl Held {
@@ -274,7 +292,8 @@ impl Held {
             rule: None,
             region_dims,
             shown: vec![NOTHING; regions],
-            coarse: Default::default(),
+            coarse: CoarseTable::new(region_dims),
+            scratch: Vec::new(),
         }
     }
 
@@ -312,6 +331,9 @@ impl Held {
     /// ([`plan`]).
     pub fn retarget(&mut self, map: &mut BrickMap, rule: Rule) -> Result<Plan, MapError> {
         let plan = plan(self.region_dims, self.rule.as_ref(), &rule);
+        // Room for what comes at once (a first rule brings hundreds of thousands: growing the
+        // table step by step rehashed it again and again).
+        self.coarse.reserve(plan.coarse.len());
         let jump = self.is_jump(&rule);
         let old = self.rule.replace(rule);
         // Only regions whose level changed can switch now; the others wait for their data.
@@ -320,7 +342,11 @@ impl Held {
         each_candidate(self.region_dims, old.as_ref(), &rule, |r| {
             let k = rule.level_of(r);
             let shown = self.shown_level(r);
-            if k != 0 && shown != Some(k) && self.coarse.contains_key(&(k, coarse_cell(r, k))) {
+            if k != 0
+                && shown != Some(k)
+                && !self.coarse.is_empty()
+                && self.coarse.contains_key(&(k, coarse_cell(r, k)))
+            {
                 switch.push((r, k));
             } else if jump && k != 0 && shown == Some(0) {
                 release.push(r);
@@ -383,45 +409,78 @@ impl Held {
         let Some(rule) = self.rule else { return Ok(()) };
         let key = (level, cell);
         let wanted = rule.holds(self.region_dims, level, cell);
-        if !wanted && !self.coarse.contains_key(&key) {
-            return Ok(());
-        }
-        let slot = match brick {
-            Some(b) => Some(map.add_coarse(*b.mask(), b.colours())?),
-            None => None,
+        let add = |map: &mut BrickMap| match brick {
+            Some(b) => b.add_coarse(map).map(Some),
+            None => Ok(None),
         };
-        let regions = self.regions_under(level, cell);
-        match self.coarse.get_mut(&key) {
+        let (lo, hi) = self.regions_under(level, cell);
+        // A brick not held yet (most of a first working set: about a million coarse cells on
+        // the 16k world) is stored with the count of regions about to show it, which are
+        // listed once.
+        let mut to_show = std::mem::take(&mut self.scratch);
+        to_show.clear();
+        each_in_box(lo, hi, |r| {
+            if rule.level_of(r) == level && self.shown_level(r) != Some(level) {
+                to_show.push(r);
+            }
+        });
+        let count = to_show.len() as u32;
+        let (slot, held) = match self.coarse.get_mut(&key) {
             Some(entry) => {
                 // A newer copy: the regions showing the old one show the new one.
+                let slot = add(map)?;
                 let old = std::mem::replace(&mut entry.slot, slot);
-                for &r in &regions {
-                    if self.shown_level(r) == Some(level) {
-                        map.set_stand_in(r, slot.map(|s| (level, s)))?;
+                let mut result = Ok(());
+                each_in_box(lo, hi, |r| {
+                    if result.is_ok() && self.shown_level(r) == Some(level) {
+                        result = map.set_stand_in(r, slot.map(|s| (level, s)));
                     }
-                }
+                });
+                result?;
                 if let Some(old) = old {
                     map.remove_coarse(old)?;
                 }
+                (slot, true)
+            }
+            None if !wanted => {
+                self.scratch = to_show;
+                return Ok(());
             }
             None => {
-                self.coarse.insert(key, Coarse { slot, shown_by: 0 });
+                let slot = add(map)?;
+                self.coarse.insert(
+                    key,
+                    Coarse {
+                        slot,
+                        shown_by: count,
+                    },
+                );
+                (slot, false)
             }
-        }
+        };
         // Clearance is lowered once around the brick's regions, not around each of them.
         map.defer_region_clearance();
-        let mut shown = Ok(());
-        for r in regions {
-            if rule.level_of(r) == level && self.shown_level(r) != Some(level) {
-                shown = self.show_coarse(map, r, level);
-                if shown.is_err() {
-                    break;
-                }
+        let (mut shown, mut result) = (0, Ok(()));
+        for &r in &to_show {
+            result = self.show_slot(map, r, level, slot);
+            if result.is_err() {
+                break;
             }
+            shown += 1;
         }
+        self.scratch = to_show;
+        // A brick stored just now was counted then: only a failure changes its count.
+        let unused = if held || shown != count {
+            self.coarse.get_mut(&key).is_some_and(|c| {
+                c.shown_by = if held { c.shown_by + shown } else { shown };
+                held && c.shown_by == 0
+            })
+        } else {
+            false
+        };
         map.lower_deferred_region_clearance();
-        shown?;
-        if !wanted && self.coarse.get(&key).is_some_and(|c| c.shown_by == 0) {
+        result?;
+        if !wanted && unused {
             self.free_coarse(map, key)?;
         }
         Ok(())
@@ -454,12 +513,12 @@ impl Held {
     }
 
     /// Regions under a level-`level` coarse cell, inside the grid.
-    fn regions_under(&self, level: u32, cell: [u32; 3]) -> Vec<[u32; 3]> {
+    fn regions_under(&self, level: u32, cell: [u32; 3]) -> ([u32; 3], [u32; 3]) {
         let span = 1u32 << (level - MIN_STAND_IN_LEVEL);
         let d = self.region_dims;
         let lo = cell.map(|c| c.saturating_mul(span));
         let hi: [u32; 3] = std::array::from_fn(|i| lo[i].saturating_add(span).min(d[i]));
-        box_points(lo, hi).collect()
+        (lo, hi)
     }
 
     /// Region `r` shows the held coarse brick of level `level` over it.
@@ -468,12 +527,25 @@ impl Held {
         let Some(slot) = self.coarse.get(&key).map(|c| c.slot) else {
             return Ok(());
         };
+        self.show_slot(map, r, level, slot)?;
+        if let Some(c) = self.coarse.get_mut(&key) {
+            c.shown_by += 1;
+        }
+        Ok(())
+    }
+
+    /// Region `r` shows the held level-`level` brick over it, in `slot` (`None`: empty); the
+    /// caller counts it in the brick's `shown_by`. `r` must not show that brick already.
+    fn show_slot(
+        &mut self,
+        map: &mut BrickMap,
+        r: [u32; 3],
+        level: u32,
+        slot: Option<u32>,
+    ) -> Result<(), MapError> {
         self.detach(map, r)?;
         if let Some(slot) = slot {
             map.set_stand_in(r, Some((level, slot)))?;
-        }
-        if let Some(c) = self.coarse.get_mut(&key) {
-            c.shown_by += 1;
         }
         let i = self.index(r).unwrap_or(0);
         self.shown[i] = level as u8;
@@ -707,10 +779,12 @@ mod tests {
             // Every coarse brick held is wanted, and the solid ones are those a build holds.
             let cost = working_set::cost(&base, &pyramid, &rule);
             assert!(
-                held.coarse.keys().all(|&(k, cell)| rule.holds(rd, k, cell)),
+                held.coarse
+                    .iter()
+                    .all(|((k, cell), _)| rule.holds(rd, k, cell)),
                 "step {step}: coarse bricks held that nothing wants"
             );
-            let solid = held.coarse.values().filter(|c| c.slot.is_some()).count();
+            let solid = held.coarse.iter().filter(|(_, c)| c.slot.is_some()).count();
             assert_eq!(solid as u64, cost.coarse_bricks, "step {step}");
 
             // Someone edits: a sphere anywhere; deltas for what the client holds.

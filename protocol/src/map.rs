@@ -919,19 +919,28 @@ impl BrickMap {
         block: &[u16],
     ) -> Result<(), MapError> {
         self.check_cell(cell)?;
-        let n = colours.len();
+        let Some(block) = self.given_block(&mask, colours.len(), block) else {
+            return Err(MapError::InconsistentBrick(cell));
+        };
+        self.check_voxels(cell, &mask)?;
+        self.write_checked(cell, mask, colours, Exact::Given(block));
+        Ok(())
+    }
+
+    /// The words of `block` that code `n` colours of a brick with `mask`, if this map may
+    /// store it as it is (see [`BrickMap::put_coded`]); `None`: it may not.
+    pub(crate) fn given_block<'b>(
+        &self,
+        mask: &Mask,
+        n: usize,
+        block: &'b [u16],
+    ) -> Option<&'b [u16]> {
         let fitting = match crate::palette::coding_of_words(block) {
             Ok(crate::palette::Coding::Blocks { .. }) if self.colour_bound.is_none() => None,
             Err(_) => None,
             Ok(coding) => block.get(..coding.words(n)),
         };
-        let block = match fitting {
-            Some(b) if n > 0 && popcount(&mask) as usize == n => b,
-            _ => return Err(MapError::InconsistentBrick(cell)),
-        };
-        self.check_voxels(cell, &mask)?;
-        self.write_checked(cell, mask, colours, Exact::Given(block));
-        Ok(())
+        fitting.filter(|_| n > 0 && popcount(mask) as usize == n)
     }
 
     /// Writes many whole bricks (`None`: the cell empties), as [`BrickMap::put_brick`] and

@@ -3,8 +3,11 @@
 // summed by function (self time), in the test browser (chromium, SwiftShader WebGPU).
 //
 //   node profile.mjs URL [--top 30] [--from MS] [--to MS] [--width 960 --height 540]
+//                        [--callers TEXT]
 //
-// Prints the page's timings and the functions with the most self time, one per line.
+// Prints the page's timings and the functions with the most self time, one per line; with
+// `--callers`, the self time of functions whose name contains TEXT by the function that
+// called them.
 import { chromium } from 'playwright-core';
 
 const argv = process.argv.slice(2);
@@ -14,6 +17,7 @@ const width = Number(opt('--width', 960)), height = Number(opt('--height', 540))
 const top = Number(opt('--top', 30));
 // Only samples from `--from` to `--to` milliseconds after the profile started.
 const from = Number(opt('--from', 0)), to = Number(opt('--to', 1e12));
+const callers = opt('--callers', null);
 
 const browser = await chromium.launch({
   executablePath: process.env.BRICKCAST_CHROMIUM || '/usr/bin/chromium',
@@ -31,10 +35,13 @@ await page.goto(url);
 await page.waitForFunction(() => window.brickcast && JSON.parse(window.brickcast.state()).synced_ms !== null, null, { timeout: 600000, polling: 100 });
 const { profile } = await cdp.send('Profiler.stop');
 const s = JSON.parse(await page.evaluate(() => window.brickcast.state()));
-console.log(JSON.stringify({ welcome_ms: s.welcome_ms, gpu_ready_ms: s.gpu_ready_ms, first_picture_ms: s.first_picture_ms, synced_ms: s.synced_ms, bricks: s.bricks, bytes_in: s.bytes_in }));
+console.log(JSON.stringify({ welcome_ms: s.welcome_ms, gpu_ready_ms: s.gpu_ready_ms, first_picture_ms: s.first_picture_ms, synced_ms: s.synced_ms, bricks: s.bricks, bytes_in: s.bytes_in, uploaded: s.uploaded }));
 
 // Self time per function: each sample's node, weighted by its time delta.
 const byId = new Map(profile.nodes.map((n) => [n.id, n]));
+const parentOf = new Map();
+for (const n of profile.nodes) for (const c of n.children || []) parentOf.set(c, n);
+const nameOf = (n) => n.callFrame.functionName || `(anonymous ${n.callFrame.url.split('/').pop()}:${n.callFrame.lineNumber})`;
 const self = new Map();
 let total = 0;
 let at = 0;
@@ -42,8 +49,13 @@ profile.samples.forEach((id, i) => {
   const dt = profile.timeDeltas[i] || 0;
   at += dt;
   if (at / 1000 < from || at / 1000 > to) return;
-  const f = byId.get(id).callFrame;
-  const name = f.functionName || `(anonymous ${f.url.split('/').pop()}:${f.lineNumber})`;
+  const node = byId.get(id);
+  let name = nameOf(node);
+  if (callers !== null) {
+    if (!name.includes(callers)) return;
+    const parent = parentOf.get(id);
+    name = `${name.slice(0, 60)} <- ${parent ? nameOf(parent) : '(root)'}`;
+  }
   self.set(name, (self.get(name) || 0) + dt);
   total += dt;
 });

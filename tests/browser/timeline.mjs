@@ -30,7 +30,7 @@ let last = '';
 for (;;) {
   const s = await page.evaluate(() => window.brickcast ? JSON.parse(window.brickcast.state()) : null);
   if (s) {
-    const line = `bricks ${s.bricks} frames ${s.frames} gpu_frames ${s.gpu_frames} bytes ${s.bytes_in} first ${s.first_picture_ms} synced ${s.synced_ms} gpu_bytes ${s.gpu_bytes} stand_ins ${s.stand_ins}`;
+    const line = `bricks ${s.bricks} frames ${s.frames} gpu_frames ${s.gpu_frames} bytes ${s.bytes_in} first ${s.first_picture_ms} synced ${s.synced_ms} gpu_bytes ${s.gpu_bytes} stand_ins ${s.stand_ins} uploaded ${JSON.stringify(s.uploaded)}`;
     if (line !== last) { console.log(`${Date.now() - t0} ms: ${line}`); last = line; }
     if (s.synced_ms !== null) break;
   }

@@ -65,6 +65,13 @@ pub struct Scale {
 const TARGET_MS: f64 = 33.0;
 const MAX_DIVISOR: u32 = 8;
 
+/// While a scene streams in (after its first picture), tracing takes at most this share of the
+/// time: a frame waits after the last one (1/share − 1) times as long as the GPU took for it.
+/// On a GPU a frame takes a millisecond or two and nothing changes; on a software adapter (the
+/// test browser's SwiftShader) every frame's rays are traced on the cores that also take the
+/// stream in, and on the 16k world the frames took most of one of them while it streamed.
+const SYNCING_TRACE_SHARE: f64 = 0.25;
+
 impl Scale {
     /// Fixes the divisor (1 to 8), or with 0 lets it adapt again.
     pub fn pin(&mut self, divisor: u32) {
@@ -142,6 +149,8 @@ pub struct App {
     pub scale: Scale,
     /// When the frame on the GPU was submitted, and when it finished (set by the GPU's callback).
     submitted_at: f64,
+    /// No frame before this while a scene streams in ([`SYNCING_TRACE_SHARE`]).
+    next_frame_at: f64,
     /// (Atomics only because wgpu asks for `Send` callbacks; a page has one thread.)
     done_at: Arc<AtomicU64>,
     in_flight: Arc<AtomicBool>,
@@ -245,6 +254,7 @@ impl App {
                 changed_at: now,
             },
             submitted_at: 0.0,
+            next_frame_at: 0.0,
             done_at: Arc::new(AtomicU64::new(0)),
             in_flight: Arc::new(AtomicBool::new(false)),
             last_frame: now,
@@ -625,6 +635,8 @@ impl App {
         if self.submitted_at > 0.0 {
             let done = f64::from_bits(self.done_at.load(Ordering::Relaxed));
             self.scale.observe(done - self.submitted_at, now);
+            self.next_frame_at =
+                done + (done - self.submitted_at) * (1.0 / SYNCING_TRACE_SHARE - 1.0);
             self.submitted_at = 0.0;
             // The picture is there once the GPU has finished it.
             if self.pending_picture && self.first_picture_ms.is_none() {
@@ -633,6 +645,14 @@ impl App {
             if self.pending_synced && self.synced_ms.is_none() {
                 self.synced_ms = Some(done);
             }
+        }
+        let streaming = self
+            .session
+            .replica
+            .as_ref()
+            .is_some_and(|r| !r.synced && self.first_picture_ms.is_some());
+        if streaming && now < self.next_frame_at {
+            return Ok(());
         }
         let lighting_note = self.lighting_note();
         let Some(gpu) = &mut self.gpu else {
@@ -816,6 +836,12 @@ impl App {
             "camera": self.camera.map(|c| c.eye),
             "budget": self.session.budget,
             "gpu_bytes": self.gpu.as_ref().and_then(|g| g.scene.as_ref()).map(|s| s.gpu_bytes()),
+            // What crossed to the GPU since the scene's buffers were made (bytes, writes,
+            // pools reallocated).
+            "uploaded": self.gpu.as_ref().and_then(|g| g.scene.as_ref()).map(|s| {
+                let u = s.uploaded;
+                serde_json::json!({ "bytes": u.bytes, "writes": u.writes, "reallocations": u.reallocations })
+            }),
             // The working set the server streams within the budget (`null`: the whole scene).
             "working_set": replica.and_then(|r| r.held()).and_then(|h| h.rule()).map(|rule| {
                 serde_json::json!({ "eye": rule.eye, "near": rule.near, "top": rule.top })

@@ -84,6 +84,33 @@ impl BrickMap {
     /// Stores a coarse brick (mask and colours in bit order, as a level's brick has them) in a
     /// slot of its own for [`BrickMap::set_stand_in`] to point regions at. Returns the slot.
     pub fn add_coarse(&mut self, mask: Mask, colours: &[Colour]) -> Result<u32, MapError> {
+        self.add_coarse_as(mask, colours, super::Exact::Smallest)
+    }
+
+    /// [`BrickMap::add_coarse`] for a coarse brick whose colour block is at hand (a received
+    /// blob hands it out): the block is stored as it is, as [`BrickMap::put_coded`] stores a
+    /// level-0 brick's, without choosing and coding a palette again. `block` must decode to
+    /// `colours`; a block that names no coding or another length is refused.
+    pub fn add_coarse_coded(
+        &mut self,
+        mask: Mask,
+        colours: &[Colour],
+        block: &[u16],
+    ) -> Result<u32, MapError> {
+        match self.given_block(&mask, colours.len(), block) {
+            Some(block) => self.add_coarse_as(mask, colours, super::Exact::Given(block)),
+            None => Err(MapError::BadCoarseBrick(
+                "a coarse brick's colour block does not code its colours",
+            )),
+        }
+    }
+
+    fn add_coarse_as(
+        &mut self,
+        mask: Mask,
+        colours: &[Colour],
+        how: super::Exact,
+    ) -> Result<u32, MapError> {
         if mask_is_empty(&mask) || popcount(&mask) as usize != colours.len() {
             return Err(MapError::BadCoarseBrick(
                 "a coarse brick needs a solid voxel and one colour per solid voxel",
@@ -98,7 +125,7 @@ impl BrickMap {
         let s = slot as usize;
         self.masks[s] = mask;
         self.slot_capacity[s] = 0;
-        self.store_colours_as(slot, colours, super::Exact::Smallest);
+        self.store_colours_as(slot, colours, how);
         self.slot_cell[s] = COARSE;
         self.slot_version[s] = 0;
         self.mark_slot(slot);

@@ -138,8 +138,8 @@ impl PagedArray {
     /// Makes room for `needed` words, plus `needed / headroom_divisor` when it must reallocate,
     /// within `cap` words (unless it needs more). With `shrink`, an array over `cap` (it
     /// shrank, or a budget leaves it less room) is reallocated smaller. Returns the word range
-    /// whose buffers were replaced (their contents must be written again), or `None` when
-    /// everything already fitted.
+    /// whose contents must be written again (buffers replaced, less what a grown page took
+    /// over from the one it replaced), or `None` when everything already fitted.
     fn reserve(
         &mut self,
         ctx: &GpuContext,
@@ -179,23 +179,40 @@ impl PagedArray {
         } else {
             self.pages.len().saturating_sub(1)
         };
-        self.pages.truncate(first_changed_page);
+        // The short last page is replaced by a larger one; what it held is copied over on the
+        // GPU, so only the words past it need writing (growing a pool used to write it whole
+        // again from the CPU: in a browser every byte crosses to the GPU process).
+        let kept = self.pages.drain(first_changed_page..).next();
         let mut start = first_changed_page as u64 * self.page_words;
+        let first_new = self.pages.len();
         while start < want {
             let words = (want - start).min(self.page_words).max(MIN_WORDS);
             self.pages
                 .push(ctx.device.create_buffer(&wgpu::BufferDescriptor {
                     label: Some(self.array.name()),
                     size: words * 4,
-                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                    usage: wgpu::BufferUsages::STORAGE
+                        | wgpu::BufferUsages::COPY_DST
+                        | wgpu::BufferUsages::COPY_SRC,
                     mapped_at_creation: false,
                 }));
             start += words;
         }
         self.capacity_words = start;
-        Ok(Some(
-            first_changed_page as u64 * self.page_words..self.capacity_words,
-        ))
+        let mut fresh_from = first_changed_page as u64 * self.page_words;
+        if let (Some(old), Some(new)) = (kept, self.pages.get(first_new)) {
+            let bytes = old.size().min(new.size());
+            let mut encoder = ctx
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("grow a pool"),
+                });
+            encoder.copy_buffer_to_buffer(&old, 0, new, 0, bytes);
+            // Submitted now: writes queued after this land on top of the copy.
+            ctx.queue.submit([encoder.finish()]);
+            fresh_from += bytes / 4;
+        }
+        Ok(Some(fresh_from..self.capacity_words))
     }
 
     /// Writes `words` at word offset `first`, split at page boundaries.
@@ -370,7 +387,7 @@ impl GpuScene {
                     stats.writes += 1;
                 }
             }
-            for run in changed_runs(array.array, &changes) {
+            for run in changed_runs(array.array, &changes, RUN_GAP_WORDS) {
                 let run = run.start..run.end.min(len);
                 // Already written in full if it lies in a reallocated range.
                 let run = match &fresh {
@@ -472,8 +489,16 @@ impl GpuScene {
     }
 }
 
-/// Word ranges of `array` named by the change log, sorted and coalesced.
-fn changed_runs(array: Array, changes: &GpuChanges) -> Vec<Range<u64>> {
+/// Runs of changed words at most this far apart are written as one, the words between them
+/// too (they hold what the map holds, so writing them again is harmless). A write is a call
+/// with a cost of its own, large in a browser (a call into JavaScript, a message to the GPU
+/// process): a working set's first sync made about 560,000 of them, most a region word or a
+/// brick's mask, where 4 KiB more per write costs little.
+const RUN_GAP_WORDS: u64 = 1024;
+
+/// Word ranges of `array` named by the change log, sorted and coalesced; ranges at most `gap`
+/// words apart join.
+fn changed_runs(array: Array, changes: &GpuChanges, gap: u64) -> Vec<Range<u64>> {
     let mut ranges: Vec<Range<u64>> = match array {
         Array::Regions => changes
             .regions
@@ -508,7 +533,7 @@ fn changed_runs(array: Array, changes: &GpuChanges) -> Vec<Range<u64>> {
     let mut runs: Vec<Range<u64>> = Vec::with_capacity(ranges.len());
     for r in ranges {
         match runs.last_mut() {
-            Some(last) if r.start <= last.end => last.end = last.end.max(r.end),
+            Some(last) if r.start <= last.end + gap => last.end = last.end.max(r.end),
             _ => runs.push(r),
         }
     }
@@ -527,11 +552,38 @@ mod tests {
             slots: vec![1, 2],
             colours: vec![(3, 2), (10, 1)],
         };
-        assert_eq!(changed_runs(Array::Regions, &changes), vec![3..6, 9..10]);
-        assert_eq!(changed_runs(Array::Cells, &changes), vec![0..64, 128..192]);
-        assert_eq!(changed_runs(Array::Masks, &changes), vec![16..48]);
-        assert_eq!(changed_runs(Array::ColourBases, &changes), vec![1..3]);
+        assert_eq!(changed_runs(Array::Regions, &changes, 0), vec![3..6, 9..10]);
+        assert_eq!(
+            changed_runs(Array::Cells, &changes, 0),
+            vec![0..64, 128..192]
+        );
+        assert_eq!(changed_runs(Array::Masks, &changes, 0), vec![16..48]);
+        assert_eq!(changed_runs(Array::ColourBases, &changes, 0), vec![1..3]);
         // Colours 3..5 live in words 1 and 2; colour 10 in word 5.
-        assert_eq!(changed_runs(Array::Colours, &changes), vec![1..3, 5..6]);
+        assert_eq!(changed_runs(Array::Colours, &changes, 0), vec![1..3, 5..6]);
+    }
+
+    #[test]
+    fn runs_close_together_are_written_as_one() {
+        let changes = GpuChanges {
+            regions: vec![5, 3, 4, 9, 40, 41, 100],
+            ..GpuChanges::default()
+        };
+        // A gap of 3 words (6..9) joins, one of 30 (10..40) does not at a gap of 3.
+        assert_eq!(
+            changed_runs(Array::Regions, &changes, 3),
+            vec![3..10, 40..42, 100..101]
+        );
+        assert_eq!(changed_runs(Array::Regions, &changes, 58), vec![3..101]);
+        // Every changed word stays inside a run, whatever the gap.
+        for gap in [0, 1, 7, RUN_GAP_WORDS] {
+            let runs = changed_runs(Array::Regions, &changes, gap);
+            for &r in &changes.regions {
+                assert!(
+                    runs.iter().any(|run| run.contains(&u64::from(r))),
+                    "{r} at gap {gap}"
+                );
+            }
+        }
     }
 }
