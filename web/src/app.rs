@@ -71,6 +71,10 @@ const MAX_DIVISOR: u32 = 8;
 /// test browser's SwiftShader) every frame's rays are traced on the cores that also take the
 /// stream in, and on the 16k world the frames took most of one of them while it streamed.
 const SYNCING_TRACE_SHARE: f64 = 0.25;
+/// ... but the picture still changes a few times a second. (What a frame's GPU time measures
+/// includes the uploads queued before it, which grow as frames space out: uncapped, frames came
+/// 1, 1.6, 3 and 4.6 s apart on the 16k world.)
+const SYNCING_MAX_WAIT_MS: f64 = 250.0;
 
 impl Scale {
     /// Fixes the divisor (1 to 8), or with 0 lets it adapt again.
@@ -635,8 +639,8 @@ impl App {
         if self.submitted_at > 0.0 {
             let done = f64::from_bits(self.done_at.load(Ordering::Relaxed));
             self.scale.observe(done - self.submitted_at, now);
-            self.next_frame_at =
-                done + (done - self.submitted_at) * (1.0 / SYNCING_TRACE_SHARE - 1.0);
+            let wait = (done - self.submitted_at) * (1.0 / SYNCING_TRACE_SHARE - 1.0);
+            self.next_frame_at = done + wait.min(SYNCING_MAX_WAIT_MS);
             self.submitted_at = 0.0;
             // The picture is there once the GPU has finished it.
             if self.pending_picture && self.first_picture_ms.is_none() {
