@@ -409,6 +409,11 @@ impl Held {
         let Some(rule) = self.rule else { return Ok(()) };
         let key = (level, cell);
         let wanted = rule.holds(self.region_dims, level, cell);
+        // Neither wanted nor held: ignored before anything is counted (a level outside the
+        // stand-in levels, or a cell far outside the grid, names no regions to visit).
+        if !wanted && !self.coarse.contains_key(&key) {
+            return Ok(());
+        }
         let add = |map: &mut BrickMap| match brick {
             Some(b) => b.add_coarse(map).map(Some),
             None => Ok(None),

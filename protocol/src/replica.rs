@@ -670,6 +670,26 @@ mod tests {
         };
         assert!(r.apply(&stray).is_err());
         assert_eq!(r.map.brick_count(), 0);
+        // Coarse data at levels that are no stand-in level, or past the rule's top, or for
+        // cells far outside the grid: ignored, at once (a level below 2 made the client count
+        // regions with an overflowed span: a panic, or in a release build a walk over the
+        // whole grid for each of up to 65,536 listed cells).
+        let before = r.map.content_hash();
+        for level in [0, 1, 5, 14, 15, 40, u32::MAX] {
+            let coarse = ServerMsg::Coarse {
+                level,
+                bricks: BrickBlob::empty(),
+                empty: vec![[0, 0, 0]; 65_536],
+            };
+            assert!(r.apply(&coarse).is_ok(), "level {level}");
+        }
+        let far = ServerMsg::Coarse {
+            level: 2,
+            bricks: BrickBlob::empty(),
+            empty: vec![[u32::MAX, 0, u32::MAX]; 65_536],
+        };
+        assert!(r.apply(&far).is_ok());
+        assert_eq!(r.map.content_hash(), before);
         r.map.check_invariants().unwrap();
     }
 }
