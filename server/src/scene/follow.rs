@@ -49,6 +49,10 @@ const FIT_SHARE: (u64, u64) = (7, 8);
 /// Most regions listed in one `Regions` frame (12 bytes each, uncompressed).
 const MAX_REGIONS_PER_FRAME: usize = 4096;
 
+/// Most coarse cells, solid and empty, in one `Coarse` frame's worth of cells (the wire allows
+/// 65,536 empty ones a frame).
+const MAX_COARSE_CELLS_PER_FRAME: usize = 16384;
+
 /// A following session's side of its working set, in the owner.
 pub(crate) struct Follow {
     /// GPU bytes the client gave the scene.
@@ -314,12 +318,18 @@ impl Owner {
                 sub.awaits_levels = Some(true);
                 return 0;
             };
-            let mut cells = Vec::new();
-            while cells.len() < take
+            // A frame takes `take` solid bricks, with the empty cells between them: most of a
+            // first working set's coarse cells are empty (air around the 16k world's
+            // terrain) and cost a few bytes each, so frames of `take` cells were a fraction of
+            // a region frame, and the coarse bricks finished seconds after level 0.
+            let (mut cells, mut solid) = (Vec::new(), 0);
+            while solid < take
+                && cells.len() < MAX_COARSE_CELLS_PER_FRAME
                 && let Some(&(k, c)) = follow.coarse.last()
                 && k == level
             {
                 follow.coarse.pop();
+                solid += usize::from(map.slot_of_cell(c).is_some());
                 cells.push(map.cell_index(c));
             }
             let count = cells.len();
