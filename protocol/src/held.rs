@@ -447,10 +447,7 @@ impl Held {
                 }
                 (slot, true)
             }
-            None if !wanted => {
-                self.scratch = to_show;
-                return Ok(());
-            }
+            // Wanted (neither wanted nor held returned above).
             None => {
                 let slot = add(map)?;
                 self.coarse.insert(
