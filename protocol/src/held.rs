@@ -133,7 +133,7 @@ const SHELL_MOVE: u32 = 2;
 fn each_candidate(dims: [u32; 3], old: Option<&Rule>, new: &Rule, mut f: impl FnMut([u32; 3])) {
     let m = old.map(|o| chebyshev(o.eye, new.eye));
     if !shells_apply(old, new) {
-        each_in_box([0; 3], dims, f);
+        box_points([0; 3], dims).for_each(f);
         return;
     }
     let m = m.unwrap_or(0);
@@ -268,19 +268,6 @@ pub struct Held {
     coarse: CoarseTable,
     /// Regions a coarse brick is about to be shown in (kept to save an allocation per brick).
     scratch: Vec<[u32; 3]>,
-}
-
-/// Calls `f` with each point of the box `lo..hi` (x fastest), as [`box_points`] lists them,
-/// in plain loops: a first working set visits about a million coarse cells' boxes, most of one
-/// region, where the chained iterators cost more than the work.
-fn each_in_box(lo: [u32; 3], hi: [u32; 3], mut f: impl FnMut([u32; 3])) {
-    for z in lo[2]..hi[2] {
-        for y in lo[1]..hi[1] {
-            for x in lo[0]..hi[0] {
-                f([x, y, z]);
-            }
-        }
-    }
 }
 
 impl Held {
@@ -424,24 +411,21 @@ impl Held {
         // listed once.
         let mut to_show = std::mem::take(&mut self.scratch);
         to_show.clear();
-        each_in_box(lo, hi, |r| {
-            if rule.level_of(r) == level && self.shown_level(r) != Some(level) {
-                to_show.push(r);
-            }
-        });
+        to_show.extend(
+            box_points(lo, hi)
+                .filter(|&r| rule.level_of(r) == level && self.shown_level(r) != Some(level)),
+        );
         let count = to_show.len() as u32;
         let (slot, held) = match self.coarse.get_mut(&key) {
             Some(entry) => {
                 // A newer copy: the regions showing the old one show the new one.
                 let slot = add(map)?;
                 let old = std::mem::replace(&mut entry.slot, slot);
-                let mut result = Ok(());
-                each_in_box(lo, hi, |r| {
-                    if result.is_ok() && self.shown_level(r) == Some(level) {
-                        result = map.set_stand_in(r, slot.map(|s| (level, s)));
+                for r in box_points(lo, hi) {
+                    if self.shown_level(r) == Some(level) {
+                        map.set_stand_in(r, slot.map(|s| (level, s)))?;
                     }
-                });
-                result?;
+                }
                 if let Some(old) = old {
                     map.remove_coarse(old)?;
                 }

@@ -99,9 +99,44 @@ pub const fn region_clearance(entry: u32) -> u32 {
 
 /// Every point of the box `lo..hi` (exclusive), x fastest then y then z: the order of every
 /// linear index in this crate, so walking regions or cells this way walks memory in order.
-pub fn box_points(lo: [u32; 3], hi: [u32; 3]) -> impl Iterator<Item = [u32; 3]> {
-    (lo[2]..hi[2])
-        .flat_map(move |z| (lo[1]..hi[1]).flat_map(move |y| (lo[0]..hi[0]).map(move |x| [x, y, z])))
+pub fn box_points(lo: [u32; 3], hi: [u32; 3]) -> BoxPoints {
+    let empty = (0..3).any(|i| lo[i] >= hi[i]);
+    BoxPoints {
+        lo,
+        hi,
+        next: (!empty).then_some(lo),
+    }
+}
+
+/// The points [`box_points`] lists: three counters, not chained `flat_map`s, whose per-point
+/// cost was 15% of a client taking a working set in (about a million coarse cells' boxes, most
+/// of them one region).
+#[derive(Debug, Clone)]
+pub struct BoxPoints {
+    lo: [u32; 3],
+    hi: [u32; 3],
+    next: Option<[u32; 3]>,
+}
+
+impl Iterator for BoxPoints {
+    type Item = [u32; 3];
+
+    #[inline]
+    fn next(&mut self) -> Option<[u32; 3]> {
+        let p = self.next?;
+        let mut q = p;
+        q[0] += 1;
+        if q[0] == self.hi[0] {
+            q[0] = self.lo[0];
+            q[1] += 1;
+            if q[1] == self.hi[1] {
+                q[1] = self.lo[1];
+                q[2] += 1;
+            }
+        }
+        self.next = (q[2] < self.hi[2]).then_some(q);
+        Some(p)
+    }
 }
 
 /// Why a map could not be built or a brick not stored.
@@ -2221,6 +2256,35 @@ mod tests {
 
     fn red() -> Colour {
         Colour::from_rgb8(255, 0, 0)
+    }
+
+    /// `box_points` lists exactly the nested loops' points in their order, empty and
+    /// one-point boxes included.
+    #[test]
+    fn box_points_are_the_nested_loops() {
+        let boxes = [
+            ([0, 0, 0], [3, 2, 4]),
+            ([2, 1, 1], [3, 2, 2]),
+            ([1, 1, 1], [1, 5, 5]),
+            ([0, 0, 0], [4, 0, 4]),
+            ([0, 0, 5], [4, 4, 2]),
+            ([5, 7, 9], [8, 9, 10]),
+        ];
+        for (lo, hi) in boxes {
+            let mut want = Vec::new();
+            for z in lo[2]..hi[2] {
+                for y in lo[1]..hi[1] {
+                    for x in lo[0]..hi[0] {
+                        want.push([x, y, z]);
+                    }
+                }
+            }
+            assert_eq!(
+                box_points(lo, hi).collect::<Vec<_>>(),
+                want,
+                "{lo:?}..{hi:?}"
+            );
+        }
     }
 
     #[test]
