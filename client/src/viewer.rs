@@ -32,12 +32,14 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, ModifiersState, PhysicalKey};
 use winit::window::{CursorGrabMode, Window, WindowId};
 
+use brickcast_client_core::camera::movement;
 pub use brickcast_client_core::camera::{FirstView, FlyCamera};
-use brickcast_client_core::camera::{movement, palette_colour};
 use brickcast_client_core::shading::{NOTE_SECONDS, shading_key};
+use brickcast_client_core::swatch::{SwatchAction, swatch_key};
 use brickcast_client_core::tools::{
     Action, Button, Context as ToolContext, HexEntry, HexKey, Tool, Tools, step_radius,
 };
+use brickcast_protocol::swatches::Swatches;
 
 use crate::follow::Follow;
 use crate::gpu::{BackendChoice, GpuContext, GpuScene, Tracer, new_instance};
@@ -193,7 +195,7 @@ pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()>
         cursor: (0.0, 0.0),
         looking: false,
         captured: false,
-        colour: palette_colour(0),
+        colour: Swatches::default().get(0),
         tools: Tools::default(),
         hex: HexEntry::default(),
         radius: 0.0,
@@ -415,6 +417,7 @@ impl App {
                     captured: self.captured,
                     notes,
                     following: self.follow.target,
+                    swatches: Some(live.swatches()),
                 },
             );
             drop(live);
@@ -465,7 +468,9 @@ impl App {
             let [r, g, b] = self.colour.to_rgb8();
             let colour = match self.hex.shown() {
                 Some(typed) => format!("colour {typed} (typing; Esc gives up)"),
-                None => format!("colour #{r:02x}{g:02x}{b:02x} (1-8, P #hex, Alt+click)"),
+                None => format!(
+                    "colour #{r:02x}{g:02x}{b:02x} (1-0 swatch, Shift sets it; P #hex, Alt+click)"
+                ),
             };
             let mut title = format!(
                 "brickcast — {state} — {:.1} fps — {role} — {} (B X N G T I) — {colour} — brush {} ([ ])",
@@ -694,18 +699,13 @@ impl ApplicationHandler for App {
                         self.radius = step_radius(self.radius, code == KeyCode::BracketRight, max);
                     }
                     _ => {
-                        let digits = [
-                            KeyCode::Digit1,
-                            KeyCode::Digit2,
-                            KeyCode::Digit3,
-                            KeyCode::Digit4,
-                            KeyCode::Digit5,
-                            KeyCode::Digit6,
-                            KeyCode::Digit7,
-                            KeyCode::Digit8,
-                        ];
-                        if let Some(i) = digits.iter().position(|&d| d == code) {
-                            self.colour = palette_colour(i);
+                        let swatches = self.live.lock().swatches();
+                        if let Some(action) = swatch_key(&name, shift, &swatches, self.colour) {
+                            match action {
+                                SwatchAction::Take { colour, .. } => self.colour = colour,
+                                SwatchAction::Set { op, .. } => self.live.edit(vec![op]),
+                            }
+                            self.lighting_note = Some((action.note(), Instant::now()));
                         }
                     }
                 }
@@ -863,6 +863,7 @@ mod tests {
                 captured: false,
                 notes: vec!["cannot reach the server; retrying in 2 s".into()],
                 following: None,
+                swatches: None,
             },
         );
         let drawn = (0..h)

@@ -47,6 +47,11 @@ pub enum Resolved {
         colour: Colour,
         bricks: Vec<([u32; 3], Mask)>,
     },
+    /// A swatch of the scene's palette (no voxel).
+    Swatch {
+        index: u8,
+        colour: Colour,
+    },
 }
 
 /// `voxels` as a brush mask per brick, in cell order (the order they are applied in).
@@ -200,6 +205,7 @@ pub fn resolve(map: &BrickMap, op: &EditOp, limits: &Limits) -> Result<Resolved,
                 },
             }
         }
+        EditOp::Swatch { index, colour } => Resolved::Swatch { index, colour },
     })
 }
 
@@ -230,6 +236,11 @@ pub fn apply_resolved(map: &mut BrickMap, op: Resolved) -> u64 {
             .iter()
             .map(|(cell, brush)| map.apply_brush(*cell, brush, mode, colour))
             .sum(),
+        Resolved::Swatch { index, colour } => {
+            // `resolve` checked the index (validation): a bad one changes nothing here.
+            map.set_swatch(usize::from(index), colour);
+            0
+        }
     }
 }
 
@@ -260,6 +271,7 @@ impl Resolved {
                     hi: hi.map(|c| c * e + e - 1),
                 })
             }
+            Resolved::Swatch { .. } => None,
         }
     }
 
@@ -314,6 +326,7 @@ impl Resolved {
                     }
                 }
             }
+            Resolved::Swatch { .. } => {}
         }
     }
 }
@@ -329,6 +342,31 @@ pub fn apply_op(map: &mut BrickMap, op: &EditOp, limits: &Limits) -> Result<u64,
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_swatch_sets_the_palette_and_changes_no_voxel() {
+        let mut map = ground();
+        let (hash, red) = (map.content_hash(), Colour::from_rgb8(255, 0, 0));
+        let limits = Limits::default();
+        let set = EditOp::Swatch {
+            index: 31,
+            colour: red,
+        };
+        assert_eq!(apply_op(&mut map, &set, &limits), Ok(0));
+        assert_eq!(map.swatches().get(31), red);
+        assert_ne!(map.content_hash(), hash, "the palette is part of the scene");
+        assert_eq!(resolve(&map, &set, &limits).unwrap().bounds(), None);
+        let before = *map.swatches();
+        let past = EditOp::Swatch {
+            index: 32,
+            colour: Colour::WHITE,
+        };
+        assert!(matches!(
+            apply_op(&mut map, &past, &limits),
+            Err(Rejection::Malformed(_))
+        ));
+        assert_eq!(map.swatches(), &before);
+    }
 
     fn ground() -> BrickMap {
         let mut map = BrickMap::new([64, 64, 64]).unwrap();

@@ -47,6 +47,12 @@ impl Colour {
         [r5 / 31.0, g6 / 63.0, b5 / 31.0]
     }
 
+    /// `#rrggbb` (8-bit channels, [`Colour::to_rgb8`]): what [`Colour::parse_hex`] reads back.
+    pub fn to_hex(self) -> String {
+        let [r, g, b] = self.to_rgb8();
+        format!("#{r:02x}{g:02x}{b:02x}")
+    }
+
     /// Parses `#rrggbb` or `rrggbb`.
     pub fn parse_hex(text: &str) -> Option<Colour> {
         let hex = text.strip_prefix('#').unwrap_or(text);

@@ -37,6 +37,7 @@ pub mod replica;
 pub mod roster;
 pub mod shade;
 pub mod shadow;
+pub mod swatches;
 pub mod trace;
 pub mod viewpoint;
 pub mod wire;

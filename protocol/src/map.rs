@@ -298,6 +298,9 @@ pub struct BrickMap {
     gpu: Option<GpuChanges>,
     /// While journaling: each changed cell's brick before its first change (`crate::journal`).
     journal: crate::journal::Journal,
+    /// The scene's shared palette ([`crate::swatches`]): scene state like the voxels, set by
+    /// [`crate::wire::EditOp::Swatch`], kept by snapshots and replayed from the log.
+    swatches: crate::swatches::Swatches,
     /// During [`BrickMap::write_bricks`]: regions of the bricks inserted, whose cells' clearance
     /// is recomputed once at the end instead of after every brick.
     deferred_clearance: Option<Vec<u32>>,
@@ -375,6 +378,7 @@ impl BrickMap {
             track_touched: false,
             gpu: None,
             journal: crate::journal::Journal::default(),
+            swatches: Default::default(),
             deferred_clearance: None,
             deferred_regions: None,
             bulk: false,
@@ -424,6 +428,21 @@ impl BrickMap {
     pub fn set_sequence(&mut self, sequence: u64) {
         debug_assert!(sequence >= self.sequence, "sequence went backwards");
         self.sequence = sequence;
+    }
+
+    /// The scene's shared palette.
+    pub fn swatches(&self) -> &crate::swatches::Swatches {
+        &self.swatches
+    }
+
+    /// Replaces the palette (a snapshot restored, a `Palette` frame received).
+    pub fn set_swatches(&mut self, swatches: crate::swatches::Swatches) {
+        self.swatches = swatches;
+    }
+
+    /// Sets one swatch; `false` when there is no such swatch (nothing changes).
+    pub fn set_swatch(&mut self, index: usize, colour: Colour) -> bool {
+        self.swatches.set(index, colour)
     }
 
     /// Starts recording the brick every following edit changes, as it was before its first
@@ -1205,12 +1224,19 @@ impl BrickMap {
         self.tombstones.len()
     }
 
-    /// An order-independent 64-bit hash of the whole scene (cells, masks, colours): two maps with
-    /// equal hashes hold the same voxels, whatever their slot layout.
+    /// An order-independent 64-bit hash of the whole scene (cells, masks, colours, and the
+    /// shared palette): two maps with equal hashes hold the same voxels and palette, whatever
+    /// their slot layout.
     pub fn content_hash(&self) -> u64 {
         let mut total = mix(u64::from(self.size[0])
             | u64::from(self.size[1]) << 21
             | u64::from(self.size[2]) << 42);
+        for (i, pair) in self.swatches.0.chunks(4).enumerate() {
+            let word = pair
+                .iter()
+                .fold(i as u64, |acc, c| acc << 16 | u64::from(c.0));
+            total = total.wrapping_add(mix(word ^ 0x5a5a_0000_0000_0000));
+        }
         for slot in 0..self.slot_cell.len() as u32 {
             let cell = self.slot_cell[slot as usize];
             if cell < COARSE {

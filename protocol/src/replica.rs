@@ -174,7 +174,10 @@ impl Replica {
     }
 
     fn clear(&mut self, scene: &str, size: [u32; 3]) -> Result<(), ReplicaError> {
+        // The palette is not part of what a resync sends again: it stays until a `Palette`.
+        let swatches = *self.map.swatches();
         self.map = BrickMap::new(size)?;
+        self.map.set_swatches(swatches);
         self.map.record_gpu_changes(self.gpu_log);
         self.map.set_colour_bound(self.colour_bound);
         self.scene = scene.to_string();
@@ -268,6 +271,7 @@ impl Replica {
                     self.clear(&scene, size)?;
                 }
             }
+            ServerMsg::Palette { swatches } => self.map.set_swatches(*swatches),
             &ServerMsg::Follow { eye, near, top } => {
                 self.follow(Rule { eye, near, top })?;
                 self.deltas_since_rebuild += 1;

@@ -5,6 +5,7 @@ use std::cell::Cell;
 
 use brickcast_protocol::brick::{BrickData, EMPTY_MASK, FULL_MASK, Mask, popcount};
 use brickcast_protocol::colour::Colour;
+use brickcast_protocol::swatches::Swatches;
 use brickcast_protocol::wire::*;
 use proptest::collection::vec;
 use proptest::prelude::*;
@@ -140,6 +141,7 @@ fn edit_op() -> impl Strategy<Value = EditOp> {
                     }
                 }
             ),
+        (any::<u8>(), colour()).prop_map(|(index, colour)| EditOp::Swatch { index, colour }),
     ]
 }
 
@@ -408,6 +410,9 @@ fn server_msg() -> impl Strategy<Value = ServerMsg> {
                 empty,
             }
         }),
+        any::<[u16; 32]>().prop_map(|words| ServerMsg::Palette {
+            swatches: Swatches(words.map(Colour)),
+        }),
     ]
 }
 
@@ -587,7 +592,7 @@ fn raw_frame<T: serde::Serialize>(value: &T) -> Vec<u8> {
 
 #[test]
 fn hello_carries_the_protocol_version() {
-    assert_eq!(PROTOCOL_VERSION, 6);
+    assert_eq!(PROTOCOL_VERSION, 7);
     let bytes = encode_client(&hello()).expect("encode");
     match decode_client(&bytes, &Limits::default()).expect("decode") {
         ClientMsg::Hello { protocol, .. } => assert_eq!(protocol, PROTOCOL_VERSION),

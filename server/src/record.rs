@@ -4,10 +4,11 @@
 //!
 //! Format: `[0, VERSION]` then the bincode of [`LogRecord`]. Version 3 added
 //! [`LogRecord::Revert`]; in version 5 ops may be the editing tools (protocol 6: fills,
-//! extrudes, spans; appended variants, so older records read as before); version 2 records
-//! (no `Revert`) read as before too. (4 is not a version: it tags the turn rows below as
-//! they were before version 5, now tagged 6, so a build from before refuses the new rows by
-//! their version instead of failing inside one.) Stores written by brickcast 0.1
+//! extrudes, spans; appended variants, so older records read as before); in version 7 they may
+//! set a swatch of the scene's palette (protocol 7, `EditOp::Swatch`); version 2 records
+//! (no `Revert`) read as before too. (4 and 6 are not versions: they tag the turn rows below
+//! as they were before versions 5 and 7, now tagged 8, so a build from before refuses the new
+//! rows by their version instead of failing inside one.) Stores written by brickcast 0.1
 //! hold a bare bincode `Vec<EditOp>`; those are read as [`LogRecord::Ops`] with no user. They
 //! never start with a 0 byte followed by more bytes (a 0 length prefix is an empty list, and
 //! only batches that applied something were logged), so the two cannot be confused.
@@ -34,12 +35,14 @@ use crate::scene::history::{Image, Step, apply_after, write_bricks};
 pub const REVERT_BRICK_OPS: u64 = 16;
 
 /// The version of [`LogRecord`] written now.
-const VERSION: u8 = 5;
+const VERSION: u8 = 7;
 /// The oldest version read (an older `[0, v]` prefix is not a record of this format).
 const FIRST_VERSION: u8 = 2;
 /// The prefix of a row holding a turn's records (records of version [`VERSION`]).
-const BATCH: u8 = 6;
-/// The prefix such rows had before (records of version 3).
+const BATCH: u8 = 8;
+/// The prefix such rows had with records of version 5.
+const BATCH_V5: u8 = 6;
+/// The prefix such rows had with records of version 3.
 const OLD_BATCH: u8 = 4;
 /// A record's (or a row's) bincode after its `[0, …]` header: at most 1 GiB.
 const RECORD: Format<{ 1 << 30 }> = Format::new("log record", b"");
@@ -79,7 +82,9 @@ impl LogRecord {
     pub fn decode(bytes: &[u8]) -> Result<LogRecord, String> {
         match bytes {
             [0, version, body @ ..]
-                if (FIRST_VERSION..=VERSION).contains(version) && *version != OLD_BATCH =>
+                if (FIRST_VERSION..=VERSION).contains(version)
+                    && *version != OLD_BATCH
+                    && *version != BATCH_V5 =>
             {
                 RECORD.decode_body(body).map_err(|e| e.to_string())
             }
@@ -116,7 +121,7 @@ impl LogRecord {
     /// How many sequences the row holds (1 for a single record), without decoding it.
     pub fn row_len(bytes: &[u8]) -> u64 {
         match bytes {
-            [0, BATCH | OLD_BATCH, a, b, c, d, ..] => {
+            [0, BATCH | BATCH_V5 | OLD_BATCH, a, b, c, d, ..] => {
                 u64::from(u32::from_le_bytes([*a, *b, *c, *d]))
             }
             _ => 1,
@@ -125,7 +130,7 @@ impl LogRecord {
 
     /// The records of the log row keyed `key`, with their sequences, in order.
     pub fn read_row(key: u64, bytes: &[u8]) -> Result<Vec<(u64, LogRecord)>, String> {
-        let [0, BATCH | OLD_BATCH, a, b, c, d, body @ ..] = bytes else {
+        let [0, BATCH | BATCH_V5 | OLD_BATCH, a, b, c, d, body @ ..] = bytes else {
             return Ok(vec![(key, LogRecord::decode(bytes)?)]);
         };
         let mut body: &[u8] = body;
@@ -231,10 +236,25 @@ mod tests {
             }
         );
         assert!(
-            LogRecord::decode(&[0, 7, 1])
+            LogRecord::decode(&[0, 9, 1])
                 .unwrap_err()
-                .contains("version 7")
+                .contains("version 9")
         );
+        // The tags of turn rows are not record versions.
+        for tag in [OLD_BATCH, BATCH_V5, BATCH] {
+            assert!(LogRecord::decode(&[0, tag, 1]).is_err(), "{tag}");
+        }
+        // A swatch (version 7) round-trips.
+        let swatch = LogRecord::Ops {
+            user: 4,
+            ops: vec![EditOp::Swatch {
+                index: 31,
+                colour: Colour(0x1234),
+            }],
+        };
+        swatch.encode(&mut buf).unwrap();
+        assert_eq!(&buf[..2], &[0, 7]);
+        assert_eq!(LogRecord::decode(&buf).unwrap(), swatch);
         // A version-3 record of an op that version 5 also has reads the same.
         LogRecord::Ops {
             user: 9,
@@ -268,13 +288,15 @@ mod tests {
         LogRecord::encode_batch(&turn, &mut row).unwrap();
         assert_eq!(LogRecord::row_len(&row), 5);
         assert_eq!(LogRecord::read_row(45, &row).unwrap(), turn);
-        // Rows written before record version 5 (tagged 4) read the same; a build from before
-        // reads the new tag as a record version it does not know.
+        // Rows written before record versions 5 and 7 (tagged 4 and 6) read the same; a build
+        // from before reads the new tag as a record version it does not know.
         assert_eq!(&row[..2], &[0, BATCH]);
-        let mut old = row.clone();
-        old[1] = OLD_BATCH;
-        assert_eq!(LogRecord::read_row(45, &old).unwrap(), turn);
-        assert_eq!(LogRecord::row_len(&old), 5);
+        for tag in [OLD_BATCH, BATCH_V5] {
+            let mut old = row.clone();
+            old[1] = tag;
+            assert_eq!(LogRecord::read_row(45, &old).unwrap(), turn);
+            assert_eq!(LogRecord::row_len(&old), 5);
+        }
         // A single record is the record itself, as rows were before.
         LogRecord::encode_batch(&turn[..1], &mut row).unwrap();
         assert_eq!(LogRecord::decode(&row).unwrap(), turn[0].1);

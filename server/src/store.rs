@@ -20,6 +20,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use brickcast_protocol::brick::{BrickData, popcount};
+use brickcast_protocol::swatches::Swatches;
 use brickcast_protocol::wire::UserId;
 use brickcast_protocol::{BrickMap, Colour, palette};
 use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
@@ -164,6 +165,12 @@ fn history_table(name: &str) -> String {
 fn undo_table(name: &str) -> String {
     format!("undo/{name}")
 }
+/// `palette/<scene>`: row 0 → the scene's palette at its snapshot
+/// ([`brickcast_protocol::swatches::Swatches::to_bytes`]); absent: the default palette.
+fn palette_table(name: &str) -> String {
+    format!("palette/{name}")
+}
+const PALETTE_ROW: u32 = 0;
 
 /// A table that may not exist yet (scenes created before history was stored): reads see an
 /// empty table.
@@ -459,6 +466,14 @@ impl Store {
             map.put_brick(&brick).map_err(|e| corrupt(e.to_string()))?;
         }
         map.end_bulk_load();
+        if let Some(table) = open_optional::<u32, &[u8]>(&txn, &palette_table(name))?
+            && let Some(row) = table.get(PALETTE_ROW)?
+        {
+            let swatches = Swatches::from_bytes(row.value()).ok_or_else(|| {
+                corrupt(format!("the palette row is {} bytes", row.value().len()))
+            })?;
+            map.set_swatches(swatches);
+        }
         // The snapshot keeps bricks, not the tombstones of bricks removed before it: a client
         // resuming from before the snapshot cannot be told what it must delete, so it gets a
         // full resync (see `BrickMap::changes_since`).
@@ -702,6 +717,9 @@ impl Store {
                 }
             }
             log.retain_in(..=seq, |_, _| false)?;
+            let palette_name = palette_table(scene);
+            let mut palette = txn.open_table(TableDefinition::<u32, &[u8]>::new(&palette_name))?;
+            palette.insert(PALETTE_ROW, map.swatches().to_bytes().as_slice())?;
             let mut scenes = txn.open_table(SCENES)?;
             let meta = SceneMeta {
                 size: map.size(),
@@ -866,12 +884,19 @@ mod tests {
             pos: [5, 10, 5],
             colour: red,
         }];
-        let ops2 = [EditOp::Sphere {
-            centre: [30.0, 4.0, 30.0],
-            radius: 6.0,
-            mode: BrushMode::Erase,
-            colour: red,
-        }];
+        // The palette is scene state too: replayed from the log, then kept by the snapshot.
+        let ops2 = [
+            EditOp::Sphere {
+                centre: [30.0, 4.0, 30.0],
+                radius: 6.0,
+                mode: BrushMode::Erase,
+                colour: red,
+            },
+            EditOp::Swatch {
+                index: 9,
+                colour: red,
+            },
+        ];
         map.record_touched(true);
         for (seq, ops) in [(1u64, &ops1[..]), (2, &ops2[..])] {
             map.set_sequence(seq);
@@ -903,6 +928,8 @@ mod tests {
         let loaded = store.load_scene("s").unwrap();
         assert_eq!((loaded.seq, loaded.replayed), (2, 2));
         assert_eq!(loaded.map.content_hash(), map.content_hash());
+        assert_eq!(loaded.map.swatches().get(9), red);
+        assert_eq!(loaded.map.swatches(), map.swatches());
 
         let touched = map.take_touched();
         store.snapshot("s", &map, &touched, 2).unwrap();
@@ -910,6 +937,11 @@ mod tests {
         let loaded = store.load_scene("s").unwrap();
         assert_eq!((loaded.meta.snapshot_seq, loaded.replayed), (2, 0));
         assert_eq!(loaded.map.content_hash(), map.content_hash());
+        assert_eq!(
+            loaded.map.swatches(),
+            map.swatches(),
+            "kept by the snapshot"
+        );
         drop(store);
         let reopened = Store::open(dir.path()).unwrap();
         assert_eq!(reopened.scenes().unwrap().len(), 1);

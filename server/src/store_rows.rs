@@ -18,8 +18,10 @@ use crate::store::decode_brick;
 
 /// The store format this build writes and the newest it reads: 1 had raw rows only (and no
 /// record of its format); 2 adds palette-coded rows; 3 adds log rows holding a turn's records
-/// (`record.rs`) and history steps in packs with an index journal (`store/history_rows.rs`).
-pub const FORMAT: u32 = 3;
+/// (`record.rs`) and history steps in packs with an index journal (`store/history_rows.rs`);
+/// 4 adds the scene's palette (`palette/<scene>`, written by snapshots) and log records that
+/// set a swatch (record version 7).
+pub const FORMAT: u32 = 4;
 
 /// The byte after the mask of a palette-coded row.
 const CODED: u8 = 2;

@@ -476,6 +476,18 @@ async fn undo_goes_through_any_node_and_survives_a_failover() {
     let s = undone(c.undo(false).await);
     c.catch_up(s).await;
     assert_eq!(c.map.get(spot(0, 1)), None);
+    // A swatch of the shared palette set through the same node: no undo step, and it survives
+    // the failover with the scene.
+    let swatch = brickcast_protocol::wire::EditOp::Swatch {
+        index: 7,
+        colour: colour(3),
+    };
+    let set = match c.edit(vec![swatch]).await {
+        ServerMsg::Ack { seq: Some(s), .. } => s,
+        other => panic!("{other:?}"),
+    };
+    c.catch_up(set).await;
+    assert_eq!(c.map.swatches().get(7), colour(3));
     nodes[owner].kill();
     // The client's node takes the scene over; the history came with the log.
     let s = undone(c.undo(false).await);
@@ -485,6 +497,13 @@ async fn undo_goes_through_any_node_and_survives_a_failover() {
     c.catch_up(s).await;
     assert_eq!(c.map.get(spot(0, 0)), Some(colour(1)), "and redone");
     assert!(nodes[other].owns().await);
+    let mut late = Client::connect(&nodes[other].url(), None).await.unwrap();
+    late.sync().await;
+    assert_eq!(
+        late.map.swatches().get(7),
+        colour(3),
+        "the palette came with the log"
+    );
 }
 
 /// Whether `c`'s roster shows someone named `name`.

@@ -226,3 +226,88 @@ async fn each_tool_resolves_on_the_server_and_every_copy_agrees() {
     assert_eq!(fresh.map.content_hash(), bob.map.content_hash());
     server.shutdown().await.unwrap();
 }
+
+/// The scene's shared palette: a swatch Alice sets reaches Bob and every later client, is no
+/// undo step (Alice's undo takes back her voxel, not the swatch), a swatch that does not exist
+/// is refused, and the palette survives restarts (the store's own test replays it from the
+/// log as well).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_palette_is_shared_kept_with_the_scene_and_no_undo_step() {
+    use brickcast_protocol::swatches::{SWATCHES, Swatches};
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    ok(&admin(server.addr, &["create", "pal", "--size", "64,64,64"], None).await);
+    let url = server.url("pal");
+    let mut alice = Client::as_user(&url, None, ALICE, "alice").await.unwrap();
+    let mut bob = Client::as_user(&url, None, BOB, "bob").await.unwrap();
+    alice.sync().await;
+    bob.sync().await;
+    assert_eq!(bob.map.swatches(), &Swatches::default());
+    let teal = Colour::from_rgb8(0, 128, 128);
+
+    let voxel = alice
+        .edit(vec![EditOp::Set {
+            pos: [3, 3, 3],
+            colour: teal,
+        }])
+        .await;
+    seq_of(&voxel);
+    let set = alice
+        .edit(vec![EditOp::Swatch {
+            index: 2,
+            colour: teal,
+        }])
+        .await;
+    let set = seq_of(&set);
+    assert!(
+        bob.until(|c, _| c.map.swatches().get(2) == teal).await,
+        "bob hears the palette"
+    );
+    bob.catch_up(set).await;
+    let refused = alice
+        .edit(vec![EditOp::Swatch {
+            index: SWATCHES as u8,
+            colour: teal,
+        }])
+        .await;
+    let ServerMsg::Ack { seq, rejected, .. } = &refused else {
+        panic!("{refused:?}")
+    };
+    assert_eq!(*seq, None);
+    assert!(
+        matches!(rejected[0].reason, Rejection::Malformed(_)),
+        "{refused:?}"
+    );
+
+    // Undo takes back the voxel (the step before the swatch), not the swatch.
+    let undone = seq_of(&alice.undo(false).await);
+    bob.catch_up(undone).await;
+    assert_eq!(bob.map.get([3, 3, 3]), None);
+    assert_eq!(bob.map.swatches().get(2), teal);
+    let mut expected = Swatches::default();
+    expected.set(2, teal);
+    server.shutdown().await.unwrap();
+
+    // Restarted (the shutdown snapshotted): a new client gets the palette after its Welcome.
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let url = server.url("pal");
+    let mut carol = Client::connect(&url, None).await.unwrap();
+    carol.sync().await;
+    assert_eq!(carol.map.swatches(), &expected);
+    let red = Colour::from_rgb8(255, 0, 0);
+    let last = carol
+        .edit(vec![EditOp::Swatch {
+            index: (SWATCHES - 1) as u8,
+            colour: red,
+        }])
+        .await;
+    seq_of(&last);
+    expected.set(SWATCHES - 1, red);
+    drop(carol);
+    server.shutdown().await.unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let mut dave = Client::connect(&server.url("pal"), None).await.unwrap();
+    dave.sync().await;
+    assert_eq!(dave.map.swatches(), &expected);
+    server.shutdown().await.unwrap();
+}

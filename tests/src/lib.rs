@@ -430,8 +430,7 @@ mod tests {
     /// paint colour (both were red).
     #[test]
     fn no_user_is_drawn_in_the_first_paint_colour() {
-        let (r, g, b) = brickcast_client::camera::PALETTE[0];
-        let paint = brickcast_protocol::Colour::from_rgb8(r, g, b);
+        let paint = brickcast_protocol::swatches::Swatches::default().get(0);
         for marker in brickcast_server::identity::marker_colours() {
             assert!(
                 !brickcast_server::identity::looks_alike(marker, paint),

@@ -340,6 +340,43 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
         "picked {well} for {want:?}"
     );
 
+    // The scene's shared palette: the page lists it; a swatch a native client sets shows
+    // there, its number key draws with it, and Shift+click on another swatch sets that one
+    // for everyone (the server's copy holds it).
+    browser.wait(
+        "document.querySelectorAll('#swatches button').length === 32 && !document.getElementById('tools').hidden",
+        10_000,
+    )?;
+    let teal = Colour::from_rgb8(0, 128, 128);
+    native_edit(
+        &server,
+        vec![EditOp::Swatch {
+            index: 4,
+            colour: teal,
+        }],
+    )?;
+    browser.wait_state(&format!("s.swatches[4] === '{}'", teal.to_hex()), 20_000)?;
+    browser.call(serde_json::json!({"op": "key", "key": "5"}))?;
+    browser.wait(
+        &format!(
+            "document.getElementById('colour').value === '{}'",
+            teal.to_hex()
+        ),
+        5_000,
+    )?;
+    let at = browser.eval(
+        "(() => { const r = document.querySelector('#swatches [data-swatch=\"6\"]').getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; })()",
+    )?;
+    let (x, y) = (
+        at[0].as_f64().context("swatch x")?,
+        at[1].as_f64().context("swatch y")?,
+    );
+    browser.click_with(x, y, "left", &["Shift"])?;
+    let shared = wait_until(Duration::from_secs(20), || {
+        fetch(&server.url("demo")).is_ok_and(|r| r.map.swatches().get(6) == teal)
+    });
+    assert!(shared, "Shift+click on swatch 7 set it for everyone");
+
     // A native user present with a view shows in the page's roster, and F follows its camera.
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()

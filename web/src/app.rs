@@ -12,7 +12,7 @@ use std::rc::Rc;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
-use brickcast_client_core::camera::{FirstView, FlyCamera, movement, palette_colour};
+use brickcast_client_core::camera::{FirstView, FlyCamera, movement};
 use brickcast_client_core::follow::Follow;
 use brickcast_client_core::gpu::tracer::PendingFrame;
 use brickcast_client_core::gpu::{
@@ -23,9 +23,11 @@ use brickcast_client_core::overlay::{OverlayInput, draw as draw_overlay};
 use brickcast_client_core::present::{Presenter, acquire, sync_scene};
 use brickcast_client_core::session::{ClientSeq, Session, Status};
 use brickcast_client_core::shading::{NOTE_SECONDS, SHADING_KEYS, shading_key};
+use brickcast_client_core::swatch::{SwatchAction, swatch_action, swatch_key};
 use brickcast_client_core::tools::{
     Action, Button, Context as ToolContext, Tool, Tools, step_radius,
 };
+use brickcast_protocol::swatches::Swatches;
 use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, UserId, View};
 use brickcast_protocol::{Camera, Colour, Lighting, Projection};
 use wasm_bindgen::JsCast;
@@ -138,6 +140,8 @@ pub struct App {
     /// Canvas position of the pointer (CSS pixels).
     pub pointer: (f64, f64),
     colour: Colour,
+    /// The palette the page's swatches show (`None`: not painted yet).
+    shown_swatches: Option<Swatches>,
     /// The tool in use, and a drag in progress (box, line).
     pub tools: Tools,
     /// Alt held at the last press: any tool picks a colour.
@@ -238,7 +242,8 @@ impl App {
             ctrl: false,
             locked: false,
             pointer: (0.0, 0.0),
-            colour: palette_colour(0),
+            colour: Swatches::default().get(0),
+            shown_swatches: None,
             tools: Tools::default(),
             alt: false,
             radius: 0.0,
@@ -367,15 +372,12 @@ impl App {
                 self.radius = step_radius(self.radius, code == "BracketRight", max);
                 true
             }
-            _ => match code
-                .strip_prefix("Digit")
-                .and_then(|d| d.parse::<usize>().ok())
-            {
-                Some(d @ 1..=8) => {
-                    self.set_colour(palette_colour(d - 1));
+            _ => match swatch_key(code, shift, &self.session.swatches(), self.colour) {
+                Some(action) => {
+                    self.swatch(action);
                     true
                 }
-                _ => match Tool::from_key(code) {
+                None => match Tool::from_key(code) {
                     Some(tool) if !ctrl => {
                         self.tools.pick_tool(tool);
                         page::set_attr("toolbox", "data-tool", tool.name());
@@ -502,6 +504,51 @@ impl App {
         }
     }
 
+    /// Swatch `index` of the palette clicked on the page: take it, or with `set` (Shift held)
+    /// make it the colour drawn with now, for everyone.
+    pub fn click_swatch(&mut self, index: usize, set: bool) {
+        if let Some(action) = swatch_action(index, set, &self.session.swatches(), self.colour) {
+            self.swatch(action);
+        }
+    }
+
+    fn swatch(&mut self, action: SwatchAction) {
+        match action {
+            SwatchAction::Take { colour, .. } => self.set_colour(colour),
+            SwatchAction::Set { op, .. } => {
+                let msg = self.seq.edit(vec![op]);
+                self.send(&msg);
+            }
+        }
+        self.note(action.note());
+    }
+
+    /// Paints the page's swatches when the scene's palette is not what they show.
+    fn show_swatches(&mut self) {
+        let swatches = self.session.swatches();
+        if self.shown_swatches == Some(swatches) {
+            return;
+        }
+        self.shown_swatches = Some(swatches);
+        let colours: Vec<String> = swatches.0.iter().map(|c| c.to_hex()).collect();
+        let titles: Vec<String> = colours
+            .iter()
+            .enumerate()
+            .map(|(i, hex)| {
+                let key = if i < 10 {
+                    format!(" (key {})", (i + 1) % 10)
+                } else {
+                    String::new()
+                };
+                format!(
+                    "swatch {}{key}: {hex} · Shift+click sets it to your colour for everyone",
+                    i + 1
+                )
+            })
+            .collect();
+        page::set_swatches("swatches", &colours, &titles);
+    }
+
     /// Draws with `colour` from now on (the page's colour chooser shows it).
     pub fn set_colour(&mut self, colour: Colour) {
         self.colour = colour;
@@ -588,6 +635,7 @@ impl App {
                 && !page::shown("message");
             page::show("tools", tools);
             page::show("toolbox", tools);
+            self.show_swatches();
         }
     }
 
@@ -731,6 +779,8 @@ impl App {
                     captured: self.locked,
                     notes,
                     following: self.follow.target,
+                    // The page lists the palette in its tool bar.
+                    swatches: None,
                 },
             );
             gpu.presenter.upload_overlay(&ctx, &self.overlay);
@@ -851,6 +901,9 @@ impl App {
                 serde_json::json!({ "eye": rule.eye, "near": rule.near, "top": rule.top })
             }),
             "stand_ins": replica.map_or(0, |r| r.map.stand_in_count()),
+            "colour": self.colour.to_hex(),
+            // The scene's shared palette as this copy holds it.
+            "swatches": self.session.swatches().0.iter().map(|c| c.to_hex()).collect::<Vec<_>>(),
         });
         value.to_string()
     }

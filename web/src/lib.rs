@@ -86,6 +86,12 @@ impl Viewer {
         Ok(())
     }
 
+    /// Swatch `index` of the scene's palette clicked: draw with it, or with `set` (Shift
+    /// held) make it the colour drawn with now, for everyone in the scene.
+    pub fn swatch(&self, index: usize, set: bool) {
+        self.app.borrow_mut().click_swatch(index, set);
+    }
+
     /// The tool in use (`brush`, `box`, `line`, `fill`, `extrude`, `picker`).
     pub fn tool(&self) -> String {
         self.app.borrow().tools.tool.name().to_string()

@@ -57,6 +57,32 @@ pub fn set_attr(id: &str, name: &str, value: &str) {
     }
 }
 
+/// Makes element `id` hold one button per colour (`data-swatch` its index), each painted in
+/// its colour and titled `titles[i]` (made once, then only repainted).
+pub fn set_swatches(id: &str, colours: &[String], titles: &[String]) {
+    let (Some(doc), Some(holder)) = (document(), element(id)) else {
+        return;
+    };
+    let children = holder.children();
+    for (i, (colour, title)) in colours.iter().zip(titles).enumerate() {
+        let button = match children.item(i as u32) {
+            Some(b) => b,
+            None => {
+                let Ok(b) = doc.create_element("button") else {
+                    return;
+                };
+                let _ = b.set_attribute("data-swatch", &i.to_string());
+                if holder.append_child(&b).is_err() {
+                    return;
+                }
+                b
+            }
+        };
+        let _ = button.set_attribute("style", &format!("background:{colour}"));
+        let _ = button.set_attribute("title", title);
+    }
+}
+
 /// Sets the value of input `id` (the colour chooser), when the page has it.
 pub fn set_value(id: &str, value: &str) {
     if let Some(e) = document()

@@ -24,24 +24,6 @@ pub fn movement(held: impl Fn(&str) -> bool) -> [f32; 3] {
     })
 }
 
-/// The palette behind keys 1–8.
-pub const PALETTE: [(u8, u8, u8); 8] = [
-    (0xd9, 0x3b, 0x3b),
-    (0xf2, 0x9e, 0x38),
-    (0xf2, 0xd8, 0x4b),
-    (0x5f, 0xb0, 0x4a),
-    (0x3b, 0x8e, 0xd9),
-    (0x8a, 0x5c, 0xc7),
-    (0xf0, 0xf0, 0xf0),
-    (0x50, 0x48, 0x40),
-];
-
-/// Colour `i` of [`PALETTE`] (wrapping).
-pub fn palette_colour(i: usize) -> brickcast_protocol::Colour {
-    let (r, g, b) = PALETTE[i % PALETTE.len()];
-    brickcast_protocol::Colour::from_rgb8(r, g, b)
-}
-
 /// A free-flying camera: position plus yaw/pitch, y up.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FlyCamera {

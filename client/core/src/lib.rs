@@ -19,6 +19,7 @@ pub mod overlay;
 pub mod present;
 pub mod session;
 pub mod shading;
+pub mod swatch;
 pub mod tools;
 
 /// A clock that works on wasm32 too (`std::time::Instant` panics there).

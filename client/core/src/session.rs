@@ -11,6 +11,7 @@ use std::time::Duration;
 use brickcast_protocol::blocks::Quality;
 use brickcast_protocol::replica::{Replica, ReplicaError};
 use brickcast_protocol::roster::Roster;
+use brickcast_protocol::swatches::Swatches;
 use brickcast_protocol::wire::{
     Budget, ClientMsg, EditOp, ErrorCode, Limits, PROTOCOL_VERSION, Peer, Role, ServerMsg, UserId,
 };
@@ -202,6 +203,13 @@ impl Session {
             bytes,
             eye: self.eye,
         })
+    }
+
+    /// The scene's shared palette as this copy last heard it (the default before any).
+    pub fn swatches(&self) -> Swatches {
+        self.replica
+            .as_ref()
+            .map_or_else(Swatches::default, |r| *r.map.swatches())
     }
 
     /// Where a new connection can resume from: the last sequence our copy holds completely.

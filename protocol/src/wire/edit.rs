@@ -94,6 +94,9 @@ pub enum EditOp {
         colour: Colour,
         extent: u32,
     },
+    /// Sets swatch `index` of the scene's shared palette ([`crate::swatches`]) to `colour`.
+    /// Changes no voxel (and so is no undo step); every client hears the new palette.
+    Swatch { index: u8, colour: Colour },
 }
 
 impl EditOp {
@@ -176,6 +179,16 @@ impl EditOp {
                     Ok(())
                 }
             }
+            EditOp::Swatch { index, .. } => {
+                if usize::from(index) < crate::swatches::SWATCHES {
+                    Ok(())
+                } else {
+                    Err(Rejection::malformed(format!(
+                        "there is no swatch {index}: a palette has {}",
+                        crate::swatches::SWATCHES
+                    )))
+                }
+            }
         }
     }
 
@@ -238,7 +251,10 @@ impl EditOp {
                 .product()
         };
         match *self {
-            EditOp::Set { .. } | EditOp::Clear { .. } | EditOp::Paint { .. } => 1,
+            EditOp::Set { .. }
+            | EditOp::Clear { .. }
+            | EditOp::Paint { .. }
+            | EditOp::Swatch { .. } => 1,
             EditOp::Sphere { centre, radius, .. } => sphere(centre, radius),
             EditOp::Box { min, max, .. } => (0..3)
                 .map(|i| {

@@ -2,6 +2,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::swatches::Swatches;
+
 use super::collab::{Cursor, MAX_PEERS_PER_FRAME, Peer, PeerId, PeerState, Refusal, UserId, View};
 use super::{
     BrickBlob, EditOp, Limits, MAX_MESSAGE_BYTES, MAX_NAME_BYTES, MAX_OPS_PER_BATCH,
@@ -230,6 +232,9 @@ pub enum ServerMsg {
         #[serde(deserialize_with = "bounded::vec::<_, _, MAX_REMOVED_PER_FRAME>")]
         empty: Vec<[u32; 3]>,
     },
+    /// The scene's shared palette ([`crate::swatches`]) as of the frames before it: sent after
+    /// every `Welcome` and after a turn that changed it.
+    Palette { swatches: Swatches },
 }
 
 fn check_len(what: &'static str, len: usize, max: usize) -> Result<(), WireError> {
@@ -307,7 +312,7 @@ impl ClientMsg {
 
 impl ServerMsg {
     /// The name of every variant, in wire order (for logs and per-kind metrics).
-    pub const KINDS: [&'static str; 14] = [
+    pub const KINDS: [&'static str; 15] = [
         "Welcome",
         "SyncBatch",
         "SyncDone",
@@ -322,6 +327,7 @@ impl ServerMsg {
         "Follow",
         "Regions",
         "Coarse",
+        "Palette",
     ];
 
     /// The variant's name, one of [`ServerMsg::KINDS`].
@@ -341,6 +347,7 @@ impl ServerMsg {
             ServerMsg::Follow { .. } => 11,
             ServerMsg::Regions { .. } => 12,
             ServerMsg::Coarse { .. } => 13,
+            ServerMsg::Palette { .. } => 14,
         }]
     }
 
@@ -383,9 +390,10 @@ impl ServerMsg {
                 check_count("peer states", states.len(), MAX_PEERS_PER_FRAME)?;
                 check_peers(joined)
             }
-            ServerMsg::Undone { .. } | ServerMsg::Refused { .. } | ServerMsg::Follow { .. } => {
-                Ok(())
-            }
+            ServerMsg::Undone { .. }
+            | ServerMsg::Refused { .. }
+            | ServerMsg::Follow { .. }
+            | ServerMsg::Palette { .. } => Ok(()),
             ServerMsg::Regions { regions, bricks } => {
                 check_count("regions", regions.len(), MAX_REMOVED_PER_FRAME)?;
                 bricks.validate_header(limits.brick_cap())

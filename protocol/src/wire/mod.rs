@@ -55,8 +55,9 @@ pub use names::{MAX_MARKS_PER_LETTER, check_display_name, clean_display_name};
 /// exact colour block ([`crate::palette`]) instead of every voxel's RGB565. 5 added working
 /// sets: `Hello.budget`, `Follow`, `Regions` and `Coarse`. 6 added the editing tools: flood
 /// fill and face extrude ([`RayAction::Fill`], [`RayAction::Extrude`]), boxes and lines
-/// between two rays ([`EditOp::Span`]) and `Limits::max_tool_voxels`.
-pub const PROTOCOL_VERSION: u32 = 6;
+/// between two rays ([`EditOp::Span`]) and `Limits::max_tool_voxels`. 7 added the scene's
+/// shared palette: [`EditOp::Swatch`] and `Palette` ([`crate::swatches`]).
+pub const PROTOCOL_VERSION: u32 = 7;
 
 /// Largest frame either side will ever encode or decode, whatever a server announces. It is also
 /// bincode's decode limit, the ceiling on what a length prefix can make the decoder reserve.

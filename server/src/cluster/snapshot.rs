@@ -31,6 +31,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::hash::{BuildHasher, Hasher};
 
 use brickcast_protocol::brick::{BrickData, popcount};
+use brickcast_protocol::swatches::Swatches;
 use brickcast_protocol::wire::UserId;
 use brickcast_protocol::{BrickMap, Colour, palette};
 use serde::{Deserialize, Serialize};
@@ -47,11 +48,15 @@ const BASE_V1: [u8; 2] = [b'S', 1];
 /// First bytes of a base whose rows are raw (mask, then every voxel's RGB565).
 const BASE_V2: [u8; 2] = [b'S', 2];
 /// First bytes of a base whose rows are coded (mask, then the brick's colour block).
-const BASE_MAGIC: [u8; 2] = [b'S', 3];
+const BASE_V3: [u8; 2] = [b'S', 3];
+/// First bytes of a base with coded rows followed by the scene's palette (`(Base, Swatches)`).
+const BASE_MAGIC: [u8; 2] = [b'S', 4];
 /// First bytes of a delta whose rows are raw.
 const DELTA_V1: [u8; 2] = [b'D', 1];
 /// First bytes of a delta whose rows are coded.
-const DELTA_MAGIC: [u8; 2] = [b'D', 2];
+const DELTA_V2: [u8; 2] = [b'D', 2];
+/// First bytes of a delta with coded rows followed by the scene's palette (`(Delta, Swatches)`).
+const DELTA_MAGIC: [u8; 2] = [b'D', 3];
 
 /// How an object's brick rows hold colours; its magic says which.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -134,6 +139,8 @@ pub struct Chain {
 /// A snapshot ready to encode and upload (made on the owner thread: only copies).
 pub struct Prepared {
     kind: Kind,
+    /// The scene's palette, written after the base or delta (bincode of the pair).
+    swatches: Swatches,
     pub seq: u64,
     pub pos: u64,
     last_step_id: u64,
@@ -172,7 +179,8 @@ impl Encoded {
 
 /// Format of [`Head`]. 2: the chain's objects may hold coded rows (`S3`/`D2`), which a node
 /// that reads only 1 would refuse object by object; it refuses the head by name instead.
-const HEAD_VERSION: u32 = 2;
+/// 3: they may hold the scene's palette (`S4`/`D3`).
+const HEAD_VERSION: u32 = 3;
 
 /// What `brickcast_snapshot_heads` says of a scene: its newest snapshot is base `base` and its
 /// deltas `1..=deltas`, at scene sequence `seq` and log position `pos`.
@@ -331,6 +339,7 @@ pub fn prepare(
     };
     Prepared {
         kind,
+        swatches: *map.swatches(),
         seq,
         pos,
         last_step_id,
@@ -358,7 +367,7 @@ impl Prepared {
         let (seq, pos) = (self.seq, self.pos);
         match self.kind {
             Kind::Base(base) => {
-                let bytes = bytes::Bytes::from(encode_as(BASE_MAGIC, &base)?);
+                let bytes = bytes::Bytes::from(encode_as(BASE_MAGIC, &(&base, &self.swatches))?);
                 Ok(Encoded {
                     scene: scene.to_string(),
                     name: base_name(scene, base.id),
@@ -377,7 +386,7 @@ impl Prepared {
                 })
             }
             Kind::Delta(delta) => {
-                let bytes = bytes::Bytes::from(encode_as(DELTA_MAGIC, &delta)?);
+                let bytes = bytes::Bytes::from(encode_as(DELTA_MAGIC, &(&delta, &self.swatches))?);
                 let before = chain
                     .filter(|c| c.base == delta.base && c.next == delta.number)
                     .ok_or("the delta does not follow the chain it was encoded with")?;
@@ -463,20 +472,23 @@ fn put_rows(map: &mut BrickMap, bricks: &Bricks, format: Rows) -> Result<(), Str
 impl Restored {
     /// A base's scene.
     pub fn from_base(bytes: &[u8]) -> Result<Restored, String> {
-        let (base, format) = if bytes.get(..2) == Some(&BASE_V1[..]) {
-            let whole = decode_as(BASE_V1, bytes, "snapshot")?;
-            (Base { id: 0, whole }, Rows::Raw)
-        } else if bytes.get(..2) == Some(&BASE_V2[..]) {
-            (decode_as::<Base>(BASE_V2, bytes, "snapshot")?, Rows::Raw)
-        } else {
-            (
-                decode_as::<Base>(BASE_MAGIC, bytes, "snapshot")?,
-                Rows::Coded,
-            )
+        let old = Swatches::default();
+        let (base, format, swatches) = match bytes.get(..2) {
+            Some(m) if m == BASE_V1 => {
+                let whole = decode_as(BASE_V1, bytes, "snapshot")?;
+                (Base { id: 0, whole }, Rows::Raw, old)
+            }
+            Some(m) if m == BASE_V2 => (decode_as(BASE_V2, bytes, "snapshot")?, Rows::Raw, old),
+            Some(m) if m == BASE_V3 => (decode_as(BASE_V3, bytes, "snapshot")?, Rows::Coded, old),
+            _ => {
+                let (base, swatches) = decode_as(BASE_MAGIC, bytes, "snapshot")?;
+                (base, Rows::Coded, swatches)
+            }
         };
         let w = base.whole;
         let mut map = BrickMap::new(w.size).map_err(|e| e.to_string())?;
         map.set_sequence(w.seq);
+        map.set_swatches(swatches);
         put_rows(&mut map, &w.bricks, format).map_err(|e| format!("snapshot: {e}"))?;
         Ok(Restored {
             map,
@@ -496,10 +508,13 @@ impl Restored {
     /// leftover of another chain), an error when it does not decode.
     pub fn apply_delta(&mut self, number: u32, bytes: &[u8]) -> Result<bool, String> {
         let what = format!("snapshot delta {number}");
-        let (d, format): (Delta, Rows) = if bytes.get(..2) == Some(&DELTA_V1[..]) {
-            (decode_as(DELTA_V1, bytes, &what)?, Rows::Raw)
-        } else {
-            (decode_as(DELTA_MAGIC, bytes, &what)?, Rows::Coded)
+        let (d, format, swatches): (Delta, Rows, Option<Swatches>) = match bytes.get(..2) {
+            Some(m) if m == DELTA_V1 => (decode_as(DELTA_V1, bytes, &what)?, Rows::Raw, None),
+            Some(m) if m == DELTA_V2 => (decode_as(DELTA_V2, bytes, &what)?, Rows::Coded, None),
+            _ => {
+                let (d, swatches) = decode_as(DELTA_MAGIC, bytes, &what)?;
+                (d, Rows::Coded, Some(swatches))
+            }
         };
         if self.base == 0
             || d.base != self.base
@@ -510,6 +525,9 @@ impl Restored {
             return Ok(false);
         }
         self.map.set_sequence(d.seq);
+        if let Some(swatches) = swatches {
+            self.map.set_swatches(swatches);
+        }
         put_rows(&mut self.map, &d.bricks, format).map_err(|e| format!("{what}: {e}"))?;
         let total: u64 = self.map.cell_dims().iter().map(|&c| u64::from(c)).product();
         for &cell in &d.emptied {
@@ -768,6 +786,7 @@ mod tests {
     fn a_base_and_its_deltas_give_the_scene_back() {
         let history = History::new(Vec::new(), 0, 1, 0);
         let mut map = scene();
+        map.set_swatch(3, Colour(0x1234));
         let cells: Vec<u32> = Vec::new();
         let base = prepare(
             None,
@@ -794,6 +813,7 @@ mod tests {
         );
         map.set_sequence(7);
         map.fill_box([0, 0, 0], [7, 3, 7], BrushMode::Erase, Colour::WHITE);
+        map.set_swatch(31, Colour(0x4321));
         let changed = map.take_touched();
         map.record_touched(false);
         assert!(!changed.is_empty());
@@ -811,15 +831,19 @@ mod tests {
         assert!(!delta.is_base);
         assert_eq!(delta.name, format!("{}+1", base.name));
         // Only the changed bricks (the base's one-colour rows are as small as a delta's now).
-        let d: Delta = decode_as(DELTA_MAGIC, &delta.bytes, "delta").unwrap();
+        let (d, _): (Delta, Swatches) = decode_as(DELTA_MAGIC, &delta.bytes, "delta").unwrap();
         assert_eq!(d.bricks.cells.len() + d.emptied.len(), changed.len());
         assert!((d.bricks.cells.len() as u64) < map.brick_count());
         assert_eq!(chain2.next, 2);
 
         let mut restored = Restored::from_base(&base.bytes).unwrap();
         assert_ne!(restored.map.content_hash(), map.content_hash());
+        // The palette goes with each snapshot: the base's, then the delta's.
+        assert_eq!(restored.map.swatches().get(3), Colour(0x1234));
+        assert_ne!(restored.map.swatches(), map.swatches());
         assert!(restored.apply_delta(1, &delta.bytes).unwrap());
         assert_eq!(restored.map.content_hash(), map.content_hash());
+        assert_eq!(restored.map.swatches(), map.swatches());
         assert_eq!((restored.seq, restored.pos, restored.deltas), (7, 12, 1));
 
         // A delta of another chain, or out of place, is not applied.
@@ -976,6 +1000,51 @@ mod tests {
         assert_eq!(delta.bytes.get(..2), Some(&DELTA_MAGIC[..]));
         assert!(restored.apply_delta(2, &delta.bytes).unwrap());
         assert_eq!(restored.map.content_hash(), map.content_hash());
+    }
+
+    /// A chain written before palettes (`S3` base, `D2` delta: coded rows) still loads, with
+    /// the default palette.
+    #[test]
+    fn chains_from_before_palettes_still_load() {
+        let mut map = scene();
+        let undo = || Undo {
+            history: Vec::new(),
+            steps: Vec::new(),
+            last_step_id: 0,
+            answered: Vec::new(),
+        };
+        let every = map.bricks().map(|(b, _)| map.cell_index(b.cell));
+        let (bricks, _) = rows_of(&map, every);
+        let old_base = Base {
+            id: 78,
+            whole: Whole {
+                size: map.size(),
+                seq: 5,
+                pos: 9,
+                undo: undo(),
+                bricks,
+            },
+        };
+        map.set([1, 20, 1], Colour::from_rgb8(50, 60, 70));
+        let cell = map.cell_index([0, 2, 0]);
+        let (bricks, emptied) = rows_of(&map, [cell].into_iter());
+        let old_delta = Delta {
+            base: 78,
+            number: 1,
+            seq: 6,
+            pos: 11,
+            undo: undo(),
+            bricks,
+            emptied,
+        };
+        let mut restored = Restored::from_base(&encode_as(BASE_V3, &old_base).unwrap()).unwrap();
+        assert!(
+            restored
+                .apply_delta(1, &encode_as(DELTA_V2, &old_delta).unwrap())
+                .unwrap()
+        );
+        assert_eq!(restored.map.content_hash(), map.content_hash());
+        assert_eq!(restored.map.swatches(), &Swatches::default());
     }
 
     /// A coded row whose block does not decode is an error naming the brick, not a panic.

@@ -110,6 +110,8 @@ impl Owner {
         if !self.may_slice(to)
             || work < u64::from(self.config.slice_bricks).saturating_mul(512)
             || ops.iter().any(EditOp::reads_map)
+            // A plan writes bricks; a swatch is set only when its message is applied whole.
+            || ops.iter().any(|op| matches!(op, EditOp::Swatch { .. }))
         {
             return Some((ops, admitted));
         }

@@ -20,6 +20,7 @@ use std::time::{Duration, Instant};
 
 use brickcast_protocol::BrickMap;
 use brickcast_protocol::apply::{apply_resolved, resolve};
+use brickcast_protocol::swatches::Swatches;
 use brickcast_protocol::wire::{
     BlobEncoder, BrickBlob, EditOp, OpRejection, Refusal, Rejection, Role, ServerMsg, encode_server,
 };
@@ -84,6 +85,9 @@ pub struct Owner {
     pub(super) sync_brick_bytes: usize,
     /// The sequence of the last delta broadcast (its successor's `from_seq`).
     pub(super) broadcast_seq: u64,
+    /// The palette every session has heard (in its `Palette` after the `Welcome`, or since):
+    /// a turn that leaves the map's palette otherwise sends it to everyone.
+    pub(super) broadcast_swatches: Swatches,
     /// The last session whose sync got frames: the next turn serves those after it first.
     pub(super) sync_cursor: SessionId,
     /// Cells touched since the last snapshot.
@@ -282,6 +286,7 @@ impl Owner {
         map.set_sequence(seq);
         map.record_touched(true);
         let now = clock();
+        let broadcast_swatches = *map.swatches();
         let mut owner = Owner {
             name,
             map,
@@ -296,6 +301,7 @@ impl Owner {
             wake: Arc::default(),
             sync_brick_bytes: 256,
             broadcast_seq: seq,
+            broadcast_swatches,
             sync_cursor: 0,
             // Bricks the replayed log changed are not in the snapshot yet: the next snapshot
             // must write them before it trims the log that holds them.
@@ -719,8 +725,14 @@ impl Owner {
             // Only batches that applied something take a sequence number and a log entry; ops
             // that changed no voxel are still logged so replay matches op for op. The message
             // is one step of its user's history, even if it changed nothing: one gesture, one
-            // undo.
-            self.history.record_edit(user, &step);
+            // undo. A message that only set swatches is none (it changed no voxel and
+            // leaves what could be redone).
+            if applied
+                .iter()
+                .any(|op| !matches!(op, EditOp::Swatch { .. }))
+            {
+                self.history.record_edit(user, &step);
+            }
             self.seq = seq;
             self.log_ops += applied.len() as u64;
             self.log_work = self.log_work.saturating_add(work);
@@ -857,6 +869,8 @@ impl Owner {
             return;
         }
         self.broadcast_seq = to;
+        // Before the turn's delta, so a copy that has the delta has the palette of its sequence.
+        self.broadcast_palette();
         self.unsnapshotted.insert_all(&touched);
         // The levels of detail follow the map before anyone hears of the turn.
         let changed = match self.levels.update(&self.map, &touched) {
@@ -888,6 +902,20 @@ impl Owner {
         }
         self.broadcast_follow(&touched, &changed, from, to);
         clock.mark(&self.metrics, OwnerPhase::Fanout);
+    }
+
+    /// Sends every session the palette when this turn (or a reload) changed it, queued with
+    /// the turn's frames (so it waits for the same commit).
+    fn broadcast_palette(&mut self) {
+        let swatches = *self.map.swatches();
+        if swatches == self.broadcast_swatches {
+            return;
+        }
+        self.broadcast_swatches = swatches;
+        let msg = ServerMsg::Palette { swatches };
+        for sub in self.subs.values_mut() {
+            sub.out.send(&msg, &self.metrics);
+        }
     }
 
     /// Sends the subscribers viewing `level` its cells that changed from sequence `from` to

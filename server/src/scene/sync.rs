@@ -151,7 +151,10 @@ impl Owner {
             you: who.peer,
             peers: who.roster,
         };
-        if !sub.out.send(&welcome, &self.metrics) {
+        let palette = ServerMsg::Palette {
+            swatches: *self.map.swatches(),
+        };
+        if !sub.out.send(&welcome, &self.metrics) || !sub.out.send(&palette, &self.metrics) {
             return false;
         }
         if sub.follow.is_some() {

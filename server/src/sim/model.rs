@@ -153,7 +153,9 @@ impl Model {
                     }
                     let touched = self.map.take_touched();
                     self.map.record_touched(false);
-                    if let (Some(before), true) = (&before, applied > 0) {
+                    // A message that only set swatches is no undo step (`Owner::apply_batch`).
+                    let step = batch.iter().any(|op| !matches!(op, EditOp::Swatch { .. }));
+                    if let (Some(before), true) = (&before, step) {
                         let step = diff(before, &self.map, &touched);
                         let user = self.users.get(session).copied().unwrap_or(0);
                         let max = self.limits.max_undo_steps as usize;

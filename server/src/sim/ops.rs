@@ -105,7 +105,12 @@ pub(super) fn random_op(rng: &mut ChaCha8Rng, size: [u32; 3]) -> EditOp {
                 colour,
             }
         }
-        68..=70 => rejected_op(rng, size),
+        68..=69 => rejected_op(rng, size),
+        // A swatch of the palette (scene state like the voxels); some past the last one.
+        70 => EditOp::Swatch {
+            index: rng.random_range(0..40),
+            colour,
+        },
         _ => {
             // Mostly from above, aimed down at the scene; sometimes from a far-away or extreme
             // origin.

@@ -327,13 +327,16 @@ impl Client {
                 self.resyncs += 1;
                 self.synced = false;
                 if *since == 0 {
+                    let swatches = *self.map.swatches();
                     self.map = BrickMap::new(self.map.size()).unwrap();
+                    self.map.set_swatches(swatches);
                 }
             }
             ServerMsg::Error { code, message } => self.errors.push((*code, message.clone())),
             ServerMsg::Presence { .. } => {
                 self.roster.apply(msg);
             }
+            ServerMsg::Palette { swatches } => self.map.set_swatches(*swatches),
             _ => {}
         }
     }

@@ -12,6 +12,7 @@ pub mod canvas;
 pub mod gpu;
 
 use brickcast_protocol::roster::Roster;
+use brickcast_protocol::swatches::Swatches;
 use brickcast_protocol::wire::{Cursor, Role};
 use brickcast_protocol::{Colour, Projection};
 
@@ -31,7 +32,16 @@ pub struct OverlayInput<'a> {
     pub notes: Vec<String>,
     /// The peer I follow.
     pub following: Option<u64>,
+    /// The scene's palette, drawn as the strip of swatches keys 1–0 take (`None`: no strip;
+    /// the page lists every swatch in its tool bar instead).
+    pub swatches: Option<Swatches>,
 }
+
+/// Swatches in the strip: the ones number keys reach.
+pub const STRIP_SWATCHES: usize = 10;
+/// A swatch's side in the strip, and the step from one to the next, in pixels.
+const SWATCH_PX: i32 = 16;
+const SWATCH_STEP: i32 = 22;
 
 const WHITE: Rgba = [255, 255, 255, 255];
 const PANEL: Rgba = [16, 18, 24, 150];
@@ -250,6 +260,37 @@ pub fn draw(canvas: &mut Canvas, input: &OverlayInput) {
         canvas.label(12, y, text, *colour);
         y += 12;
     }
+    if let Some(swatches) = &input.swatches {
+        swatch_strip(canvas, swatches, input.colour);
+    }
+}
+
+/// Where swatch `i` of the strip is drawn (its top-left corner) on an image `height` high.
+pub fn strip_swatch_at(i: usize, height: u32) -> (i32, i32) {
+    (12 + i as i32 * SWATCH_STEP, height as i32 - 36)
+}
+
+/// The strip of swatches at the bottom left, each with its key under it; the one drawn with
+/// now is framed in white.
+fn swatch_strip(canvas: &mut Canvas, swatches: &Swatches, current: Colour) {
+    let height = canvas.height;
+    let (x0, y0) = strip_swatch_at(0, height);
+    canvas.rect(
+        x0 - 6,
+        y0 - 6,
+        STRIP_SWATCHES as i32 * SWATCH_STEP + 6,
+        SWATCH_PX + 24,
+        PANEL,
+    );
+    for i in 0..STRIP_SWATCHES {
+        let (x, y) = strip_swatch_at(i, height);
+        let colour = swatches.get(i);
+        if colour == current {
+            canvas.rect(x - 2, y - 2, SWATCH_PX + 4, SWATCH_PX + 4, WHITE);
+        }
+        canvas.rect(x, y, SWATCH_PX, SWATCH_PX, rgba(colour, 255));
+        canvas.label(x + 4, y + SWATCH_PX + 4, &((i + 1) % 10).to_string(), WHITE);
+    }
 }
 
 #[cfg(test)]
@@ -319,11 +360,55 @@ mod tests {
                 captured: true,
                 notes: vec!["live".into()],
                 following: None,
+                swatches: None,
             },
         );
         let (x, y, _) = to_screen(&p, [10.0, 5.0, 50.0]).unwrap();
         assert_eq!(canvas.get(x as u32, y as u32), rgba(colour, 255));
         // The crosshair's arms are white.
         assert_eq!(canvas.get(160 - 6, 100), WHITE);
+    }
+
+    /// The strip shows the swatches keys 1–0 take, the scene's (not the default) ones, and
+    /// frames the colour drawn with.
+    #[test]
+    fn the_swatch_strip_shows_the_scenes_palette() {
+        let camera = Camera {
+            eye: [0.0, 0.0, 0.0],
+            target: [0.0, 0.0, 100.0],
+            fov_y: 60.0,
+        };
+        let p = camera.project(320, 200).unwrap();
+        let mut swatches = Swatches::default();
+        let teal = Colour::from_rgb8(0, 128, 128);
+        swatches.set(9, teal);
+        let mut canvas = Canvas::new(1, 1);
+        let roster = Roster::default();
+        let input = |swatches| OverlayInput {
+            projection: p,
+            roster: &roster,
+            cursor: None,
+            colour: teal,
+            captured: false,
+            notes: Vec::new(),
+            following: None,
+            swatches,
+        };
+        draw(&mut canvas, &input(Some(swatches)));
+        let centre = |i| {
+            let (x, y) = strip_swatch_at(i, 200);
+            ((x + SWATCH_PX / 2) as u32, (y + SWATCH_PX / 2) as u32)
+        };
+        for i in 0..STRIP_SWATCHES {
+            let (x, y) = centre(i);
+            assert_eq!(canvas.get(x, y), rgba(swatches.get(i), 255), "swatch {i}");
+        }
+        let (x, y) = strip_swatch_at(9, 200);
+        assert_eq!(canvas.get((x - 1) as u32, y as u32), WHITE, "framed");
+        let (x, y) = strip_swatch_at(0, 200);
+        assert_ne!(canvas.get((x - 1) as u32, y as u32), WHITE);
+        draw(&mut canvas, &input(None));
+        let (x, y) = centre(0);
+        assert_eq!(canvas.get(x, y)[3], 0, "no strip without a palette");
     }
 }
