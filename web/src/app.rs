@@ -140,8 +140,9 @@ pub struct App {
     /// Canvas position of the pointer (CSS pixels).
     pub pointer: (f64, f64),
     colour: Colour,
-    /// The palette the page's swatches show (`None`: not painted yet).
-    shown_swatches: Option<Swatches>,
+    /// The palette the page's swatches show, and the colour they mark as in use (`None`: not
+    /// painted yet).
+    shown_swatches: Option<(Swatches, Colour)>,
     /// The tool in use, and a drag in progress (box, line).
     pub tools: Tools,
     /// Alt held at the last press: any tool picks a colour.
@@ -526,10 +527,10 @@ impl App {
     /// Paints the page's swatches when the scene's palette is not what they show.
     fn show_swatches(&mut self) {
         let swatches = self.session.swatches();
-        if self.shown_swatches == Some(swatches) {
+        if self.shown_swatches == Some((swatches, self.colour)) {
             return;
         }
-        self.shown_swatches = Some(swatches);
+        self.shown_swatches = Some((swatches, self.colour));
         let colours: Vec<String> = swatches.0.iter().map(|c| c.to_hex()).collect();
         let titles: Vec<String> = colours
             .iter()
@@ -546,14 +547,14 @@ impl App {
                 )
             })
             .collect();
-        page::set_swatches("swatches", &colours, &titles);
+        page::set_swatches("swatches", &colours, &titles, &self.colour.to_hex());
     }
 
     /// Draws with `colour` from now on (the page's colour chooser shows it).
     pub fn set_colour(&mut self, colour: Colour) {
         self.colour = colour;
-        let [r, g, b] = colour.to_rgb8();
-        page::set_value("colour", &format!("#{r:02x}{g:02x}{b:02x}"));
+        page::set_value("colour", &colour.to_hex());
+        self.show_swatches();
     }
 
     /// A note on the status line for a few seconds.

@@ -58,8 +58,9 @@ pub fn set_attr(id: &str, name: &str, value: &str) {
 }
 
 /// Makes element `id` hold one button per colour (`data-swatch` its index), each painted in
-/// its colour and titled `titles[i]` (made once, then only repainted).
-pub fn set_swatches(id: &str, colours: &[String], titles: &[String]) {
+/// its colour and titled `titles[i]` (made once, then only repainted); those whose colour is
+/// `current` get the class `current`.
+pub fn set_swatches(id: &str, colours: &[String], titles: &[String], current: &str) {
     let (Some(doc), Some(holder)) = (document(), element(id)) else {
         return;
     };
@@ -80,6 +81,7 @@ pub fn set_swatches(id: &str, colours: &[String], titles: &[String]) {
         };
         let _ = button.set_attribute("style", &format!("background:{colour}"));
         let _ = button.set_attribute("title", title);
+        let _ = button.set_attribute("class", if colour == current { "current" } else { "" });
     }
 }
 
