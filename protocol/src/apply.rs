@@ -366,6 +366,13 @@ mod tests {
             Err(Rejection::Malformed(_))
         ));
         assert_eq!(map.swatches(), &before);
+        // The hash sees where each swatch is: two groups of four swapped hash otherwise.
+        let mut swapped = before;
+        swapped.0[..8].rotate_left(4);
+        assert_ne!(swapped, before);
+        let hash = map.content_hash();
+        map.set_swatches(swapped);
+        assert_ne!(map.content_hash(), hash);
     }
 
     fn ground() -> BrickMap {

@@ -177,6 +177,12 @@ impl Pyramid {
         Ok(Pyramid { levels })
     }
 
+    fn take_palette(&mut self, base: &BrickMap) {
+        for level in &mut self.levels {
+            level.set_swatches(*base.swatches());
+        }
+    }
+
     /// Levels above 0.
     pub fn level_count(&self) -> u32 {
         self.levels.len() as u32
@@ -198,6 +204,7 @@ impl Pyramid {
         mut level_of: impl FnMut([u32; 3]) -> u32,
     ) -> Result<BrickMap, MapError> {
         let mut map = BrickMap::new(base.size())?;
+        map.set_swatches(*base.swatches());
         let mut coarse: HashMap<(u32, [u32; 3]), Option<u32>> = HashMap::new();
         for r in box_points([0; 3], base.region_dims()) {
             let k = level_of(r);
@@ -236,8 +243,10 @@ impl Pyramid {
 
     /// Brings every level up to date after the level-0 cells `touched` (linear indices in
     /// `base`, as [`BrickMap::take_touched`] gives them, in any order, repeats allowed) changed.
-    /// Each level is stamped with `base`'s sequence. Returns what changed, level by level.
+    /// Each level is stamped with `base`'s sequence and takes its palette (scene state every
+    /// view of the scene shows). Returns what changed, level by level.
     pub fn update(&mut self, base: &BrickMap, touched: &[u32]) -> Result<Changed, MapError> {
+        self.take_palette(base);
         let mut changed = Changed::new();
         let mut below_cells: Vec<[u32; 3]> = touched.iter().map(|&i| base.cell_coords(i)).collect();
         for k in 1..=self.level_count() {
@@ -260,6 +269,7 @@ impl Pyramid {
         if k == 0 || k > self.level_count() {
             return Ok(());
         }
+        self.take_palette(base);
         let below_map = if k == 1 {
             base
         } else {

@@ -1231,11 +1231,10 @@ impl BrickMap {
         let mut total = mix(u64::from(self.size[0])
             | u64::from(self.size[1]) << 21
             | u64::from(self.size[2]) << 42);
-        for (i, pair) in self.swatches.0.chunks(4).enumerate() {
-            let word = pair
-                .iter()
-                .fold(i as u64, |acc, c| acc << 16 | u64::from(c.0));
-            total = total.wrapping_add(mix(word ^ 0x5a5a_0000_0000_0000));
+        for (i, four) in self.swatches.0.chunks(4).enumerate() {
+            let word = four.iter().fold(0, |acc, c| acc << 16 | u64::from(c.0));
+            // Each group of four salted by its place, so a reordered palette hashes otherwise.
+            total = total.wrapping_add(mix(word ^ mix(0x5a5a_0000 ^ i as u64)));
         }
         for slot in 0..self.slot_cell.len() as u32 {
             let cell = self.slot_cell[slot as usize];

@@ -9,12 +9,14 @@
 //!
 //! A spool file is `MAGIC`, a format version, then bincode of [`Spooled`]: the scene's name,
 //! size and bricks as zstd [`BrickBlob`]s (the wire format's, so the scene costs about 100 bytes
-//! a brick).
+//! a brick), followed since version 2 by the scene's palette ([`Swatches`]); version-1 files
+//! read with the default palette.
 
 use std::path::{Path, PathBuf};
 
 use brickcast_protocol::BrickMap;
 use brickcast_protocol::brick::BrickData;
+use brickcast_protocol::swatches::Swatches;
 use brickcast_protocol::wire::BrickBlob;
 use serde::{Deserialize, Serialize};
 
@@ -23,7 +25,9 @@ use crate::envelope::Format;
 /// A scene file's body after its header (name, size, bricks), at most 1 GiB.
 const BODY: Format<{ 1 << 30 }> = Format::new("scene file", b"");
 const MAGIC: &[u8; 16] = b"brickcast-scene\n";
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
+/// Files written before the palette (no [`Swatches`] after the body).
+const VERSION_1: u32 = 1;
 /// Bricks per blob: keeps each blob's decompressed size modest.
 const BLOB_BRICKS: usize = 4096;
 /// Extension of a complete spool file.
@@ -97,7 +101,7 @@ pub fn encode(name: &str, map: &BrickMap) -> Result<Vec<u8>, String> {
     };
     let mut bytes = MAGIC.to_vec();
     bytes.extend_from_slice(&VERSION.to_le_bytes());
-    BODY.append(&spooled, &mut bytes)
+    BODY.append(&(&spooled, map.swatches()), &mut bytes)
         .map_err(|e| e.to_string())?;
     Ok(bytes)
 }
@@ -158,15 +162,21 @@ pub fn decode(bytes: &[u8]) -> Result<(String, BrickMap), String> {
             .try_into()
             .map_err(|_| "truncated header".to_string())?,
     );
-    if version != VERSION {
-        return Err(format!(
-            "format version {version}, this server reads {VERSION}"
-        ));
-    }
-    let spooled: Spooled = BODY
-        .decode_body(&bytes[MAGIC.len() + 4..])
-        .map_err(|e| e.to_string())?;
+    let body = &bytes[MAGIC.len() + 4..];
+    let (spooled, swatches): (Spooled, Swatches) = match version {
+        VERSION => BODY.decode_body(body).map_err(|e| e.to_string())?,
+        VERSION_1 => (
+            BODY.decode_body(body).map_err(|e| e.to_string())?,
+            Swatches::default(),
+        ),
+        _ => {
+            return Err(format!(
+                "format version {version}, this server reads {VERSION_1} to {VERSION}"
+            ));
+        }
+    };
     let mut map = BrickMap::new(spooled.size).map_err(|e| e.to_string())?;
+    map.set_swatches(swatches);
     for blob in &spooled.blobs {
         for brick in blob.decode(BLOB_BRICKS as u32).map_err(|e| e.to_string())? {
             map.put_brick(&brick).map_err(|e| e.to_string())?;
@@ -226,12 +236,34 @@ mod tests {
             BrushMode::Fill,
             Colour::from_rgb8(9, 99, 199),
         );
+        map.set_swatch(12, Colour(0x0f0f));
         let file = write(dir.path(), "ball", &map).unwrap();
         assert_eq!(pending(dir.path()), vec![file.clone()]);
         let (name, back) = read(&file).unwrap();
         assert_eq!(name, "ball");
         assert_eq!(back.size(), map.size());
         assert_eq!(back.content_hash(), map.content_hash());
+        assert_eq!(
+            back.swatches(),
+            map.swatches(),
+            "the palette travels with the scene"
+        );
+
+        // A file from before the palette (version 1: no palette after the body) still reads.
+        let old = Spooled {
+            name: "old".into(),
+            size: map.size(),
+            blobs: vec![
+                BrickBlob::encode(&map.bricks().map(|(b, _)| b).collect::<Vec<_>>(), 3).unwrap(),
+            ],
+        };
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend_from_slice(&VERSION_1.to_le_bytes());
+        BODY.append(&old, &mut bytes).unwrap();
+        let (_, back) = decode(&bytes).unwrap();
+        assert_eq!(back.swatches(), &Swatches::default());
+        bytes[MAGIC.len()] = 9;
+        assert!(decode(&bytes).is_err_and(|e| e.contains("format version 9")));
 
         std::fs::write(error_path(&file), "refused").unwrap();
         assert!(pending(dir.path()).is_empty());

@@ -379,6 +379,10 @@ impl Store {
             progress(map.brick_count() % 4096);
             let log_name = log_table(name);
             txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_name))?;
+            // Also replaces the palette of a scene of this name dropped before.
+            let palette_name = palette_table(name);
+            let mut palette = txn.open_table(TableDefinition::<u32, &[u8]>::new(&palette_name))?;
+            palette.insert(PALETTE_ROW, map.swatches().to_bytes().as_slice())?;
         }
         txn.commit()?;
         Ok(())
@@ -395,6 +399,7 @@ impl Store {
         if existed {
             txn.delete_table(TableDefinition::<u32, &[u8]>::new(&bricks_table(name)))?;
             txn.delete_table(TableDefinition::<u64, &[u8]>::new(&log_table(name)))?;
+            txn.delete_table(TableDefinition::<u32, &[u8]>::new(&palette_table(name)))?;
             history_rows::delete_all(&txn, name)?;
         }
         self.forget_packs(name);
@@ -862,6 +867,42 @@ mod tests {
     use super::*;
     use brickcast_protocol::BrushMode;
     use brickcast_protocol::wire::EditOp;
+
+    /// A scene's palette goes with it: a new scene keeps the palette its map has, and a
+    /// scene made again under a deleted one's name (created, or written in batches) starts
+    /// from its own, not the old one's.
+    #[test]
+    fn a_palette_goes_with_its_scene() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let mut map = BrickMap::new([32, 32, 32]).unwrap();
+        map.set_swatch(5, Colour(0x1234));
+        store.create_scene("p", &map).unwrap();
+        assert_eq!(
+            store.load_scene("p").unwrap().map.swatches(),
+            map.swatches()
+        );
+        assert!(store.delete_scene("p").unwrap());
+        let fresh = BrickMap::new([32, 32, 32]).unwrap();
+        store.create_scene("p", &fresh).unwrap();
+        assert_eq!(
+            store.load_scene("p").unwrap().map.swatches(),
+            fresh.swatches()
+        );
+        // Replaced with a palette of its own, deleted, then written in batches.
+        assert!(store.delete_scene("p").unwrap());
+        store.create_scene("p", &map).unwrap();
+        assert!(store.delete_scene("p").unwrap());
+        store
+            .begin_scene("p", [32, 32, 32])
+            .unwrap()
+            .finish()
+            .unwrap();
+        assert_eq!(
+            store.load_scene("p").unwrap().map.swatches(),
+            fresh.swatches()
+        );
+    }
 
     #[test]
     fn create_append_snapshot_and_recover() {

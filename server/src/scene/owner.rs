@@ -906,7 +906,7 @@ impl Owner {
 
     /// Sends every session the palette when this turn (or a reload) changed it, queued with
     /// the turn's frames (so it waits for the same commit).
-    fn broadcast_palette(&mut self) {
+    pub(super) fn broadcast_palette(&mut self) {
         let swatches = *self.map.swatches();
         if swatches == self.broadcast_swatches {
             return;

@@ -375,6 +375,9 @@ impl Owner {
             sub.delivered = sub.delivered.min(seq);
             sub.lagging = true;
         }
+        // The reloaded palette may be newer than what the sessions heard, and the resyncs
+        // carry only bricks.
+        self.broadcast_palette();
         self.restart_levels();
     }
 }

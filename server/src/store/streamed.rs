@@ -55,6 +55,9 @@ impl Store {
         }
         txn.delete_table(TableDefinition::<u32, &[u8]>::new(&bricks_table(name)))?;
         txn.delete_table(TableDefinition::<u64, &[u8]>::new(&log_table(name)))?;
+        txn.delete_table(TableDefinition::<u32, &[u8]>::new(&super::palette_table(
+            name,
+        )))?;
         super::history_rows::delete_all(&txn, name)?;
         self.forget_packs(name);
         txn.commit()?;

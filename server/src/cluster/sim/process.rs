@@ -65,6 +65,20 @@ impl EditKey {
             colour: self.colour(),
         }
     }
+
+    /// What the client sends: the voxel, and for every fourth edit a swatch of the palette
+    /// in its colour too (scene state that takes the same way through log, snapshots and
+    /// reloads; replicas' hashes cover it).
+    pub fn ops(&self) -> Vec<EditOp> {
+        let mut ops = vec![self.op()];
+        if self.k.is_multiple_of(4) {
+            ops.push(EditOp::Swatch {
+                index: (self.k / 4 % 32) as u8,
+                colour: self.colour(),
+            });
+        }
+        ops
+    }
 }
 
 /// A session of a client on a process.
@@ -614,7 +628,7 @@ impl Process {
                 let forwarder = &session.forwarder;
                 let sent = self
                     .rt
-                    .block_on(forwarder.send(client_seq, RequestItem::Edit(vec![key.op()])));
+                    .block_on(forwarder.send(client_seq, RequestItem::Edit(key.ops())));
                 if !sent {
                     session.pending.remove(&client_seq);
                 }
