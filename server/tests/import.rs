@@ -517,6 +517,13 @@ fn vox_axes_palette_and_scene_graph_placement() {
             ([10, 5, 2], Colour::from_rgb8(200, 100, 0)),
         ]
     );
+    // The scene's shared palette starts with the model's colours, in the file's order; the
+    // default swatches fill the rest.
+    let swatches = map.swatches();
+    assert_eq!(swatches.get(0), Colour::from_rgb8(10, 20, 30));
+    assert_eq!(swatches.get(1), Colour::from_rgb8(200, 100, 0));
+    let default = brickcast_protocol::swatches::Swatches::default();
+    assert_eq!(&swatches.0[2..], &default.0[2..]);
 
     assert!(matches!(
         vox::import_vox(b"VOX nonsense", Path::new("bad.vox")),

@@ -473,7 +473,7 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
                 .nth(1)
                 .map(|c| c.chars().take(7).collect())
                 .unwrap_or_default();
-            !took.is_empty() && t.contains(&format!("colour {took} (1-8"))
+            !took.is_empty() && t.contains(&format!("colour {took} (1-0"))
         }),
         "Alt+click took no colour; title: {}",
         title()
@@ -483,10 +483,20 @@ fn viewer_edits_the_scene_with_mouse_and_keys() {
         x(&["key", key]).expect("key");
     }
     let [r, g, b] = brickcast_protocol::Colour::from_rgb8(0x12, 0x3a, 0xbc).to_rgb8();
-    let typed = format!("colour #{r:02x}{g:02x}{b:02x} (1-8");
+    let typed = format!("colour #{r:02x}{g:02x}{b:02x} (1-0");
     assert!(
         wait_until(Duration::from_secs(10), || title().contains(&typed)),
         "P 123abc did not set the colour; title: {}",
+        title()
+    );
+    // Shift+0 sets swatch 10 of the scene's palette to that colour, for everyone.
+    x(&["key", "shift+0"]).expect("key");
+    let typed_colour = brickcast_protocol::Colour::from_rgb8(0x12, 0x3a, 0xbc);
+    assert!(
+        wait_until(Duration::from_secs(20), || {
+            fetch(&server.url("demo")).is_ok_and(|r| r.map.swatches().get(9) == typed_colour)
+        }),
+        "Shift+0 did not set swatch 10; title: {}",
         title()
     );
 

@@ -7,12 +7,14 @@
 //! the scene is the box spanned by all placed models. Export splits the scene into models of at
 //! most 256³ (the format's limit) on a regular grid, each placed by a transform node, and
 //! quantises colours to the format's 255-entry palette ([`super::palette`]). A scene with at
-//! most 255 colours round-trips exactly.
+//! most 255 colours round-trips exactly. An imported scene's shared palette
+//! ([`brickcast_protocol::swatches`]) is the model's most used colours, in the file's order.
 
 use std::path::Path;
 
 use brickcast_protocol::brick::{BRICK_EDGE, bit_voxel, for_each_bit};
 use brickcast_protocol::map::MAX_SCENE_EDGE;
+use brickcast_protocol::swatches::{SWATCHES, Swatches};
 use brickcast_protocol::{BrickMap, Colour};
 use dot_vox::{DotVoxData, Frame, Model, Rotation, SceneNode, ShapeModel, Size, Voxel};
 
@@ -239,9 +241,11 @@ pub fn import_vox(bytes: &[u8], path: &Path) -> Result<BrickMap, ImportError> {
                 .map_or(Colour::WHITE, |c| Colour::from_rgb8(c.r, c.g, c.b))
         })
         .collect();
+    let mut uses = [0u64; 256];
     for inst in &instances {
         let model = &data.models[inst.model];
         for v in &model.voxels {
+            uses[v.i as usize] += 1;
             let p = [v.x as u32, v.y as u32, v.z as u32];
             if p[0] >= model.size.x || p[1] >= model.size.y || p[2] >= model.size.z {
                 return Err(ImportError::BadVox {
@@ -258,8 +262,36 @@ pub fn import_vox(bytes: &[u8], path: &Path) -> Result<BrickMap, ImportError> {
             map.set(ours, palette[v.i as usize]);
         }
     }
+    map.set_swatches(swatches_of(&palette, &uses));
     map.rebuild_clearance();
     Ok(map)
+}
+
+/// The scene's palette from a model's: its most used colours (at most [`SWATCHES`], each once),
+/// in the order the file's palette has them (the artist's order), then the default swatches
+/// for the rest of the places.
+fn swatches_of(palette: &[Colour], uses: &[u64; 256]) -> Swatches {
+    let mut used: Vec<(u64, usize)> = (0..palette.len().min(256))
+        .filter(|&i| uses[i] > 0)
+        .map(|i| (uses[i], i))
+        .collect();
+    // Most used first; the same colour at two indices counts once, at its more used one.
+    used.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+    let mut chosen: Vec<usize> = Vec::new();
+    for (_, i) in used {
+        if chosen.len() == SWATCHES {
+            break;
+        }
+        if !chosen.iter().any(|&c| palette[c] == palette[i]) {
+            chosen.push(i);
+        }
+    }
+    chosen.sort_unstable();
+    let mut swatches = Swatches::default();
+    for (place, &i) in chosen.iter().enumerate() {
+        swatches.set(place, palette[i]);
+    }
+    swatches
 }
 
 /// What an export wrote.
@@ -401,4 +433,32 @@ pub fn export_vox(map: &BrickMap) -> (Vec<u8>, ExportReport) {
         colours,
     };
     (bytes, report)
+}
+
+#[cfg(test)]
+mod swatch_tests {
+    use super::*;
+
+    /// Of 40 colours, the 32 most used become swatches, in the file's order; a colour at two
+    /// indices takes one swatch.
+    #[test]
+    fn the_most_used_colours_become_the_swatches_in_file_order() {
+        let mut palette: Vec<Colour> = (0..256u16).map(|i| Colour(1000 + i)).collect();
+        palette[41] = palette[40];
+        let mut uses = [0u64; 256];
+        for (i, n) in uses.iter_mut().take(40).enumerate() {
+            *n = 100 + i as u64; // 9..=39 are the most used after 41
+        }
+        uses[41] = 1_000; // the same colour as 40: counted at 41
+        uses[40] = 1;
+        let s = swatches_of(&palette, &uses);
+        let want: Vec<Colour> = (9..40).map(|i| palette[i]).chain([palette[41]]).collect();
+        assert_eq!(s.0.to_vec(), want);
+        // Fewer colours than swatches: the rest stay the defaults.
+        let mut few = [0u64; 256];
+        few[3] = 5;
+        let s = swatches_of(&palette, &few);
+        assert_eq!(s.get(0), palette[3]);
+        assert_eq!(&s.0[1..], &Swatches::default().0[1..]);
+    }
 }
