@@ -360,6 +360,9 @@ async fn a_scene_imported_into_a_running_cluster_is_served_by_every_node() {
     map.sphere([20.0, 10.0, 20.0], 6.0, BrushMode::Fill, colour(8));
     let (bytes, _) = brickcast_server::import::vox::export_vox(&map);
     let model = models.path().join("m.vox");
+    // What the import makes of it: these voxels, and the model's colours as the palette.
+    let want = brickcast_server::import::vox::import_vox(&bytes, &model).unwrap();
+    assert_eq!(want.bricks().count(), map.bricks().count());
     std::fs::write(&model, bytes).unwrap();
     let import = |extra: &'static [&'static str]| {
         let model = model.clone();
@@ -394,7 +397,8 @@ async fn a_scene_imported_into_a_running_cluster_is_served_by_every_node() {
         }
         let mut c = Client::connect(&url, None).await.unwrap();
         c.sync().await;
-        assert_eq!(c.map.content_hash(), map.content_hash(), "node {}", n.name);
+        assert_eq!(c.map.content_hash(), want.content_hash(), "node {}", n.name);
+        assert_eq!(c.map.swatches().get(0), colour(7), "node {}", n.name);
     }
     let again = import(&[]).await.unwrap();
     assert!(!again.status.success());
