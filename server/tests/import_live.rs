@@ -49,7 +49,7 @@ fn json(out: &Output) -> serde_json::Value {
     serde_json::from_slice(&out.stdout).expect("one JSON object")
 }
 
-/// A small scene with few colours, written as `.vox`.
+/// A small scene with few colours, written as `.vox`, and the scene importing it makes.
 fn write_model(dir: &Path) -> (std::path::PathBuf, BrickMap) {
     let mut map = BrickMap::new([70, 30, 50]).unwrap();
     map.fill_box(
@@ -66,8 +66,12 @@ fn write_model(dir: &Path) -> (std::path::PathBuf, BrickMap) {
     );
     let (bytes, _) = vox::export_vox(&map);
     let path = dir.join("model.vox");
+    // What importing it makes: these voxels, with the model's colours as the scene's palette.
+    let imported = vox::import_vox(&bytes, &path).unwrap();
+    assert_eq!(imported.bricks().count(), map.bricks().count());
+    assert_eq!(imported.swatches().get(0), Colour::from_rgb8(90, 140, 60));
     std::fs::write(&path, bytes).unwrap();
-    (path, map)
+    (path, imported)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
