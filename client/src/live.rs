@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 pub use brickcast_client_core::session::Status;
 use brickcast_client_core::session::{ClientSeq, Session};
-use brickcast_protocol::wire::{ClientMsg, Cursor, EditOp, UserId, View};
+use brickcast_protocol::wire::{ClientMsg, Cursor, EditOp, Selection, UserId, View};
 use tokio::sync::mpsc;
 
 use crate::link::{Link, LinkError};
@@ -83,12 +83,22 @@ impl Live {
         let _ = self.outbox.send(self.client_seq.undo(redo));
     }
 
-    /// Shares where we look and point (the caller keeps to the server's rate).
-    pub fn presence(&self, view: Option<View>, cursor: Option<Cursor>) {
+    /// Shares where we look and point, and what we selected (the caller keeps to the server's
+    /// rate).
+    pub fn presence(
+        &self,
+        view: Option<View>,
+        cursor: Option<Cursor>,
+        selection: Option<Selection>,
+    ) {
         if let Some(v) = &view {
             self.lock().eye = Some(v.eye);
         }
-        let _ = self.outbox.send(ClientMsg::Presence { view, cursor });
+        let _ = self.outbox.send(ClientMsg::Presence {
+            view,
+            cursor,
+            selection,
+        });
     }
 }
 

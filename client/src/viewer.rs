@@ -22,7 +22,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow};
-use brickcast_protocol::wire::{Cursor, Role, View};
+use brickcast_protocol::wire::{Cursor, Role, Selection, View};
 use brickcast_protocol::{Colour, Lighting, Projection};
 use winit::application::ApplicationHandler;
 use winit::event::{
@@ -37,7 +37,8 @@ pub use brickcast_client_core::camera::{FirstView, FlyCamera};
 use brickcast_client_core::shading::{NOTE_SECONDS, shading_key};
 use brickcast_client_core::swatch::{SwatchAction, swatch_key};
 use brickcast_client_core::tools::{
-    Action, Button, Context as ToolContext, HexEntry, HexKey, Tool, Tools, step_radius,
+    Action, Button, Context as ToolContext, HexEntry, HexKey, Tool, Tools, selection_note,
+    step_radius,
 };
 use brickcast_protocol::swatches::Swatches;
 
@@ -129,7 +130,9 @@ struct App {
     /// Projection of the last traced frame, for turning clicks into rays.
     projection: Option<Projection>,
     /// The presence last sent, and when the next may go.
-    presence_sent: Option<(Option<View>, Option<Cursor>)>,
+    presence_sent: Option<(Option<View>, Option<Cursor>, Option<Selection>)>,
+    /// What the select tool selected (shared with everyone, drawn in white).
+    selection: Option<Selection>,
     presence_at: Instant,
     /// What my pointer is on (traced on the local copy each frame).
     my_cursor: Option<Cursor>,
@@ -206,6 +209,7 @@ pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()>
         synced_frames: 0,
         projection: None,
         presence_sent: None,
+        selection: None,
         presence_at: Instant::now(),
         my_cursor: None,
         follow,
@@ -418,6 +422,7 @@ impl App {
                     notes,
                     following: self.follow.target,
                     swatches: Some(live.swatches()),
+                    selection: self.selection,
                 },
             );
             drop(live);
@@ -473,7 +478,7 @@ impl App {
                 ),
             };
             let mut title = format!(
-                "brickcast — {state} — {:.1} fps — {role} — {} (B X N G T I) — {colour} — brush {} ([ ])",
+                "brickcast — {state} — {:.1} fps — {role} — {} (B X N G T I V) — {colour} — brush {} ([ ])",
                 self.fps,
                 self.tools.tool.name(),
                 self.radius
@@ -507,7 +512,9 @@ impl App {
         };
         let pick = self.modifiers.alt_key();
         let live = self.live.lock();
-        if live.role != Some(Role::Editor) && !(pick || self.tools.tool == Tool::Picker) {
+        // A viewer may take colours and select (pointing a region out to others), not edit.
+        let reads = pick || matches!(self.tools.tool, Tool::Picker | Tool::Select);
+        if live.role != Some(Role::Editor) && !reads {
             drop(live);
             if pressed {
                 tracing::info!("this connection may only watch; edits are ignored");
@@ -538,6 +545,10 @@ impl App {
                     format!("took colour #{r:02x}{g:02x}{b:02x}"),
                     Instant::now(),
                 ));
+            }
+            Action::Selected(selection) => {
+                self.selection = selection;
+                self.lighting_note = Some((selection_note(selection), Instant::now()));
             }
             Action::Nothing(why) if !why.is_empty() => {
                 self.lighting_note = Some((why.to_string(), Instant::now()));
@@ -589,9 +600,9 @@ impl App {
         if now < self.presence_at {
             return;
         }
-        let now_sharing = (view, cursor);
+        let now_sharing = (view, cursor, self.selection);
         if self.presence_sent != Some(now_sharing) {
-            self.live.presence(view, cursor);
+            self.live.presence(view, cursor, self.selection);
             self.presence_sent = Some(now_sharing);
             self.presence_at = now + Duration::from_secs_f64(1.0 / f64::from(hz));
         }
@@ -864,6 +875,7 @@ mod tests {
                 notes: vec!["cannot reach the server; retrying in 2 s".into()],
                 following: None,
                 swatches: None,
+                selection: None,
             },
         );
         let drawn = (0..h)

@@ -78,6 +78,7 @@ impl Roster {
                 id: peer.id,
                 view: None,
                 cursor: None,
+                selection: None,
             });
         self.others.insert(
             peer.id,
@@ -139,6 +140,7 @@ mod tests {
                 id: 2,
                 view: Some(view),
                 cursor: None,
+                selection: None,
             }],
         });
         let ann = r.find("anne").unwrap();

@@ -171,8 +171,16 @@ fn client_msg() -> impl Strategy<Value = ClientMsg> {
         any::<u64>().prop_map(|nonce| ClientMsg::Ping { nonce }),
         any::<u64>().prop_map(|client_seq| ClientMsg::Undo { client_seq }),
         any::<u64>().prop_map(|client_seq| ClientMsg::Redo { client_seq }),
-        (proptest::option::of(view()), proptest::option::of(cursor()))
-            .prop_map(|(view, cursor)| ClientMsg::Presence { view, cursor }),
+        (
+            proptest::option::of(view()),
+            proptest::option::of(cursor()),
+            proptest::option::of(selection())
+        )
+            .prop_map(|(view, cursor, selection)| ClientMsg::Presence {
+                view,
+                cursor,
+                selection
+            }),
         "\\PC{0,80}".prop_map(|name| ClientMsg::Rename { name }),
     ]
 }
@@ -207,8 +215,18 @@ fn peer_state() -> impl Strategy<Value = PeerState> {
         any::<u64>(),
         proptest::option::of(view()),
         proptest::option::of(cursor()),
+        proptest::option::of(selection()),
     )
-        .prop_map(|(id, view, cursor)| PeerState { id, view, cursor })
+        .prop_map(|(id, view, cursor, selection)| PeerState {
+            id,
+            view,
+            cursor,
+            selection,
+        })
+}
+
+fn selection() -> impl Strategy<Value = Selection> {
+    (any::<[u32; 3]>(), any::<[u32; 3]>()).prop_map(|(min, max)| Selection { min, max })
 }
 
 fn refusal() -> impl Strategy<Value = Refusal> {

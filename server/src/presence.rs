@@ -28,8 +28,8 @@ use std::time::Duration;
 
 use brickcast_protocol::Colour;
 use brickcast_protocol::wire::{
-    Cursor, MAX_DISPLAY_NAME_BYTES, Peer, PeerId, PeerState, Refusal, ServerMsg, UserId, View,
-    encode_server,
+    Cursor, MAX_DISPLAY_NAME_BYTES, Peer, PeerId, PeerState, Refusal, Selection, ServerMsg, UserId,
+    View, encode_server,
 };
 use bytes::Bytes;
 
@@ -321,6 +321,7 @@ impl Hub {
                     id,
                     view: None,
                     cursor: None,
+                    selection: None,
                 },
                 peer: peer.clone(),
                 out,
@@ -338,17 +339,24 @@ impl Hub {
         }
     }
 
-    /// The peer's latest view and cursor (checked by the session).
-    pub fn update(&self, id: PeerId, view: Option<View>, cursor: Option<Cursor>) {
+    /// The peer's latest view, cursor and selection (checked by the session).
+    pub fn update(
+        &self,
+        id: PeerId,
+        view: Option<View>,
+        cursor: Option<Cursor>,
+        selection: Option<Selection>,
+    ) {
         let mut roster = self.roster();
         let Some(m) = roster.members.get_mut(&id) else {
             return;
         };
-        if m.state.view == view && m.state.cursor == cursor {
+        if m.state.view == view && m.state.cursor == cursor && m.state.selection == selection {
             return;
         }
         m.state.view = view;
         m.state.cursor = cursor;
+        m.state.selection = selection;
         let state = m.state;
         roster.changed(state, true);
     }
@@ -439,6 +447,7 @@ impl Hub {
                     id,
                     view: None,
                     cursor: None,
+                    selection: None,
                 };
                 roster.remote.insert(
                     id,
@@ -607,15 +616,19 @@ impl Hub {
     }
 }
 
-/// Checks a view and cursor: finite numbers, a direction with length, a cursor inside a scene of
-/// `size` with a radius up to `max_radius`. For clients' messages and for peers relayed from
-/// other nodes alike.
+/// Checks a view, cursor and selection: finite numbers, a direction with length, a cursor inside
+/// a scene of `size` with a radius up to `max_radius`, a selection inside the scene with its
+/// corners in order. For clients' messages and for peers relayed from other nodes alike.
 pub fn check(
     view: &Option<View>,
     cursor: &Option<Cursor>,
+    selection: &Option<Selection>,
     size: [u32; 3],
     max_radius: f32,
 ) -> Result<(), Refusal> {
+    if selection.as_ref().is_some_and(|s| !s.is_within(size)) {
+        return Err(Refusal::OutOfRange);
+    }
     if view.as_ref().is_some_and(|v| !v.is_valid()) {
         return Err(Refusal::NotFinite);
     }
@@ -821,7 +834,7 @@ mod tests {
             forward: [0.0, 0.0, 1.0],
         };
         for i in 0..50 {
-            hub.update(1, Some(view(i as f32)), None);
+            hub.update(1, Some(view(i as f32)), None, None);
             hub.tick(&metrics);
         }
         assert_eq!(frames(&mut rx1).len(), 50);

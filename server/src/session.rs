@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use brickcast_protocol::wire::{
     ClientMsg, Cursor, ErrorCode, Limits, OpRejection, PROTOCOL_VERSION, Peer, Refusal, Rejection,
-    Role, ServerMsg, View, check_display_name, decode_client, hello_version,
+    Role, Selection, ServerMsg, View, check_display_name, decode_client, hello_version,
 };
 use futures_util::{SinkExt, StreamExt};
 
@@ -323,10 +323,16 @@ const RENAME_BURST: f64 = 5.0;
 impl Session<'_> {
     /// Checks a presence message: finite numbers, a direction with length, a cursor inside the
     /// scene with a radius the server allows.
-    fn check_presence(&self, view: &Option<View>, cursor: &Option<Cursor>) -> Result<(), Refusal> {
+    fn check_presence(
+        &self,
+        view: &Option<View>,
+        cursor: &Option<Cursor>,
+        selection: &Option<Selection>,
+    ) -> Result<(), Refusal> {
         crate::presence::check(
             view,
             cursor,
+            selection,
             self.scene.size,
             self.scene.limits.max_brush_radius,
         )
@@ -586,15 +592,19 @@ async fn read_loop(
                     return reject(ErrorCode::ShuttingDown, "the scene is shutting down".into());
                 }
             }
-            ClientMsg::Presence { view, cursor } => {
+            ClientMsg::Presence {
+                view,
+                cursor,
+                selection,
+            } => {
                 if !presences.take(1.0) {
                     session.refuse(Refusal::RateLimited);
-                } else if let Err(reason) = session.check_presence(&view, &cursor) {
+                } else if let Err(reason) = session.check_presence(&view, &cursor, &selection) {
                     session.refuse(reason);
                 } else {
                     Metrics::add(&app.metrics.presence_updates, 1);
                     if session.level == 0 {
-                        scene.presence.update(id, view, cursor);
+                        scene.presence.update(id, view, cursor, selection);
                     }
                     if let Some(view) = view {
                         camera = Some(view.eye);

@@ -565,6 +565,7 @@ async fn people_on_different_nodes_see_each_other() {
         .send(&ClientMsg::Presence {
             view: Some(view),
             cursor: Some(cursor),
+            selection: None,
         })
         .await;
     let looks = |c: &Client| {

@@ -7,7 +7,7 @@ mod common;
 use std::time::Duration;
 
 use brickcast_protocol::wire::{
-    BrushMode, ClientMsg, Cursor, EditOp, Refusal, Role, ServerMsg, View,
+    BrushMode, ClientMsg, Cursor, EditOp, Refusal, Role, Selection, ServerMsg, View,
 };
 use brickcast_protocol::{BrickMap, Colour};
 use common::{Client, TestServer, colour, http_get};
@@ -378,22 +378,29 @@ async fn presence_shows_who_is_here_where_they_look_and_who_left() {
         voxel: [64, 20, 64],
         radius: 3.0,
     };
+    let selection = Selection::between([70, 20, 60], [60, 24, 66]);
     a.send(&ClientMsg::Presence {
         view: Some(view),
         cursor: Some(cursor),
+        selection: Some(selection),
     })
     .await;
     let seen = tokio::time::timeout(
         Duration::from_secs(20),
         b.until(|b, _| {
-            b.roster
-                .others
-                .get(&alice.id)
-                .is_some_and(|p| p.state.view == Some(view) && p.state.cursor == Some(cursor))
+            b.roster.others.get(&alice.id).is_some_and(|p| {
+                p.state.view == Some(view)
+                    && p.state.cursor == Some(cursor)
+                    && p.state.selection == Some(selection)
+            })
         }),
     )
     .await;
-    assert_eq!(seen, Ok(true), "bob never saw alice's view and cursor");
+    assert_eq!(
+        seen,
+        Ok(true),
+        "bob never saw alice's view, cursor and selection"
+    );
     assert_eq!(b.roster.others[&alice.id].peer.name, "alice");
 
     // A rename reaches the others; a bad one is refused and the connection stays.
@@ -425,6 +432,7 @@ async fn presence_shows_who_is_here_where_they_look_and_who_left() {
                     forward: [0.0, 0.0, 1.0],
                 }),
                 cursor: None,
+                selection: None,
             },
             Refusal::NotFinite,
         ),
@@ -434,6 +442,30 @@ async fn presence_shows_who_is_here_where_they_look_and_who_left() {
                 cursor: Some(Cursor {
                     voxel: [9999, 0, 0],
                     radius: 1.0,
+                }),
+                selection: None,
+            },
+            Refusal::OutOfRange,
+        ),
+        // A selection past the scene, or with its corners the wrong way round.
+        (
+            ClientMsg::Presence {
+                view: None,
+                cursor: None,
+                selection: Some(Selection {
+                    min: [0, 0, 0],
+                    max: [9999, 1, 1],
+                }),
+            },
+            Refusal::OutOfRange,
+        ),
+        (
+            ClientMsg::Presence {
+                view: None,
+                cursor: None,
+                selection: Some(Selection {
+                    min: [5, 5, 5],
+                    max: [4, 5, 5],
                 }),
             },
             Refusal::OutOfRange,
@@ -453,6 +485,7 @@ async fn presence_shows_who_is_here_where_they_look_and_who_left() {
                 voxel: [i, 0, 0],
                 radius: 0.0,
             }),
+            selection: None,
         })
         .await;
     }
@@ -505,6 +538,7 @@ async fn a_client_that_never_reads_does_not_queue_presence() {
                     forward: [0.0, 0.0, 1.0],
                 }),
                 cursor: None,
+                selection: None,
             })
             .await;
         }

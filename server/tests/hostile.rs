@@ -571,6 +571,7 @@ async fn a_client_that_sends_without_reading_is_not_read() {
                             voxel: [u32::MAX; 3],
                             radius: 1.0,
                         }),
+                        selection: None,
                     }
                 };
                 let frame = Message::Binary(encode_client(&msg).unwrap().into());

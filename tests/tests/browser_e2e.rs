@@ -377,6 +377,21 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
     });
     assert!(shared, "Shift+click on swatch 7 set it for everyone");
 
+    // The select tool: V, then a drag selects a box of voxels (nothing is edited); a native
+    // client sees it in the page's presence.
+    browser.call(serde_json::json!({"op": "key", "key": "v"}))?;
+    browser.wait("window.brickcast.tool() === 'select'", 5_000)?;
+    let voxels_before_select = fetch(&server.url("demo"))?.map.solid_voxels();
+    browser.drag([120.0, 90.0], [200.0, 100.0], "left")?;
+    let state = browser.wait_state("s.selection !== null", 10_000)?;
+    let selected = state["selection"].clone();
+    assert!(selected.is_array(), "{selected}");
+    assert_eq!(
+        fetch(&server.url("demo"))?.map.solid_voxels(),
+        voxels_before_select,
+        "selecting edits nothing"
+    );
+
     // A native user present with a view shows in the page's roster, and F follows its camera.
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -390,8 +405,27 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
             forward: [1.0, -0.2, 0.0],
         }),
         cursor: None,
+        selection: None,
     }))?;
     browser.wait_state("s.others.includes('native')", 20_000)?;
+    let page_selection = runtime.block_on(async {
+        loop {
+            match tokio::time::timeout(Duration::from_secs(20), native.next()).await {
+                Ok(Ok(Some(ServerMsg::Presence { states, .. }))) => {
+                    if let Some(s) = states.iter().find_map(|s| s.selection) {
+                        return Some(s);
+                    }
+                }
+                Ok(Ok(Some(_))) => continue,
+                _ => return None,
+            }
+        }
+    });
+    let page_selection = page_selection.context("the native client saw the page's selection")?;
+    assert_eq!(
+        serde_json::json!([page_selection.min, page_selection.max]),
+        selected
+    );
     browser.call(serde_json::json!({"op": "key", "key": "f"}))?;
     let followed = browser.wait_state(
         &format!(

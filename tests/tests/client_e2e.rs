@@ -544,7 +544,7 @@ fn viewer_draws_other_users_where_they_stand_and_follows_them() {
             == Status::Live),
         "bob never got live"
     );
-    bob.presence(Some(View { eye, forward }), None);
+    bob.presence(Some(View { eye, forward }), None, None);
 
     let out = tempfile::tempdir().expect("tempdir");
     let shot = out.path().join("alice.png");

@@ -25,10 +25,10 @@ use brickcast_client_core::session::{ClientSeq, Session, Status};
 use brickcast_client_core::shading::{NOTE_SECONDS, SHADING_KEYS, shading_key};
 use brickcast_client_core::swatch::{SwatchAction, swatch_action, swatch_key};
 use brickcast_client_core::tools::{
-    Action, Button, Context as ToolContext, Tool, Tools, step_radius,
+    Action, Button, Context as ToolContext, Tool, Tools, selection_note, step_radius,
 };
 use brickcast_protocol::swatches::Swatches;
-use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, UserId, View};
+use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, Selection, UserId, View};
 use brickcast_protocol::{Camera, Colour, Lighting, Projection};
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
@@ -152,7 +152,9 @@ pub struct App {
     overlay: Canvas,
     /// Projection of the last traced frame, for turning clicks into rays.
     projection: Option<Projection>,
-    presence_sent: Option<(Option<View>, Option<Cursor>)>,
+    presence_sent: Option<(Option<View>, Option<Cursor>, Option<Selection>)>,
+    /// What the select tool selected (shared with everyone, drawn in white).
+    selection: Option<Selection>,
     presence_at: f64,
     my_cursor: Option<Cursor>,
     pub scale: Scale,
@@ -252,6 +254,7 @@ impl App {
             overlay: Canvas::new(1, 1),
             projection: None,
             presence_sent: None,
+            selection: None,
             presence_at: 0.0,
             my_cursor: None,
             // Coarse at first, so the first picture comes fast on any adapter; it refines.
@@ -468,7 +471,8 @@ impl App {
     /// A press (`pressed`) or release of `button` at the pointer: what the tool in use does
     /// (the native viewer's tools). A click is a press and a release in one place.
     pub fn click(&mut self, button: Button, pressed: bool) {
-        let picking = self.alt || self.tools.tool == Tool::Picker;
+        // A viewer may take colours and select (pointing a region out to others), not edit.
+        let picking = self.alt || matches!(self.tools.tool, Tool::Picker | Tool::Select);
         if self.session.role != Some(Role::Editor) && !picking {
             if pressed {
                 page::set_text("note", "this link only lets you watch; edits are ignored");
@@ -499,6 +503,10 @@ impl App {
                 self.set_colour(colour);
                 let [r, g, b] = colour.to_rgb8();
                 self.note(format!("took colour #{r:02x}{g:02x}{b:02x}"));
+            }
+            Action::Selected(selection) => {
+                self.selection = selection;
+                self.note(selection_note(selection));
             }
             Action::Nothing(why) if !why.is_empty() => self.note(why.to_string()),
             Action::Started | Action::Nothing(_) => {}
@@ -591,11 +599,16 @@ impl App {
         if now < self.presence_at || self.session.status != Status::Live {
             return;
         }
-        let sharing = (view, cursor);
+        let sharing = (view, cursor, self.selection);
         if let Some(v) = &view {
             self.session.eye = Some(v.eye);
         }
-        if self.presence_sent != Some(sharing) && self.send(&ClientMsg::Presence { view, cursor }) {
+        let presence = ClientMsg::Presence {
+            view,
+            cursor,
+            selection: self.selection,
+        };
+        if self.presence_sent != Some(sharing) && self.send(&presence) {
             self.presence_sent = Some(sharing);
             self.presence_at = now + 1000.0 / f64::from(self.session.presence_hz.max(1));
         }
@@ -782,6 +795,7 @@ impl App {
                     following: self.follow.target,
                     // The page lists the palette in its tool bar.
                     swatches: None,
+                    selection: self.selection,
                 },
             );
             gpu.presenter.upload_overlay(&ctx, &self.overlay);
@@ -902,6 +916,7 @@ impl App {
                 serde_json::json!({ "eye": rule.eye, "near": rule.near, "top": rule.top })
             }),
             "stand_ins": replica.map_or(0, |r| r.map.stand_in_count()),
+            "selection": self.selection.map(|s| [s.min, s.max]),
             "colour": self.colour.to_hex(),
             // The scene's shared palette as this copy holds it.
             "swatches": self.session.swatches().0.iter().map(|c| c.to_hex()).collect::<Vec<_>>(),

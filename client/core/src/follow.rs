@@ -84,6 +84,7 @@ mod tests {
                             forward: [1.0, 0.0, 0.0],
                         }),
                         cursor: None,
+                        selection: None,
                     },
                 },
             );

@@ -17,7 +17,7 @@
 use brickcast_protocol::apply::span_end;
 use brickcast_protocol::map::BrickMap;
 use brickcast_protocol::region::{face_region, fill_region};
-use brickcast_protocol::wire::{BrushMode, EditOp, Limits, RayAction, Shape};
+use brickcast_protocol::wire::{BrushMode, EditOp, Limits, RayAction, Selection, Shape};
 use brickcast_protocol::{Colour, Ray, trace};
 
 /// Which button was pressed.
@@ -85,20 +85,24 @@ pub enum Tool {
     Extrude,
     /// Takes the colour under the pointer.
     Picker,
+    /// Selects the box between the voxels under the press and the release (shown to everyone
+    /// in the scene); a click on nothing, or the place button, clears it.
+    Select,
 }
 
 impl Tool {
-    pub const ALL: [Tool; 6] = [
+    pub const ALL: [Tool; 7] = [
         Tool::Brush,
         Tool::Box,
         Tool::Line,
         Tool::Fill,
         Tool::Extrude,
         Tool::Picker,
+        Tool::Select,
     ];
 
     /// The tool a key (its `KeyboardEvent.code` name) picks: B brush, X box, N line, G fill,
-    /// T extrude, I picker. (P types a colour: [`HexEntry`].)
+    /// T extrude, I picker, V select. (P types a colour: [`HexEntry`].)
     pub fn from_key(code: &str) -> Option<Tool> {
         Some(match code {
             "KeyB" => Tool::Brush,
@@ -107,6 +111,7 @@ impl Tool {
             "KeyG" => Tool::Fill,
             "KeyT" => Tool::Extrude,
             "KeyI" => Tool::Picker,
+            "KeyV" => Tool::Select,
             _ => return None,
         })
     }
@@ -120,6 +125,7 @@ impl Tool {
             Tool::Fill => "fill",
             Tool::Extrude => "extrude",
             Tool::Picker => "picker",
+            Tool::Select => "select",
         }
     }
 
@@ -132,12 +138,13 @@ impl Tool {
             Tool::Fill => "KeyG",
             Tool::Extrude => "KeyT",
             Tool::Picker => "KeyI",
+            Tool::Select => "KeyV",
         }
     }
 
     /// Whether it acts on a drag (press, then release elsewhere) rather than a click.
     pub fn drags(self) -> bool {
-        matches!(self, Tool::Box | Tool::Line)
+        matches!(self, Tool::Box | Tool::Line | Tool::Select)
     }
 }
 
@@ -148,6 +155,8 @@ pub enum Action {
     Edit(EditOp),
     /// The colour under the pointer, to draw with from now on.
     Picked(Colour),
+    /// The selection from now on (`None`: nothing selected), shared in presence.
+    Selected(Option<Selection>),
     /// A drag started: wait for the release.
     Started,
     /// Nothing to send, and why (for the status line).
@@ -211,7 +220,7 @@ impl Tools {
         }
         match self.tool {
             Tool::Brush => Action::Edit(ray_edit(button, ray, cx.radius, cx.paint, cx.colour)),
-            Tool::Box | Tool::Line => {
+            Tool::Box | Tool::Line | Tool::Select => {
                 self.start = Some((button, *ray));
                 Action::Started
             }
@@ -230,6 +239,9 @@ impl Tools {
             return Action::Nothing("");
         }
         self.start = None;
+        if self.tool == Tool::Select {
+            return select(button, &from, ray, cx);
+        }
         let mode = match (button, cx.paint) {
             (Button::Secondary, _) => BrushMode::Fill,
             (Button::Primary, true) => BrushMode::Paint,
@@ -257,6 +269,32 @@ impl Tools {
             colour: cx.colour,
             extent,
         })
+    }
+}
+
+/// A line for the status bar about the selection now.
+pub fn selection_note(selection: Option<Selection>) -> String {
+    match selection {
+        Some(s) => {
+            let [x, y, z] = s.extent();
+            format!("selected {x}×{y}×{z} voxels (everyone here sees the box)")
+        }
+        None => "nothing selected".into(),
+    }
+}
+
+/// The box between the voxels the two rays hit on the local copy (what the user sees): the
+/// selection; the place button, or a ray that hits nothing, clears it.
+fn select(button: Button, from: &Ray, to: &Ray, cx: &Context) -> Action {
+    if button == Button::Secondary {
+        return Action::Selected(None);
+    }
+    let Some(map) = cx.map else {
+        return Action::Nothing("the scene is not here yet");
+    };
+    match (trace(map, from), trace(map, to)) {
+        (Some(a), Some(b)) => Action::Selected(Some(Selection::between(a.voxel, b.voxel))),
+        _ => Action::Selected(None),
     }
 }
 
@@ -443,6 +481,43 @@ mod tests {
             limits,
             map: Some(map),
         }
+    }
+
+    /// V selects the box between the voxels under the press and the release, on the local
+    /// copy; the place button, or a drag onto nothing, clears it. Nothing is sent.
+    #[test]
+    fn the_select_tool_selects_the_box_between_two_hits() {
+        let map = ground();
+        let limits = Limits::default();
+        let cx = cx(&map, &limits);
+        let mut tools = Tools::default();
+        tools.pick_tool(Tool::from_key("KeyV").unwrap());
+        assert!(tools.tool.drags());
+        assert_eq!(
+            tools.press(Button::Primary, &down(20.5, 9.5), &cx),
+            Action::Started
+        );
+        assert_eq!(
+            tools.release(Button::Primary, &down(12.5, 14.5), &cx),
+            Action::Selected(Some(Selection {
+                min: [12, 3, 9],
+                max: [20, 3, 14]
+            }))
+        );
+        tools.press(Button::Secondary, &down(20.5, 9.5), &cx);
+        assert_eq!(
+            tools.release(Button::Secondary, &down(12.5, 14.5), &cx),
+            Action::Selected(None)
+        );
+        let sky = Ray {
+            origin: [10.0, 30.0, 10.0],
+            dir: [0.0, 1.0, 0.0],
+        };
+        tools.press(Button::Primary, &down(20.5, 9.5), &cx);
+        assert_eq!(
+            tools.release(Button::Primary, &sky, &cx),
+            Action::Selected(None)
+        );
     }
 
     #[test]

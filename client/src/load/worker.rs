@@ -486,6 +486,7 @@ impl Client {
                                     voxel: [0, 0, 0],
                                     radius: (presence_number % 8) as f32,
                                 }),
+                                selection: None,
                             };
                             self.shared.presence.sent(index, presence_number, now);
                             link.send(&msg).await?;

@@ -53,13 +53,42 @@ pub struct Peer {
     pub role: Role,
 }
 
-/// One peer's latest presence. `None` fields mean "not shared" (a headless client) or "pointing
-/// at nothing" (the pointer is on the sky or outside the window).
+/// A box of voxels a peer has selected (the select tool), both corners inclusive: shown to
+/// everyone in the scene, the region its next copy or move acts on (issue #34).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct Selection {
+    pub min: [u32; 3],
+    pub max: [u32; 3],
+}
+
+impl Selection {
+    /// The box with `a` and `b` as opposite corners.
+    pub fn between(a: [u32; 3], b: [u32; 3]) -> Selection {
+        Selection {
+            min: std::array::from_fn(|i| a[i].min(b[i])),
+            max: std::array::from_fn(|i| a[i].max(b[i])),
+        }
+    }
+
+    /// `min` at or below `max` on every axis, and inside a scene of `size` voxels.
+    pub fn is_within(&self, size: [u32; 3]) -> bool {
+        (0..3).all(|i| self.min[i] <= self.max[i] && self.max[i] < size[i])
+    }
+
+    /// Voxels along each axis.
+    pub fn extent(&self) -> [u32; 3] {
+        std::array::from_fn(|i| self.max[i].saturating_sub(self.min[i]).saturating_add(1))
+    }
+}
+
+/// One peer's latest presence. `None` fields mean "not shared" (a headless client), "pointing
+/// at nothing" (the pointer is on the sky or outside the window) or "nothing selected".
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PeerState {
     pub id: PeerId,
     pub view: Option<View>,
     pub cursor: Option<Cursor>,
+    pub selection: Option<Selection>,
 }
 
 /// Why a request that is not an edit op was refused. The connection stays open: each of these

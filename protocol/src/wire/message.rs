@@ -4,7 +4,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::swatches::Swatches;
 
-use super::collab::{Cursor, MAX_PEERS_PER_FRAME, Peer, PeerId, PeerState, Refusal, UserId, View};
+use super::collab::{
+    Cursor, MAX_PEERS_PER_FRAME, Peer, PeerId, PeerState, Refusal, Selection, UserId, View,
+};
 use super::{
     BrickBlob, EditOp, Limits, MAX_MESSAGE_BYTES, MAX_NAME_BYTES, MAX_OPS_PER_BATCH,
     MAX_REMOVED_PER_FRAME, MAX_SCENE_NAME_BYTES, MAX_TOKEN_BYTES, Rejection, WireError, bounded,
@@ -60,6 +62,8 @@ pub enum ClientMsg {
     Presence {
         view: Option<View>,
         cursor: Option<Cursor>,
+        /// The box this peer has selected (the select tool), shown to everyone.
+        selection: Option<Selection>,
     },
     /// A new display name. Parsed up to 1 KiB so that an over-long name earns a `Refused`
     /// (the limit is [`MAX_DISPLAY_NAME_BYTES`](super::MAX_DISPLAY_NAME_BYTES)).

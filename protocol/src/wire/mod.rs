@@ -38,8 +38,8 @@ pub use codec::{
     decode_client, decode_server, encode_client, encode_server, encode_server_into, hello_version,
 };
 pub use collab::{
-    Cursor, MAX_DISPLAY_NAME_BYTES, MAX_PEERS_PER_FRAME, Peer, PeerId, PeerState, Refusal, UserId,
-    View,
+    Cursor, MAX_DISPLAY_NAME_BYTES, MAX_PEERS_PER_FRAME, Peer, PeerId, PeerState, Refusal,
+    Selection, UserId, View,
 };
 pub use edit::{BrushMode, EditOp, RayAction, Rejection, Shape};
 pub use error::WireError;
@@ -56,7 +56,8 @@ pub use names::{MAX_MARKS_PER_LETTER, check_display_name, clean_display_name};
 /// sets: `Hello.budget`, `Follow`, `Regions` and `Coarse`. 6 added the editing tools: flood
 /// fill and face extrude ([`RayAction::Fill`], [`RayAction::Extrude`]), boxes and lines
 /// between two rays ([`EditOp::Span`]) and `Limits::max_tool_voxels`. 7 added the scene's
-/// shared palette: [`EditOp::Swatch`] and `Palette` ([`crate::swatches`]).
+/// shared palette: [`EditOp::Swatch`] and `Palette` ([`crate::swatches`]), and selections in
+/// presence ([`Selection`]: `Presence.selection`, `PeerState.selection`).
 pub const PROTOCOL_VERSION: u32 = 7;
 
 /// Largest frame either side will ever encode or decode, whatever a server announces. It is also

@@ -164,8 +164,14 @@ impl Remotes {
             let Some(&ours) = origin.ids.get(&state.id) else {
                 continue;
             };
-            if crate::presence::check(&state.view, &state.cursor, self.size, self.max_radius)
-                .is_err()
+            if crate::presence::check(
+                &state.view,
+                &state.cursor,
+                &state.selection,
+                self.size,
+                self.max_radius,
+            )
+            .is_err()
             {
                 refused += 1;
                 continue;
@@ -369,6 +375,7 @@ mod tests {
                 forward: [0.0, 0.0, 1.0],
             }),
             cursor: None,
+            selection: None,
         });
         let bytes = m.encode().unwrap();
         assert_eq!(Relay::decode(&bytes).unwrap(), m);
@@ -408,16 +415,19 @@ mod tests {
             id: 1,
             view: None,
             cursor: Some(cursor(5)),
+            selection: None,
         });
         s.states.push(PeerState {
             id: 1,
             view: None,
             cursor: Some(cursor(64)),
+            selection: None,
         });
         s.states.push(PeerState {
             id: 2,
             view: None,
             cursor: Some(cursor(5)),
+            selection: None,
         });
         assert_eq!(r.apply(s, t0, &hub), 1);
 
@@ -466,6 +476,10 @@ mod tests {
                 voxel: [1, 1, 1],
                 radius: 0.0,
             }),
+            Some(brickcast_protocol::wire::Selection::between(
+                [1, 1, 1],
+                [2, 3, 4],
+            )),
         );
         hub.join(peer(3, "gone"), out);
         hub.leave(3);
@@ -479,6 +493,11 @@ mod tests {
         );
         assert_eq!(c.left, [3]);
         assert_eq!(c.states.len(), 1);
+        assert_eq!(
+            c.states[0].selection.map(|s| s.extent()),
+            Some([2, 3, 4]),
+            "the selection is relayed"
+        );
         assert!(hub.take_local().is_empty());
         let (peers, states) = hub.local_full();
         assert_eq!(peers.len(), 2);

@@ -13,7 +13,7 @@ pub mod gpu;
 
 use brickcast_protocol::roster::Roster;
 use brickcast_protocol::swatches::Swatches;
-use brickcast_protocol::wire::{Cursor, Role};
+use brickcast_protocol::wire::{Cursor, Role, Selection};
 use brickcast_protocol::{Colour, Projection};
 
 use canvas::{Canvas, Rgba};
@@ -35,6 +35,8 @@ pub struct OverlayInput<'a> {
     /// The scene's palette, drawn as the strip of swatches keys 1–0 take (`None`: no strip;
     /// the page lists every swatch in its tool bar instead).
     pub swatches: Option<Swatches>,
+    /// My selection (the select tool).
+    pub selection: Option<Selection>,
 }
 
 /// Swatches in the strip: the ones number keys reach.
@@ -100,6 +102,18 @@ fn brush_box(canvas: &mut Canvas, p: &Projection, cursor: &Cursor, c: Rgba) {
     let r = cursor.radius.max(0.0).floor();
     let lo = cursor.voxel.map(|v| v as f32 - r);
     let hi = cursor.voxel.map(|v| v as f32 + 1.0 + r);
+    box_edges(canvas, p, lo, hi, 2.0, c);
+}
+
+/// The 12 edges of a selection's box (its voxels' outer faces), drawn thicker than a brush.
+fn selection_box(canvas: &mut Canvas, p: &Projection, s: &Selection, c: Rgba) {
+    let lo = s.min.map(|v| v as f32);
+    let hi = s.max.map(|v| v as f32 + 1.0);
+    box_edges(canvas, p, lo, hi, 3.0, c);
+}
+
+/// The 12 edges of the box `lo..hi` (voxel coordinates), `width` pixels wide on a shadow.
+fn box_edges(canvas: &mut Canvas, p: &Projection, lo: [f32; 3], hi: [f32; 3], width: f32, c: Rgba) {
     let corner = |i: usize| {
         [
             if i & 1 == 0 { lo[0] } else { hi[0] },
@@ -112,8 +126,8 @@ fn brush_box(canvas: &mut Canvas, p: &Projection, cursor: &Cursor, c: Rgba) {
             if i & bit == 0
                 && let Some((a, b)) = segment(p, corner(i), corner(i | bit))
             {
-                canvas.line(a, b, 4.0, canvas::SHADOW);
-                canvas.line(a, b, 2.0, c);
+                canvas.line(a, b, width + 2.0, canvas::SHADOW);
+                canvas.line(a, b, width, c);
             }
         }
     }
@@ -133,11 +147,18 @@ pub fn draw(canvas: &mut Canvas, input: &OverlayInput) {
     canvas.clear(p.width, p.height);
     let (w, h) = (p.width as f32, p.height as f32);
 
-    // Other people's cursors and brushes, then their cameras on top.
+    // Other people's selections, cursors and brushes, then their cameras on top.
     for other in input.roster.others.values() {
+        if let Some(selection) = &other.state.selection {
+            selection_box(canvas, p, selection, rgba(other.peer.colour, 255));
+        }
         if let Some(cursor) = &other.state.cursor {
             brush_box(canvas, p, cursor, rgba(other.peer.colour, 255));
         }
+    }
+    // My selection, in white.
+    if let Some(selection) = &input.selection {
+        selection_box(canvas, p, selection, WHITE);
     }
     for other in input.roster.others.values() {
         let Some(view) = &other.state.view else {
@@ -346,6 +367,10 @@ mod tests {
                         forward: [0.0, 0.0, 1.0],
                     }),
                     cursor: None,
+                    selection: Some(Selection {
+                        min: [2, 2, 60],
+                        max: [6, 6, 64],
+                    }),
                 },
             },
         );
@@ -361,12 +386,16 @@ mod tests {
                 notes: vec!["live".into()],
                 following: None,
                 swatches: None,
+                selection: None,
             },
         );
         let (x, y, _) = to_screen(&p, [10.0, 5.0, 50.0]).unwrap();
         assert_eq!(canvas.get(x as u32, y as u32), rgba(colour, 255));
         // The crosshair's arms are white.
         assert_eq!(canvas.get(160 - 6, 100), WHITE);
+        // Bob's selection: its box's edges in his colour (the middle of its near bottom edge).
+        let (x, y, _) = to_screen(&p, [4.5, 2.0, 60.0]).unwrap();
+        assert_eq!(canvas.get(x as u32, y as u32), rgba(colour, 255));
     }
 
     /// The strip shows the swatches keys 1–0 take, the scene's (not the default) ones, and
@@ -393,6 +422,7 @@ mod tests {
             notes: Vec::new(),
             following: None,
             swatches,
+            selection: None,
         };
         draw(&mut canvas, &input(Some(swatches)));
         let centre = |i| {
