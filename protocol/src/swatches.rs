@@ -102,19 +102,11 @@ mod tests {
 
     #[test]
     fn the_first_eight_are_the_old_number_keys() {
-        let old = [
-            (0xd9, 0x3b, 0x3b),
-            (0xf2, 0x9e, 0x38),
-            (0xf2, 0xd8, 0x4b),
-            (0x5f, 0xb0, 0x4a),
-            (0x3b, 0x8e, 0xd9),
-            (0x8a, 0x5c, 0xc7),
-            (0xf0, 0xf0, 0xf0),
-            (0x50, 0x48, 0x40),
-        ];
+        // What keys 1–8 drew with before scenes had palettes (as the page's buttons wrote them).
+        let old = "#d93b3b #f29e38 #f2d84b #5fb04a #3b8ed9 #8a5cc7 #f0f0f0 #504840";
         let s = Swatches::default();
-        for (i, (r, g, b)) in old.into_iter().enumerate() {
-            assert_eq!(s.get(i), Colour::from_rgb8(r, g, b));
+        for (i, hex) in old.split(' ').enumerate() {
+            assert_eq!(Some(s.get(i)), Colour::parse_hex(hex), "{hex}");
         }
         assert_eq!(s.get(SWATCHES + 1), s.get(1), "wraps");
     }
