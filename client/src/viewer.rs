@@ -22,7 +22,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow};
-use brickcast_protocol::wire::{Cursor, Role, Selection, View};
+use brickcast_client_core::paste::Pasting;
+use brickcast_protocol::wire::{Cursor, EditOp, Role, Selection, View};
 use brickcast_protocol::{Colour, Lighting, Projection};
 use winit::application::ApplicationHandler;
 use winit::event::{
@@ -133,6 +134,8 @@ struct App {
     presence_sent: Option<(Option<View>, Option<Cursor>, Option<Selection>)>,
     /// What the select tool selected (shared with everyone, drawn in white).
     selection: Option<Selection>,
+    /// The clipboard as this window knows it, and how the next paste turns.
+    pasting: Pasting,
     presence_at: Instant,
     /// What my pointer is on (traced on the local copy each frame).
     my_cursor: Option<Cursor>,
@@ -210,6 +213,7 @@ pub fn run(urls: &[String], token: Option<String>, args: ViewArgs) -> Result<()>
         projection: None,
         presence_sent: None,
         selection: None,
+        pasting: Pasting::default(),
         presence_at: Instant::now(),
         my_cursor: None,
         follow,
@@ -501,6 +505,18 @@ impl App {
     }
 
     /// A press (`pressed`) or release of `button` at the pointer: what the tool in use does.
+    /// Sends a copy's or a paste's op and says what it did, or says why there was none.
+    fn send_paste_op(&mut self, made: Result<(EditOp, String), &'static str>) {
+        let note = match made {
+            Ok((op, note)) => {
+                self.live.edit(vec![op]);
+                note
+            }
+            Err(why) => why.to_string(),
+        };
+        self.lighting_note = Some((note, Instant::now()));
+    }
+
     fn click(&mut self, button: MouseButton, pressed: bool) {
         let Some(projection) = self.projection else {
             return;
@@ -696,6 +712,28 @@ impl ApplicationHandler for App {
                     return;
                 }
                 match code {
+                    KeyCode::KeyC if ctrl => {
+                        let copied = self.pasting.copy(self.selection);
+                        self.send_paste_op(copied);
+                    }
+                    KeyCode::KeyV if ctrl => {
+                        let pasted = match self.projection {
+                            Some(p) => {
+                                let ray = self.pointer_ray(&p);
+                                let live = self.live.lock();
+                                let map = live.replica.as_ref().map(|r| &r.map);
+                                self.pasting.paste(map, &ray)
+                            }
+                            None => Err("the scene is not here yet"),
+                        };
+                        self.send_paste_op(pasted);
+                    }
+                    KeyCode::KeyR => {
+                        self.lighting_note = Some((self.pasting.turn(), Instant::now()));
+                    }
+                    KeyCode::KeyM => {
+                        self.lighting_note = Some((self.pasting.mirror(), Instant::now()));
+                    }
                     KeyCode::KeyZ if ctrl => self.live.undo(shift),
                     KeyCode::KeyY if ctrl => self.live.undo(true),
                     KeyCode::KeyF => {

@@ -52,6 +52,11 @@ pub enum Resolved {
         index: u8,
         colour: Colour,
     },
+    /// A copy into the user's clipboard (no voxel; the server keeps the clipboard).
+    Copy {
+        min: [u32; 3],
+        max: [u32; 3],
+    },
 }
 
 /// `voxels` as a brush mask per brick, in cell order (the order they are applied in).
@@ -206,6 +211,12 @@ pub fn resolve(map: &BrickMap, op: &EditOp, limits: &Limits) -> Result<Resolved,
             }
         }
         EditOp::Swatch { index, colour } => Resolved::Swatch { index, colour },
+        EditOp::Copy { min, max } => Resolved::Copy { min, max },
+        // Only the server holds clipboards: it applies a message of one paste itself
+        // (`server/src/scene/paste.rs`) and logs the voxels it changed.
+        EditOp::Paste { .. } => {
+            return Err(Rejection::malformed("a paste goes alone in its message"));
+        }
     })
 }
 
@@ -241,6 +252,7 @@ pub fn apply_resolved(map: &mut BrickMap, op: Resolved) -> u64 {
             map.set_swatch(usize::from(index), colour);
             0
         }
+        Resolved::Copy { .. } => 0,
     }
 }
 
@@ -271,7 +283,7 @@ impl Resolved {
                     hi: hi.map(|c| c * e + e - 1),
                 })
             }
-            Resolved::Swatch { .. } => None,
+            Resolved::Swatch { .. } | Resolved::Copy { .. } => None,
         }
     }
 
@@ -326,7 +338,7 @@ impl Resolved {
                     }
                 }
             }
-            Resolved::Swatch { .. } => {}
+            Resolved::Swatch { .. } | Resolved::Copy { .. } => {}
         }
     }
 }

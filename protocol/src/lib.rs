@@ -24,6 +24,7 @@ pub mod beam;
 mod block_edit;
 pub mod blocks;
 pub mod brick;
+pub mod clipboard;
 pub mod colour;
 pub mod demo;
 pub mod held;

@@ -142,6 +142,15 @@ fn edit_op() -> impl Strategy<Value = EditOp> {
                 }
             ),
         (any::<u8>(), colour()).prop_map(|(index, colour)| EditOp::Swatch { index, colour }),
+        (pos(), pos()).prop_map(|(min, max)| EditOp::Copy { min, max }),
+        (pos(), pos(), any::<u8>(), any::<bool>()).prop_map(|(at, size, turns, mirror)| {
+            EditOp::Paste {
+                at,
+                size,
+                turns,
+                mirror,
+            }
+        }),
     ]
 }
 

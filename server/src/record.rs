@@ -5,7 +5,8 @@
 //! Format: `[0, VERSION]` then the bincode of [`LogRecord`]. Version 3 added
 //! [`LogRecord::Revert`]; in version 5 ops may be the editing tools (protocol 6: fills,
 //! extrudes, spans; appended variants, so older records read as before); in version 7 they may
-//! set a swatch of the scene's palette (protocol 7, `EditOp::Swatch`); version 2 records
+//! set a swatch of the scene's palette or copy (protocol 7, `EditOp::Swatch`, `EditOp::Copy`),
+//! and a paste is its own record, [`LogRecord::Paste`]; version 2 records
 //! (no `Revert`) read as before too. (4 and 6 are not versions: they tag the turn rows below
 //! as they were before versions 5 and 7, now tagged 8, so a build from before refuses the new
 //! rows by their version instead of failing inside one.) Stores written by brickcast 0.1
@@ -67,6 +68,13 @@ pub enum LogRecord {
         user: UserId,
         redo: bool,
         /// Bricks the step changed (replay cost accounting without decoding it).
+        bricks: u32,
+        step: Vec<u8>,
+    },
+    /// A paste (`EditOp::Paste`) as the step it made: replayed like a `Revert`, by setting
+    /// every voxel it changed to its after-value, so replay needs no clipboard. Version 7.
+    Paste {
+        user: UserId,
         bricks: u32,
         step: Vec<u8>,
     },
@@ -172,7 +180,9 @@ impl LogRecord {
                     .map_err(|e| e.to_string())
             }),
             LogRecord::Restore { bricks, .. } => write_bricks(map, bricks),
-            LogRecord::Revert { step, .. } => apply_after(map, &Step::decode(step)?),
+            LogRecord::Revert { step, .. } | LogRecord::Paste { step, .. } => {
+                apply_after(map, &Step::decode(step)?)
+            }
         }
     }
 
@@ -181,7 +191,9 @@ impl LogRecord {
         match self {
             LogRecord::Ops { ops, .. } => ops.len(),
             LogRecord::Restore { bricks, .. } => bricks.len(),
-            LogRecord::Revert { bricks, .. } => (u64::from(*bricks) * REVERT_BRICK_OPS) as usize,
+            LogRecord::Revert { bricks, .. } | LogRecord::Paste { bricks, .. } => {
+                (u64::from(*bricks) * REVERT_BRICK_OPS) as usize
+            }
         }
     }
 }
@@ -255,6 +267,26 @@ mod tests {
         swatch.encode(&mut buf).unwrap();
         assert_eq!(&buf[..2], &[0, 7]);
         assert_eq!(LogRecord::decode(&buf).unwrap(), swatch);
+        // A paste (version 7) is its step: it round-trips, and replays to the pasted scene.
+        let mut map = BrickMap::new([32, 32, 32]).unwrap();
+        let before = map.clone();
+        map.begin_journal();
+        map.set([3, 4, 5], Colour(77));
+        map.set([20, 4, 5], Colour(78));
+        let step = Step::from_journal(&mut map);
+        let paste = LogRecord::Paste {
+            user: 4,
+            bricks: step.bricks.len() as u32,
+            step: step.encode(),
+        };
+        paste.encode(&mut buf).unwrap();
+        let back = LogRecord::decode(&buf).unwrap();
+        assert_eq!(back, paste);
+        let mut replayed = before;
+        back.replay(&mut replayed, &LogRecord::replay_limits())
+            .unwrap();
+        assert_eq!(replayed.content_hash(), map.content_hash());
+        assert_eq!(back.op_count(), 2 * REVERT_BRICK_OPS as usize);
         // A version-3 record of an op that version 5 also has reads the same.
         LogRecord::Ops {
             user: 9,

@@ -311,3 +311,131 @@ async fn the_palette_is_shared_kept_with_the_scene_and_no_undo_step() {
     assert_eq!(dave.map.swatches(), &expected);
     server.shutdown().await.unwrap();
 }
+
+/// Copy and paste through the server: Alice copies a box, pastes it turned elsewhere (Bob sees
+/// it), Bob paints a pasted voxel, Alice's undo takes the paste back but leaves Bob's voxel;
+/// her clipboard pastes into another scene of the server; a paste of the wrong size, one with
+/// nothing copied and one not alone in its message are refused; the pasted scene survives a
+/// restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn copy_and_paste_within_a_scene_and_into_another() {
+    use brickcast_protocol::clipboard::Clipboard;
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    for name in ["cp", "other"] {
+        ok(&admin(server.addr, &["create", name, "--size", "64,64,64"], None).await);
+    }
+    let url = server.url("cp");
+    let mut alice = Client::as_user(&url, None, ALICE, "alice").await.unwrap();
+    let mut bob = Client::as_user(&url, None, BOB, "bob").await.unwrap();
+    alice.sync().await;
+    bob.sync().await;
+    let (red, blue, green, yellow) = (colour(1), colour(5), colour(4), colour(3));
+    let set = |pos, colour| EditOp::Set { pos, colour };
+    let built = alice
+        .edit(vec![
+            set([10, 1, 10], red),
+            set([11, 1, 10], red),
+            set([10, 2, 10], blue),
+            set([10, 1, 11], green),
+        ])
+        .await;
+    seq_of(&built);
+    let copied = alice
+        .edit(vec![EditOp::Copy {
+            min: [10, 1, 10],
+            max: [11, 2, 11],
+        }])
+        .await;
+    seq_of(&copied);
+    let before = alice.map.clone();
+    let clip = Clipboard::copy(&before, [10, 1, 10], [11, 2, 11]);
+    let paste = |at, size, turns| EditOp::Paste {
+        at,
+        size,
+        turns,
+        mirror: false,
+    };
+
+    // Turned a quarter: (x, z) → (z, 1 − x) in the 2×2×2 box at (30, 1, 30).
+    let pasted = seq_of(&alice.edit(vec![paste([30, 1, 30], [2, 2, 2], 1)]).await);
+    bob.catch_up(pasted).await;
+    let mut want = before.clone();
+    for b in clip.paste(&before, [30, 1, 30], 1, false) {
+        want.put_brick(&b).unwrap();
+    }
+    assert_eq!(bob.map.content_hash(), want.content_hash());
+    assert_eq!(bob.map.get([30, 2, 31]), Some(blue), "(0,1,0) turned");
+    assert_eq!(bob.map.get([30, 1, 30]), Some(red), "(1,0,0) turned");
+    assert_eq!(bob.map.get([31, 1, 31]), Some(green), "(0,0,1) turned");
+
+    // Bob paints a pasted voxel; Alice's undo takes her paste back, his voxel stays.
+    let painted = seq_of(
+        &bob.edit(vec![EditOp::Paint {
+            pos: [30, 2, 31],
+            colour: yellow,
+        }])
+        .await,
+    );
+    alice.catch_up(painted).await;
+    let undone = seq_of(&alice.undo(false).await);
+    bob.catch_up(undone).await;
+    assert_eq!(bob.map.get([31, 1, 31]), None, "the paste is undone");
+    assert_eq!(bob.map.get([30, 1, 30]), None);
+    assert_eq!(
+        bob.map.get([30, 2, 31]),
+        Some(yellow),
+        "bob's later change wins"
+    );
+    assert_eq!(
+        bob.map.get([10, 2, 10]),
+        Some(blue),
+        "the copied voxels stay"
+    );
+
+    // Refused: the wrong size, nothing copied (Bob), a paste with another op.
+    let refused = |reply: &ServerMsg| match reply {
+        ServerMsg::Ack { rejected, .. } => rejected
+            .iter()
+            .any(|r| matches!(r.reason, Rejection::Malformed(_))),
+        _ => false,
+    };
+    let wrong = alice.edit(vec![paste([30, 1, 30], [2, 2, 3], 1)]).await;
+    assert!(refused(&wrong), "{wrong:?}");
+    let none = bob.edit(vec![paste([30, 1, 30], [2, 2, 2], 0)]).await;
+    assert!(refused(&none), "{none:?}");
+    let mixed = alice
+        .edit(vec![
+            paste([40, 1, 40], [2, 2, 2], 0),
+            set([50, 1, 50], red),
+        ])
+        .await;
+    assert!(refused(&mixed), "{mixed:?}");
+    let ServerMsg::Ack { applied, .. } = mixed else {
+        unreachable!()
+    };
+    assert_eq!(applied, 1, "the other op applies");
+
+    // Into another scene of the server, unturned.
+    let mut there = Client::as_user(&server.url("other"), None, ALICE, "alice")
+        .await
+        .unwrap();
+    there.sync().await;
+    let into = seq_of(&there.edit(vec![paste([5, 1, 5], [2, 2, 2], 0)]).await);
+    there.catch_up(into).await;
+    assert_eq!(there.map.get([5, 2, 5]), Some(blue));
+    assert_eq!(there.map.get([6, 1, 5]), Some(red));
+    assert_eq!(there.map.get([5, 1, 6]), Some(green));
+
+    // Pasted again, then a restart: the scene comes back as it was.
+    let again = seq_of(&alice.edit(vec![paste([20, 1, 20], [2, 2, 2], 2)]).await);
+    bob.catch_up(again).await;
+    let hash = bob.map.content_hash();
+    drop((alice, bob, there));
+    server.shutdown().await.unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let mut fresh = Client::connect(&server.url("cp"), None).await.unwrap();
+    fresh.sync().await;
+    assert_eq!(fresh.map.content_hash(), hash);
+    server.shutdown().await.unwrap();
+}

@@ -391,6 +391,26 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
         voxels_before_select,
         "selecting edits nothing"
     );
+    // Ctrl+C copies it on the server, Ctrl+V pastes it onto the face under the pointer (more
+    // voxels), Ctrl+Z takes the paste back.
+    browser.call(serde_json::json!({"op": "key", "key": "Control+c"}))?;
+    browser.call(serde_json::json!({"op": "key", "key": "Control+v"}))?;
+    let mut now = 0;
+    let pasted = wait_until(Duration::from_secs(20), || {
+        now = fetch(&server.url("demo"))
+            .map(|r| r.map.solid_voxels())
+            .unwrap_or(0);
+        now > voxels_before_select
+    });
+    assert!(
+        pasted,
+        "Ctrl+V pasted nothing ({voxels_before_select} → {now})"
+    );
+    browser.call(serde_json::json!({"op": "key", "key": "Control+z"}))?;
+    let unpasted = wait_until(Duration::from_secs(20), || {
+        fetch(&server.url("demo")).is_ok_and(|r| r.map.solid_voxels() == voxels_before_select)
+    });
+    assert!(unpasted, "Ctrl+Z took the paste back");
 
     // A native user present with a view shows in the page's roster, and F follows its camera.
     let runtime = tokio::runtime::Builder::new_current_thread()

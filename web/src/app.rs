@@ -20,6 +20,7 @@ use brickcast_client_core::gpu::{
 };
 use brickcast_client_core::overlay::canvas::Canvas;
 use brickcast_client_core::overlay::{OverlayInput, draw as draw_overlay};
+use brickcast_client_core::paste::Pasting;
 use brickcast_client_core::present::{Presenter, acquire, sync_scene};
 use brickcast_client_core::session::{ClientSeq, Session, Status};
 use brickcast_client_core::shading::{NOTE_SECONDS, SHADING_KEYS, shading_key};
@@ -28,7 +29,9 @@ use brickcast_client_core::tools::{
     Action, Button, Context as ToolContext, Tool, Tools, selection_note, step_radius,
 };
 use brickcast_protocol::swatches::Swatches;
-use brickcast_protocol::wire::{ClientMsg, Cursor, ErrorCode, Role, Selection, UserId, View};
+use brickcast_protocol::wire::{
+    ClientMsg, Cursor, EditOp, ErrorCode, Role, Selection, UserId, View,
+};
 use brickcast_protocol::{Camera, Colour, Lighting, Projection};
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
@@ -155,6 +158,8 @@ pub struct App {
     presence_sent: Option<(Option<View>, Option<Cursor>, Option<Selection>)>,
     /// What the select tool selected (shared with everyone, drawn in white).
     selection: Option<Selection>,
+    /// The clipboard as this page knows it, and how the next paste turns.
+    pasting: Pasting,
     presence_at: f64,
     my_cursor: Option<Cursor>,
     pub scale: Scale,
@@ -255,6 +260,7 @@ impl App {
             projection: None,
             presence_sent: None,
             selection: None,
+            pasting: Pasting::default(),
             presence_at: 0.0,
             my_cursor: None,
             // Coarse at first, so the first picture comes fast on any adapter; it refines.
@@ -355,6 +361,33 @@ impl App {
             "KeyY" if ctrl => {
                 let msg = self.seq.undo(true);
                 self.send(&msg);
+                true
+            }
+            "KeyC" if ctrl => {
+                let copied = self.pasting.copy(self.selection);
+                self.send_paste_op(copied);
+                true
+            }
+            "KeyV" if ctrl => {
+                let pasted = match self.projection {
+                    Some(p) => {
+                        let ray = self.pointer_ray(&p);
+                        let map = self.session.replica.as_ref().map(|r| &r.map);
+                        self.pasting.paste(map, &ray)
+                    }
+                    None => Err("the scene is not here yet"),
+                };
+                self.send_paste_op(pasted);
+                true
+            }
+            "KeyR" if !ctrl => {
+                let note = self.pasting.turn();
+                self.note(note);
+                true
+            }
+            "KeyM" if !ctrl => {
+                let note = self.pasting.mirror();
+                self.note(note);
                 true
             }
             "KeyF" => {
@@ -510,6 +543,18 @@ impl App {
             }
             Action::Nothing(why) if !why.is_empty() => self.note(why.to_string()),
             Action::Started | Action::Nothing(_) => {}
+        }
+    }
+
+    /// Sends a copy's or a paste's op and says what it did, or says why there was none.
+    fn send_paste_op(&mut self, made: Result<(EditOp, String), &'static str>) {
+        match made {
+            Ok((op, note)) => {
+                let msg = self.seq.edit(vec![op]);
+                self.send(&msg);
+                self.note(note);
+            }
+            Err(why) => self.note(why.to_string()),
         }
     }
 

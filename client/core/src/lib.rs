@@ -16,6 +16,7 @@ pub mod camera;
 pub mod follow;
 pub mod gpu;
 pub mod overlay;
+pub mod paste;
 pub mod present;
 pub mod session;
 pub mod shading;

@@ -244,8 +244,12 @@ mod tests {
                                 && origin[0] <= area.max[0] as f32 + 1.0
                         );
                     }
-                    EditOp::Box { .. } | EditOp::Span { .. } | EditOp::Swatch { .. } => {
-                        panic!("no box, span or swatch ops are generated")
+                    EditOp::Box { .. }
+                    | EditOp::Span { .. }
+                    | EditOp::Swatch { .. }
+                    | EditOp::Copy { .. }
+                    | EditOp::Paste { .. } => {
+                        panic!("no box, span, swatch, copy or paste ops are generated")
                     }
                 }
                 // Every generated op is valid; rays may miss only if the area were empty.

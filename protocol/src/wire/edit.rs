@@ -97,6 +97,24 @@ pub enum EditOp {
     /// Sets swatch `index` of the scene's shared palette ([`crate::swatches`]) to `colour`.
     /// Changes no voxel (and so is no undo step); every client hears the new palette.
     Swatch { index: u8, colour: Colour },
+    /// Copies the box `min..=max` (inclusive) of the scene, as this op finds it in the scene's
+    /// order, into the editing user's clipboard on the server ([`crate::clipboard`]), replacing
+    /// what it held; any scene on that server may paste it. Changes no voxel; no undo step. At
+    /// most [`Limits::max_box_extent`] along each axis.
+    Copy { min: [u32; 3], max: [u32; 3] },
+    /// Pastes the user's clipboard with its lowest corner at `at`, mirrored along x if
+    /// `mirror`, then turned `turns` quarter turns about the vertical axis
+    /// ([`crate::clipboard`]): its solid voxels replace what is there, its empty ones leave it,
+    /// voxels past the scene are dropped. `size` is the pasted box's size as the client
+    /// believes it (the copied box, turned): the server charges for it and refuses a paste
+    /// whose clipboard is another size. Alone in its message; one undo step; logged as the
+    /// voxels it changed.
+    Paste {
+        at: [u32; 3],
+        size: [u32; 3],
+        turns: u8,
+        mirror: bool,
+    },
 }
 
 impl EditOp {
@@ -179,6 +197,37 @@ impl EditOp {
                     Ok(())
                 }
             }
+            EditOp::Copy { min, max } => {
+                if !per_axis(min, max, |lo, hi| lo <= hi) {
+                    return Err(Rejection::malformed("a copy's min is above its max"));
+                }
+                if !per_axis(max, scene_size, |hi, s| hi < s) {
+                    return Err(Rejection::OutOfBounds);
+                }
+                if per_axis(min, max, |lo, hi| hi - lo < limits.max_box_extent) {
+                    Ok(())
+                } else {
+                    Err(Rejection::TooLarge)
+                }
+            }
+            EditOp::Paste {
+                at, size, turns, ..
+            } => {
+                if turns > 3 {
+                    return Err(Rejection::malformed("a paste turns 0 to 3 quarter turns"));
+                }
+                if !per_axis(at, scene_size, |a, s| a < s) {
+                    return Err(Rejection::OutOfBounds);
+                }
+                if size.contains(&0) {
+                    return Err(Rejection::malformed("a paste's size is 0"));
+                }
+                if size.iter().all(|&e| e <= limits.max_box_extent) {
+                    Ok(())
+                } else {
+                    Err(Rejection::TooLarge)
+                }
+            }
             EditOp::Swatch { index, .. } => {
                 if usize::from(index) < crate::swatches::SWATCHES {
                     Ok(())
@@ -195,7 +244,16 @@ impl EditOp {
     /// Whether applying the op reads the map (a ray's target, a fill's region): such ops are
     /// resolved in the turn that applies them, never planned ahead.
     pub fn reads_map(&self) -> bool {
-        matches!(self, EditOp::Ray { .. } | EditOp::Span { .. })
+        matches!(
+            self,
+            EditOp::Ray { .. } | EditOp::Span { .. } | EditOp::Copy { .. } | EditOp::Paste { .. }
+        )
+    }
+
+    /// Whether the op changes no voxel, so a message of only such ops is no undo step: a
+    /// swatch, a copy.
+    pub fn keeps_voxels(&self) -> bool {
+        matches!(self, EditOp::Swatch { .. } | EditOp::Copy { .. })
     }
 }
 
@@ -256,11 +314,15 @@ impl EditOp {
             | EditOp::Paint { .. }
             | EditOp::Swatch { .. } => 1,
             EditOp::Sphere { centre, radius, .. } => sphere(centre, radius),
-            EditOp::Box { min, max, .. } => (0..3)
+            EditOp::Box { min, max, .. } | EditOp::Copy { min, max } => (0..3)
                 .map(|i| {
                     let hi = max[i].min(scene_size[i].saturating_sub(1));
                     u64::from(hi.saturating_sub(min[i])) + 1
                 })
+                .product(),
+            // What it may write, clipped to the scene.
+            EditOp::Paste { size, .. } => (0..3)
+                .map(|i| u64::from(size[i].min(scene_size[i]).max(1)))
                 .product(),
             EditOp::Ray { action, .. } => {
                 // A ray crosses at most the sum of the scene's sides in voxels.

@@ -56,8 +56,9 @@ pub use names::{MAX_MARKS_PER_LETTER, check_display_name, clean_display_name};
 /// sets: `Hello.budget`, `Follow`, `Regions` and `Coarse`. 6 added the editing tools: flood
 /// fill and face extrude ([`RayAction::Fill`], [`RayAction::Extrude`]), boxes and lines
 /// between two rays ([`EditOp::Span`]) and `Limits::max_tool_voxels`. 7 added the scene's
-/// shared palette: [`EditOp::Swatch`] and `Palette` ([`crate::swatches`]), and selections in
-/// presence ([`Selection`]: `Presence.selection`, `PeerState.selection`).
+/// shared palette: [`EditOp::Swatch`] and `Palette` ([`crate::swatches`]), selections in
+/// presence ([`Selection`]: `Presence.selection`, `PeerState.selection`) and copy and paste
+/// ([`EditOp::Copy`], [`EditOp::Paste`]: [`crate::clipboard`]).
 pub const PROTOCOL_VERSION: u32 = 7;
 
 /// Largest frame either side will ever encode or decode, whatever a server announces. It is also

@@ -41,6 +41,7 @@ pub mod levels;
 pub mod log;
 mod outbox;
 mod owner;
+pub mod paste;
 mod replica;
 pub mod request;
 pub mod step;
@@ -293,6 +294,9 @@ pub struct OwnerConfig {
     /// (`levels.rs`, [`levels::EAGER_ABOVE_BYTES`] by default), so the first viewer that needs
     /// a working set does not wait for them.
     pub eager_levels_bytes: u64,
+    /// The node's users' clipboards (`paste.rs`): one for every scene of the node (the
+    /// config is cloned per scene, the clipboards shared).
+    pub clipboards: std::sync::Arc<paste::Clipboards>,
 }
 
 impl Default for OwnerConfig {
@@ -309,6 +313,7 @@ impl Default for OwnerConfig {
             // 1 M voxels compared: as heavy as a heavy edit (`fair::HEAVY_WORK`).
             slice_bricks: 2048,
             eager_levels_bytes: levels::EAGER_ABOVE_BYTES,
+            clipboards: Default::default(),
         }
     }
 }

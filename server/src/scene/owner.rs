@@ -19,7 +19,7 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use brickcast_protocol::BrickMap;
-use brickcast_protocol::apply::{apply_resolved, resolve};
+use brickcast_protocol::apply::{Resolved, apply_resolved, resolve};
 use brickcast_protocol::swatches::Swatches;
 use brickcast_protocol::wire::{
     BlobEncoder, BrickBlob, EditOp, OpRejection, Refusal, Rejection, Role, ServerMsg, encode_server,
@@ -692,6 +692,9 @@ impl Owner {
             Metrics::add(&self.metrics.ops_rejected, ops.len() as u64);
             return ack(to, client_seq, None, 0, rejected);
         };
+        if let [op @ EditOp::Paste { .. }] = ops[..] {
+            return self.apply_paste(to, client_seq, user, op, log);
+        }
         let seq = self.seq + 1;
         self.map.begin_journal();
         let size = self.map.size();
@@ -703,6 +706,9 @@ impl Owner {
                 Ok(resolved) => {
                     if applied.is_empty() {
                         self.map.set_sequence(seq);
+                    }
+                    if let Resolved::Copy { min, max } = resolved {
+                        self.copy_to_clipboard(user, min, max);
                     }
                     voxels += apply_resolved(&mut self.map, resolved);
                     work = work.saturating_add(op.work(size));
@@ -725,12 +731,9 @@ impl Owner {
             // Only batches that applied something take a sequence number and a log entry; ops
             // that changed no voxel are still logged so replay matches op for op. The message
             // is one step of its user's history, even if it changed nothing: one gesture, one
-            // undo. A message that only set swatches is none (it changed no voxel and
-            // leaves what could be redone).
-            if applied
-                .iter()
-                .any(|op| !matches!(op, EditOp::Swatch { .. }))
-            {
+            // undo. A message that only set swatches or copied is none (it changed no voxel
+            // and leaves what could be redone).
+            if applied.iter().any(|op| !op.keeps_voxels()) {
                 self.history.record_edit(user, &step);
             }
             self.seq = seq;

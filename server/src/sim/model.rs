@@ -154,7 +154,7 @@ impl Model {
                     let touched = self.map.take_touched();
                     self.map.record_touched(false);
                     // A message that only set swatches is no undo step (`Owner::apply_batch`).
-                    let step = batch.iter().any(|op| !matches!(op, EditOp::Swatch { .. }));
+                    let step = batch.iter().any(|op| !op.keeps_voxels());
                     if let (Some(before), true) = (&before, step) {
                         let step = diff(before, &self.map, &touched);
                         let user = self.users.get(session).copied().unwrap_or(0);

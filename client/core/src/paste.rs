@@ -1,0 +1,145 @@
+//! Copy and paste in both viewers (issue #34; the server keeps the clipboard,
+//! `brickcast_protocol::clipboard`): Ctrl+C copies the selection (the select tool's box),
+//! Ctrl+V pastes it with its lowest corner at the empty cell in front of the face under the
+//! pointer, R turns the next pastes a quarter turn, M mirrors them. The clipboard is the user's
+//! on the server, so it pastes into any scene of the server, from any window of the user.
+
+use brickcast_protocol::wire::{EditOp, Selection};
+use brickcast_protocol::{BrickMap, Ray, trace};
+
+/// What this viewer knows of the user's clipboard and how the next paste is turned.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Pasting {
+    /// The size of the box last copied from this viewer (`None`: nothing yet).
+    copied: Option<[u32; 3]>,
+    /// Quarter turns about the vertical axis, 0–3.
+    turns: u8,
+    mirror: bool,
+}
+
+impl Pasting {
+    /// Ctrl+C: the op that copies `selection` into the clipboard.
+    pub fn copy(&mut self, selection: Option<Selection>) -> Result<(EditOp, String), &'static str> {
+        let s = selection.ok_or("select a box first (V, then drag)")?;
+        self.copied = Some(s.extent());
+        let [x, y, z] = s.extent();
+        Ok((
+            EditOp::Copy {
+                min: s.min,
+                max: s.max,
+            },
+            format!("copied {x}×{y}×{z} voxels (Ctrl+V pastes; R turns, M mirrors)"),
+        ))
+    }
+
+    /// The size the next paste fills (the copied box, turned).
+    pub fn size(&self) -> Option<[u32; 3]> {
+        let [x, y, z] = self.copied?;
+        Some(if self.turns % 2 == 1 {
+            [z, y, x]
+        } else {
+            [x, y, z]
+        })
+    }
+
+    /// Ctrl+V along `ray`: the op that pastes at the empty cell in front of the face hit on the
+    /// local copy (what the user sees).
+    pub fn paste(
+        &self,
+        map: Option<&BrickMap>,
+        ray: &Ray,
+    ) -> Result<(EditOp, String), &'static str> {
+        let size = self
+            .size()
+            .ok_or("nothing copied yet (Ctrl+C copies the selection)")?;
+        let map = map.ok_or("the scene is not here yet")?;
+        let hit = trace(map, ray).ok_or("point at a face to paste onto")?;
+        let at = hit.previous.unwrap_or(hit.voxel);
+        Ok((
+            EditOp::Paste {
+                at,
+                size,
+                turns: self.turns,
+                mirror: self.mirror,
+            },
+            format!("pasted at {at:?}"),
+        ))
+    }
+
+    /// R: the next pastes turn a quarter more.
+    pub fn turn(&mut self) -> String {
+        self.turns = (self.turns + 1) % 4;
+        format!("pastes turn {}°", u32::from(self.turns) * 90)
+    }
+
+    /// M: the next pastes are mirrored (or no longer).
+    pub fn mirror(&mut self) -> String {
+        self.mirror = !self.mirror;
+        if self.mirror {
+            "pastes are mirrored".into()
+        } else {
+            "pastes are not mirrored".into()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use brickcast_protocol::{BrushMode, Colour};
+
+    #[test]
+    fn copy_then_paste_on_the_face_under_the_pointer_turned_and_mirrored() {
+        let mut map = BrickMap::new([64, 32, 64]).unwrap();
+        map.fill_box([0, 0, 0], [63, 3, 63], BrushMode::Fill, Colour::WHITE);
+        let down = Ray {
+            origin: [20.5, 30.0, 9.5],
+            dir: [0.0, -1.0, 0.0],
+        };
+        let mut p = Pasting::default();
+        assert!(p.paste(Some(&map), &down).is_err(), "nothing copied");
+        assert!(p.copy(None).is_err(), "nothing selected");
+        let (copy, _) = p
+            .copy(Some(Selection::between([1, 0, 1], [3, 1, 6])))
+            .unwrap();
+        assert_eq!(
+            copy,
+            EditOp::Copy {
+                min: [1, 0, 1],
+                max: [3, 1, 6]
+            }
+        );
+        let (paste, _) = p.paste(Some(&map), &down).unwrap();
+        assert_eq!(
+            paste,
+            EditOp::Paste {
+                at: [20, 4, 9],
+                size: [3, 2, 6],
+                turns: 0,
+                mirror: false
+            },
+            "on top of the ground under the pointer"
+        );
+        assert_eq!(p.turn(), "pastes turn 90°");
+        p.mirror();
+        let (paste, _) = p.paste(Some(&map), &down).unwrap();
+        assert_eq!(
+            paste,
+            EditOp::Paste {
+                at: [20, 4, 9],
+                size: [6, 2, 3],
+                turns: 1,
+                mirror: true
+            }
+        );
+        for _ in 0..3 {
+            p.turn();
+        }
+        assert_eq!(p.size(), Some([3, 2, 6]), "four turns are none");
+        let sky = Ray {
+            origin: [20.5, 30.0, 9.5],
+            dir: [0.0, 1.0, 0.0],
+        };
+        assert!(p.paste(Some(&map), &sky).is_err());
+    }
+}
