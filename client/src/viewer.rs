@@ -307,8 +307,12 @@ impl App {
         Ok(())
     }
 
-    /// Movement keys held now, as (forward, right, up).
+    /// Movement keys held now, as (forward, right, up); none while Ctrl is held (Ctrl+C
+    /// copies, it does not fly down).
     fn movement(&self) -> [f32; 3] {
+        if self.modifiers.control_key() {
+            return [0.0; 3];
+        }
         movement(|name| self.keys.iter().any(|k| format!("{k:?}") == name))
     }
 
@@ -504,7 +508,6 @@ impl App {
         Ok(())
     }
 
-    /// A press (`pressed`) or release of `button` at the pointer: what the tool in use does.
     /// Sends a copy's or a paste's op and says what it did, or says why there was none.
     fn send_paste_op(&mut self, made: Result<(EditOp, String), &'static str>) {
         let note = match made {
@@ -517,6 +520,7 @@ impl App {
         self.lighting_note = Some((note, Instant::now()));
     }
 
+    /// A press (`pressed`) or release of `button` at the pointer: what the tool in use does.
     fn click(&mut self, button: MouseButton, pressed: bool) {
         let Some(projection) = self.projection else {
             return;

@@ -149,6 +149,46 @@ fn tools(c: &mut Criterion) {
     group.finish();
 }
 
+/// Copy and paste (issue #34) of a 1 M-voxel selection (a 100³ box of solid voxels in eight
+/// colours): taking it into a clipboard, and pasting it turned a quarter into the same scene as
+/// the owner does it in one turn (the bricks it changes, computed and written) — the owner's
+/// stall for such a paste.
+fn clipboard(c: &mut Criterion) {
+    use brickcast_protocol::clipboard::Clipboard;
+
+    let mut group = c.benchmark_group("clipboard");
+    group.sample_size(10);
+    group.measurement_time(Duration::from_secs(8));
+    let mut map = BrickMap::new([512, 128, 512]).expect("a scene");
+    for (i, x) in (0..100).step_by(13).enumerate() {
+        let colour = Colour(0x1111 * (i as u16 + 1));
+        map.fill_box(
+            [x, 0, 0],
+            [(x + 12).min(99), 99, 99],
+            BrushMode::Fill,
+            colour,
+        );
+    }
+    let voxels = 100 * 100 * 100;
+    group.throughput(Throughput::Elements(voxels));
+    group.bench_function("copy_1m", |bench| {
+        bench.iter(|| black_box(Clipboard::copy(&map, [0, 0, 0], [99, 99, 99]).voxel_count()))
+    });
+    let clip = Clipboard::copy(&map, [0, 0, 0], [99, 99, 99]);
+    group.bench_function("paste_bricks_1m", |bench| {
+        bench.iter(|| black_box(clip.paste(&map, [200, 0, 200], 1, false).len()))
+    });
+    let mut target = map.clone();
+    group.bench_function("paste_and_write_1m", |bench| {
+        bench.iter(|| {
+            for b in clip.paste(&target, [300, 0, 300], 1, false) {
+                target.put_brick(&b).expect("a pasted brick");
+            }
+        })
+    });
+    group.finish();
+}
+
 fn tracer(c: &mut Criterion) {
     let mut group = c.benchmark_group("trace");
     group.sample_size(20);
@@ -244,5 +284,5 @@ fn wire(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, edits, tools, tracer, wire);
+criterion_group!(benches, edits, tools, clipboard, tracer, wire);
 criterion_main!(benches);

@@ -8,13 +8,16 @@
 //! from above). The pasted box's lowest corner is `at`; its solid voxels replace what is there,
 //! its empty ones leave the scene as it is; voxels past the scene are dropped.
 
-use std::collections::BTreeMap;
+use std::collections::HashMap;
 
 use crate::BrickMap;
 use crate::brick::{
     BRICK_EDGE, BrickData, EMPTY_MASK, bit_voxel, for_each_bit, mask_set, voxel_bit,
 };
 use crate::colour::Colour;
+
+/// The voxels a paste puts in one brick: (bit, colour).
+type Pasted = Vec<(u32, Colour)>;
 
 /// A copied box of voxels: its size and its solid voxels (position in the box, colour).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -56,6 +59,8 @@ impl Clipboard {
                 }
             }
         }
+        // What it holds is what it weighs (a server bounds its clipboards by `bytes`).
+        voxels.shrink_to_fit();
         Clipboard { size, voxels }
     }
 
@@ -95,11 +100,16 @@ impl Clipboard {
     }
 
     /// The bricks of `map` the clipboard pasted at `at` (turned, mirrored) changes, as they
-    /// are after it, in cell order: what the server writes.
+    /// are after it, in cell order: what the server writes. Bricks the paste leaves as they
+    /// were are not listed.
     pub fn paste(&self, map: &BrickMap, at: [u32; 3], turns: u8, mirror: bool) -> Vec<BrickData> {
         let scene = map.size();
         let [sx, sy, _] = self.size;
-        let mut by_cell: BTreeMap<[u32; 3], Vec<(u32, Colour)>> = BTreeMap::new();
+        // Voxels copied brick by brick land a few target bricks at a time: the last one is
+        // looked up first, the table only when the voxel lands elsewhere.
+        let mut cells: Vec<([u32; 3], Pasted)> = Vec::new();
+        let mut index_of: HashMap<[u32; 3], usize> = HashMap::new();
+        let mut last: Option<([u32; 3], usize)> = None;
         for &(index, colour) in &self.voxels {
             let p = [index % sx, (index / sx) % sy, index / (sx * sy)];
             let q = self.place(p, turns, mirror);
@@ -109,15 +119,23 @@ impl Clipboard {
             }
             let w = w.map(|c| c as u32);
             let bit = voxel_bit(w[0] % BRICK_EDGE, w[1] % BRICK_EDGE, w[2] % BRICK_EDGE);
-            by_cell
-                .entry(w.map(|c| c / BRICK_EDGE))
-                .or_default()
-                .push((bit, colour));
+            let cell = w.map(|c| c / BRICK_EDGE);
+            let slot = match last {
+                Some((c, i)) if c == cell => i,
+                _ => *index_of.entry(cell).or_insert_with(|| {
+                    cells.push((cell, Vec::new()));
+                    cells.len() - 1
+                }),
+            };
+            last = Some((cell, slot));
+            cells[slot].1.push((bit, colour));
         }
-        let mut out = Vec::with_capacity(by_cell.len());
-        for (cell, pasted) in by_cell {
+        cells.sort_unstable_by_key(|(cell, _)| [cell[2], cell[1], cell[0]]);
+        let mut out = Vec::with_capacity(cells.len());
+        for (cell, pasted) in cells {
+            let old = map.brick(cell);
             let mut voxels: [Option<Colour>; 512] = [None; 512];
-            if let Some(old) = map.brick(cell) {
+            if let Some(old) = &old {
                 let mut rank = 0;
                 for_each_bit(&old.mask, |bit| {
                     voxels[bit as usize] = Some(old.colours[rank]);
@@ -135,11 +153,16 @@ impl Clipboard {
                     colours.push(*c);
                 }
             }
-            out.push(BrickData {
-                cell,
-                mask,
-                colours,
-            });
+            let same = old
+                .as_ref()
+                .is_some_and(|o| o.mask == mask && o.colours == colours);
+            if !same {
+                out.push(BrickData {
+                    cell,
+                    mask,
+                    colours,
+                });
+            }
         }
         out
     }
@@ -159,18 +182,83 @@ mod tests {
         map
     }
 
+    /// The ops' bounds: a box whose voxels would not number in a `u32` is too large whatever
+    /// the server's box limit; a paste is charged for its whole box, a copy for the bricks it
+    /// reads.
+    #[test]
+    fn copy_and_paste_ops_are_bounded_and_charged_for_what_they_do() {
+        use crate::wire::{EditOp, Limits, Rejection};
+        let open = Limits {
+            max_box_extent: u32::MAX,
+            ..Limits::default()
+        };
+        let world = [16384, 512, 16384];
+        let copy = |min, max| EditOp::Copy { min, max };
+        let paste = |at, size, turns| EditOp::Paste {
+            at,
+            size,
+            turns,
+            mirror: false,
+        };
+        let whole = copy([0, 0, 0], [16383, 511, 16383]);
+        assert_eq!(whole.validate(world, &open), Err(Rejection::TooLarge));
+        assert_eq!(
+            paste([0, 0, 0], [4096, 4096, 4096], 0).validate(world, &open),
+            Err(Rejection::TooLarge)
+        );
+        let limits = Limits::default();
+        assert!(
+            copy([0, 0, 0], [255, 255, 255])
+                .validate(world, &limits)
+                .is_ok()
+        );
+        assert_eq!(
+            copy([0, 0, 0], [256, 0, 0]).validate(world, &limits),
+            Err(Rejection::TooLarge)
+        );
+        assert_eq!(
+            copy([5, 0, 0], [4, 0, 0]).validate(world, &limits),
+            Err(Rejection::malformed("a copy's min is above its max"))
+        );
+        assert!(matches!(
+            paste([0, 0, 0], [2, 2, 2], 4).validate(world, &limits),
+            Err(Rejection::Malformed(_))
+        ));
+        assert!(matches!(
+            paste([0, 0, 0], [0, 2, 2], 0).validate(world, &limits),
+            Err(Rejection::Malformed(_))
+        ));
+        assert_eq!(
+            paste([16384, 0, 0], [2, 2, 2], 0).validate(world, &limits),
+            Err(Rejection::OutOfBounds)
+        );
+        // A 256³ paste into a 64³ scene is charged for all of it (every voxel is placed).
+        assert_eq!(
+            paste([0, 0, 0], [256, 256, 256], 0).work([64, 64, 64]),
+            256 * 256 * 256
+        );
+        assert_eq!(
+            copy([3, 3, 3], [3, 3, 3]).work(world),
+            512,
+            "one brick read"
+        );
+        assert_eq!(copy([7, 0, 0], [8, 0, 0]).work(world), 1024, "two bricks");
+    }
+
     #[test]
     fn a_copy_pastes_back_where_it_came_from_unchanged() {
         let map = scene();
         let clip = Clipboard::copy(&map, [4, 1, 8], [8, 4, 13]);
         assert_eq!(clip.size(), [5, 4, 6]);
         assert_eq!(clip.voxel_count(), 14);
-        let bricks = clip.paste(&map, [4, 1, 8], 0, false);
-        let mut again = map.clone();
-        for b in &bricks {
-            again.put_brick(b).unwrap();
-        }
-        assert_eq!(again.content_hash(), map.content_hash());
+        // Back where it came from it changes nothing: no brick to write.
+        assert!(clip.paste(&map, [4, 1, 8], 0, false).is_empty());
+        let bricks = clip.paste(&map, [4, 1, 9], 0, false);
+        assert!(!bricks.is_empty());
+        let cells: Vec<[u32; 3]> = bricks.iter().map(|b| b.cell).collect();
+        let mut sorted = cells.clone();
+        sorted.sort_by_key(|c| [c[2], c[1], c[0]]);
+        assert_eq!(cells, sorted, "in cell order");
     }
 
     #[test]

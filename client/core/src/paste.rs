@@ -1,8 +1,9 @@
 //! Copy and paste in both viewers (issue #34; the server keeps the clipboard,
 //! `brickcast_protocol::clipboard`): Ctrl+C copies the selection (the select tool's box),
 //! Ctrl+V pastes it with its lowest corner at the empty cell in front of the face under the
-//! pointer, R turns the next pastes a quarter turn, M mirrors them. The clipboard is the user's
-//! on the server, so it pastes into any scene of the server, from any window of the user.
+//! pointer (on a face that looks down or towards −x or −z, the box grows that way), R turns
+//! the next pastes a quarter turn, M mirrors them. The clipboard is the user's on the server,
+//! so it pastes into any scene of the server; a window knows the size of what it copied.
 
 use brickcast_protocol::wire::{EditOp, Selection};
 use brickcast_protocol::{BrickMap, Ray, trace};
@@ -54,7 +55,16 @@ impl Pasting {
             .ok_or("nothing copied yet (Ctrl+C copies the selection)")?;
         let map = map.ok_or("the scene is not here yet")?;
         let hit = trace(map, ray).ok_or("point at a face to paste onto")?;
-        let at = hit.previous.unwrap_or(hit.voxel);
+        let front = hit.previous.unwrap_or(hit.voxel);
+        // The box lies in front of the face: against a face looking towards −axis it ends at
+        // the cell in front rather than starting there.
+        let at: [u32; 3] = std::array::from_fn(|i| {
+            if front[i] < hit.voxel[i] {
+                front[i].saturating_sub(size[i] - 1)
+            } else {
+                front[i]
+            }
+        });
         Ok((
             EditOp::Paste {
                 at,
@@ -141,5 +151,21 @@ mod tests {
             dir: [0.0, 1.0, 0.0],
         };
         assert!(p.paste(Some(&map), &sky).is_err());
+        // Under a ceiling (a face looking down) the box hangs from it.
+        let mut roofed = map.clone();
+        roofed.fill_box([0, 20, 0], [63, 20, 63], BrushMode::Fill, Colour::WHITE);
+        let up = Ray {
+            origin: [20.5, 10.5, 9.5],
+            dir: [0.0, 1.0, 0.0],
+        };
+        let (paste, _) = p.paste(Some(&roofed), &up).unwrap();
+        let EditOp::Paste { at, size, .. } = paste else {
+            unreachable!()
+        };
+        assert_eq!(
+            at[1] + size[1] - 1,
+            19,
+            "it ends under the ceiling: {at:?} {size:?}"
+        );
     }
 }

@@ -204,7 +204,10 @@ impl EditOp {
                 if !per_axis(max, scene_size, |hi, s| hi < s) {
                     return Err(Rejection::OutOfBounds);
                 }
-                if per_axis(min, max, |lo, hi| hi - lo < limits.max_box_extent) {
+                let extent: [u32; 3] = std::array::from_fn(|i| max[i] - min[i] + 1);
+                if per_axis(min, max, |lo, hi| hi - lo < limits.max_box_extent)
+                    && fits_an_index(extent)
+                {
                     Ok(())
                 } else {
                     Err(Rejection::TooLarge)
@@ -222,7 +225,7 @@ impl EditOp {
                 if size.contains(&0) {
                     return Err(Rejection::malformed("a paste's size is 0"));
                 }
-                if size.iter().all(|&e| e <= limits.max_box_extent) {
+                if size.iter().all(|&e| e <= limits.max_box_extent) && fits_an_index(size) {
                     Ok(())
                 } else {
                     Err(Rejection::TooLarge)
@@ -255,6 +258,12 @@ impl EditOp {
     pub fn keeps_voxels(&self) -> bool {
         matches!(self, EditOp::Swatch { .. } | EditOp::Copy { .. })
     }
+}
+
+/// Whether a box of `extent` voxels numbers them in a `u32` (a clipboard's index), whatever
+/// box limit a server announces.
+fn fits_an_index(extent: [u32; 3]) -> bool {
+    extent.iter().map(|&e| u64::from(e)).product::<u64>() <= u64::from(u32::MAX)
 }
 
 /// A ray's numbers: finite, and a direction that is not zero.
@@ -314,16 +323,22 @@ impl EditOp {
             | EditOp::Paint { .. }
             | EditOp::Swatch { .. } => 1,
             EditOp::Sphere { centre, radius, .. } => sphere(centre, radius),
-            EditOp::Box { min, max, .. } | EditOp::Copy { min, max } => (0..3)
+            EditOp::Box { min, max, .. } => (0..3)
                 .map(|i| {
                     let hi = max[i].min(scene_size[i].saturating_sub(1));
                     u64::from(hi.saturating_sub(min[i])) + 1
                 })
                 .product(),
-            // What it may write, clipped to the scene.
-            EditOp::Paste { size, .. } => (0..3)
-                .map(|i| u64::from(size[i].min(scene_size[i]).max(1)))
-                .product(),
+            // Every brick the box touches is read whole.
+            EditOp::Copy { min, max } => (0..3)
+                .map(|i| {
+                    let hi = max[i].min(scene_size[i].saturating_sub(1)) / 8;
+                    u64::from(hi.saturating_sub(min[i] / 8)) + 1
+                })
+                .product::<u64>()
+                .saturating_mul(512),
+            // Every voxel of the clipboard is placed, even those that land past the scene.
+            EditOp::Paste { size, .. } => size.iter().map(|&s| u64::from(s.max(1))).product(),
             EditOp::Ray { action, .. } => {
                 // A ray crosses at most the sum of the scene's sides in voxels.
                 let walk: u64 = scene_size.iter().map(|&s| u64::from(s)).sum();
