@@ -720,6 +720,16 @@ impl ApplicationHandler for App {
                         let copied = self.pasting.copy(self.selection);
                         self.send_paste_op(copied);
                     }
+                    KeyCode::KeyX if ctrl => {
+                        let note = match self.pasting.cut(self.selection) {
+                            Ok((ops, note)) => {
+                                self.live.edit(ops);
+                                note
+                            }
+                            Err(why) => why.to_string(),
+                        };
+                        self.lighting_note = Some((note, Instant::now()));
+                    }
                     KeyCode::KeyV if ctrl => {
                         let pasted = match self.projection {
                             Some(p) => {

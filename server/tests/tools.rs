@@ -315,8 +315,8 @@ async fn the_palette_is_shared_kept_with_the_scene_and_no_undo_step() {
 /// Copy and paste through the server: Alice copies a box, pastes it turned elsewhere (Bob sees
 /// it), Bob paints a pasted voxel, Alice's undo takes the paste back but leaves Bob's voxel;
 /// her clipboard pastes into another scene of the server; a paste of the wrong size, one with
-/// nothing copied and one not alone in its message are refused; the pasted scene survives a
-/// restart.
+/// nothing copied and one not alone in its message are refused; a cut and a paste move a shape
+/// and two undos put it back; the pasted scene survives a restart.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn copy_and_paste_within_a_scene_and_into_another() {
     use brickcast_protocol::clipboard::Clipboard;
@@ -426,6 +426,33 @@ async fn copy_and_paste_within_a_scene_and_into_another() {
     assert_eq!(there.map.get([5, 2, 5]), Some(blue));
     assert_eq!(there.map.get([6, 1, 5]), Some(red));
     assert_eq!(there.map.get([5, 1, 6]), Some(green));
+
+    // A cut (what Ctrl+X sends: the copy and the erase in one message) and a paste move the
+    // shape; two undos put it back where it was.
+    let cut = alice
+        .edit(vec![
+            EditOp::Copy {
+                min: [10, 1, 10],
+                max: [11, 2, 11],
+            },
+            EditOp::Box {
+                min: [10, 1, 10],
+                max: [11, 2, 11],
+                mode: BrushMode::Erase,
+                colour: red,
+            },
+        ])
+        .await;
+    seq_of(&cut);
+    let moved = seq_of(&alice.edit(vec![paste([40, 1, 40], [2, 2, 2], 0)]).await);
+    bob.catch_up(moved).await;
+    assert_eq!(bob.map.get([10, 2, 10]), None, "cut");
+    assert_eq!(bob.map.get([40, 2, 40]), Some(blue), "moved");
+    alice.undo(false).await;
+    let back = seq_of(&alice.undo(false).await);
+    bob.catch_up(back).await;
+    assert_eq!(bob.map.get([10, 2, 10]), Some(blue), "the cut is undone");
+    assert_eq!(bob.map.get([40, 2, 40]), None, "the paste is undone");
 
     // Pasted again, then a restart: the scene comes back as it was.
     let again = seq_of(&alice.edit(vec![paste([20, 1, 20], [2, 2, 2], 2)]).await);

@@ -368,6 +368,17 @@ impl App {
                 self.send_paste_op(copied);
                 true
             }
+            "KeyX" if ctrl => {
+                match self.pasting.cut(self.selection) {
+                    Ok((ops, note)) => {
+                        let msg = self.seq.edit(ops);
+                        self.send(&msg);
+                        self.note(note);
+                    }
+                    Err(why) => self.note(why.to_string()),
+                }
+                true
+            }
             "KeyV" if ctrl => {
                 let pasted = match self.projection {
                     Some(p) => {

@@ -1,12 +1,14 @@
 //! Copy and paste in both viewers (issue #34; the server keeps the clipboard,
 //! `brickcast_protocol::clipboard`): Ctrl+C copies the selection (the select tool's box),
+//! Ctrl+X cuts it (copies, then erases the box, in one message: one undo step; a move is a
+//! cut and a paste),
 //! Ctrl+V pastes it with its lowest corner at the empty cell in front of the face under the
 //! pointer (on a face that looks down or towards −x or −z, the box grows that way), R turns
 //! the next pastes a quarter turn, M mirrors them. The clipboard is the user's on the server,
 //! so it pastes into any scene of the server; a window knows the size of what it copied.
 
 use brickcast_protocol::wire::{EditOp, Selection};
-use brickcast_protocol::{BrickMap, Ray, trace};
+use brickcast_protocol::{BrickMap, BrushMode, Colour, Ray, trace};
 
 /// What this viewer knows of the user's clipboard and how the next paste is turned.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
@@ -30,6 +32,31 @@ impl Pasting {
                 max: s.max,
             },
             format!("copied {x}×{y}×{z} voxels (Ctrl+V pastes; R turns, M mirrors)"),
+        ))
+    }
+
+    /// Ctrl+X: the ops that copy `selection` and then erase it, in one message (so one undo
+    /// step brings the voxels back).
+    pub fn cut(
+        &mut self,
+        selection: Option<Selection>,
+    ) -> Result<(Vec<EditOp>, String), &'static str> {
+        let (copy, _) = self.copy(selection)?;
+        let EditOp::Copy { min, max } = copy else {
+            return Err("nothing to cut");
+        };
+        let [x, y, z] = self.copied.unwrap_or_default();
+        Ok((
+            vec![
+                copy,
+                EditOp::Box {
+                    min,
+                    max,
+                    mode: BrushMode::Erase,
+                    colour: Colour::BLACK,
+                },
+            ],
+            format!("cut {x}×{y}×{z} voxels (Ctrl+V pastes; Ctrl+Z puts them back)"),
         ))
     }
 
@@ -96,7 +123,6 @@ impl Pasting {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use brickcast_protocol::{BrushMode, Colour};
 
     #[test]
     fn copy_then_paste_on_the_face_under_the_pointer_turned_and_mirrored() {
@@ -109,6 +135,26 @@ mod tests {
         let mut p = Pasting::default();
         assert!(p.paste(Some(&map), &down).is_err(), "nothing copied");
         assert!(p.copy(None).is_err(), "nothing selected");
+        assert!(p.cut(None).is_err(), "nothing selected");
+        let (cut, _) = p
+            .cut(Some(Selection::between([4, 0, 4], [5, 1, 5])))
+            .unwrap();
+        assert_eq!(
+            cut,
+            vec![
+                EditOp::Copy {
+                    min: [4, 0, 4],
+                    max: [5, 1, 5]
+                },
+                EditOp::Box {
+                    min: [4, 0, 4],
+                    max: [5, 1, 5],
+                    mode: BrushMode::Erase,
+                    colour: Colour::BLACK
+                }
+            ]
+        );
+        assert_eq!(p.size(), Some([2, 2, 2]));
         let (copy, _) = p
             .copy(Some(Selection::between([1, 0, 1], [3, 1, 6])))
             .unwrap();
