@@ -16,6 +16,13 @@ use crate::brick::{
 };
 use crate::colour::Colour;
 
+/// The size a box of `size` fills turned `turns` quarter turns about the vertical axis (what a
+/// viewer states as a paste's size, and what the server checks it against).
+pub fn turned(size: [u32; 3], turns: u8) -> [u32; 3] {
+    let [x, y, z] = size;
+    if turns % 2 == 1 { [z, y, x] } else { [x, y, z] }
+}
+
 /// The voxels a paste puts in one brick: (bit, colour).
 type Pasted = Vec<(u32, Colour)>;
 
@@ -81,8 +88,7 @@ impl Clipboard {
 
     /// The size of the box it fills when pasted with `turns` quarter turns.
     pub fn turned_size(&self, turns: u8) -> [u32; 3] {
-        let [x, y, z] = self.size;
-        if turns % 2 == 1 { [z, y, x] } else { [x, y, z] }
+        turned(self.size, turns)
     }
 
     /// Where voxel `p` of the clipboard lands in the pasted box (see the module doc).

@@ -7,6 +7,7 @@
 //! the next pastes a quarter turn, M mirrors them. The clipboard is the user's on the server,
 //! so it pastes into any scene of the server; a window knows the size of what it copied.
 
+use brickcast_protocol::clipboard::turned;
 use brickcast_protocol::wire::{EditOp, Selection};
 use brickcast_protocol::{BrickMap, BrushMode, Colour, Ray, trace};
 
@@ -62,12 +63,7 @@ impl Pasting {
 
     /// The size the next paste fills (the copied box, turned).
     pub fn size(&self) -> Option<[u32; 3]> {
-        let [x, y, z] = self.copied?;
-        Some(if self.turns % 2 == 1 {
-            [z, y, x]
-        } else {
-            [x, y, z]
-        })
+        Some(turned(self.copied?, self.turns))
     }
 
     /// Ctrl+V along `ray`: the op that pastes at the empty cell in front of the face hit on the
