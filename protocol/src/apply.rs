@@ -217,6 +217,11 @@ pub fn resolve(map: &BrickMap, op: &EditOp, limits: &Limits) -> Result<Resolved,
         EditOp::Paste { .. } => {
             return Err(Rejection::malformed("a paste goes alone in its message"));
         }
+        // Only the server holds the past (`server/src/scene/rewind.rs`), and logs the voxels
+        // a restore changed.
+        EditOp::Restore { .. } => {
+            return Err(Rejection::malformed("a restore goes alone in its message"));
+        }
     })
 }
 

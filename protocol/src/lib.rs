@@ -35,6 +35,7 @@ pub mod palette;
 pub mod region;
 pub mod render;
 pub mod replica;
+pub mod rewind;
 pub mod roster;
 pub mod shade;
 pub mod shadow;

@@ -25,6 +25,7 @@ pub mod ids;
 pub mod import;
 pub mod incoming;
 pub mod metrics;
+pub mod past_views;
 pub mod presence;
 pub mod record;
 pub mod scene;
@@ -106,6 +107,9 @@ pub struct ServerConfig {
     pub http: http::HttpConfig,
     /// Join a cluster instead of serving the redb store (`serve --nats`).
     pub cluster: Option<ClusterConfig>,
+    /// Sequences of each scene's past the redb store keeps for its timeline and views of it
+    /// (`serve --keep-history`, `store::past`; 0: none).
+    pub keep_history: u64,
 }
 
 /// `serve --nats URL [--node NAME]`.
@@ -136,6 +140,7 @@ impl ServerConfig {
             stall_timeout: Duration::from_secs(30),
             http: http::HttpConfig::default(),
             cluster: None,
+            keep_history: store::DEFAULT_KEEP,
         }
     }
 }
@@ -182,6 +187,8 @@ pub struct App {
     pub ids: ids::Ids,
     /// Users an administrator disconnected, refused for a while (see `admin`).
     pub bans: admin::Bans,
+    /// Views of scenes' past open now (`past_views`).
+    pub past: past_views::PastViews,
 }
 
 impl App {
@@ -389,6 +396,7 @@ impl Server {
                 )
             })?;
         let store = Arc::new(Store::open(&config.data)?);
+        store.set_keep_history(config.keep_history);
         let demo_size = config.demo_size;
         let store2 = store.clone();
         let loaded = tokio::task::spawn_blocking(move || -> anyhow::Result<Vec<(String, store::Loaded)>> {
@@ -442,6 +450,7 @@ impl Server {
             shares: fair::Shares::default(),
             ids: ids::Ids::new(config.ids_per_address),
             bans: admin::Bans::default(),
+            past: past_views::PastViews::default(),
         });
         Server {
             listener,
@@ -571,6 +580,7 @@ impl Server {
             }
         }))
         .await;
+        app.past.close_all().await;
         let owners = std::mem::take(&mut *app.owners.lock().unwrap_or_else(|e| e.into_inner()));
         let crashed = tokio::task::spawn_blocking(move || {
             owners.into_iter().filter_map(|o| o.join().err()).count()
@@ -620,9 +630,58 @@ pub fn router(app: Arc<App>) -> Router {
         .route("/metrics", get(metrics_text))
         .route("/scenes", get(scene_list))
         .route("/scenes/{name}/ws", get(websocket))
+        .route("/scenes/{name}/history", get(history))
         .merge(web::routes())
         .merge(admin::routes())
         .with_state(app)
+}
+
+/// `?limit=N` of `/scenes/NAME/history`.
+#[derive(serde::Deserialize)]
+struct HistoryQuery {
+    limit: Option<usize>,
+}
+
+/// Most changes one timeline answer lists.
+const MAX_TIMELINE: usize = 100_000;
+
+/// `/scenes/NAME/history`: the scene's timeline (who changed what region when, from the log
+/// the store keeps, `store::past`), the latest `limit` changes (1,000 unless asked), and the
+/// sequences a view of its past (`/scenes/NAME~S`) can show.
+async fn history(
+    State(app): State<Arc<App>>,
+    Path(name): Path<String>,
+    axum::extract::Query(query): axum::extract::Query<HistoryQuery>,
+) -> Response {
+    let Some(store) = app.store.clone() else {
+        return (
+            StatusCode::NOT_IMPLEMENTED,
+            "this server keeps no history of its scenes (a cluster node): a single node does\n",
+        )
+            .into_response();
+    };
+    if app.scene(&name).is_none() {
+        return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
+    }
+    let limit = query.limit.unwrap_or(1000).clamp(1, MAX_TIMELINE);
+    let scene = name.clone();
+    let read = tokio::task::spawn_blocking(move || {
+        let span = store.past_span(&scene)?;
+        let changes = store.timeline(&scene, limit)?;
+        Ok::<_, store::StoreError>((span, changes))
+    })
+    .await;
+    match read {
+        Ok(Ok((span, changes))) => axum::Json(serde_json::json!({
+            "scene": name,
+            "oldest": span.oldest,
+            "newest": span.newest,
+            "changes": changes,
+        }))
+        .into_response(),
+        Ok(Err(e)) => (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response(),
+        Err(e) => (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response(),
+    }
 }
 
 async fn metrics_text(State(app): State<Arc<App>>) -> Response {
@@ -761,6 +820,10 @@ async fn websocket(
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
     ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
 ) -> Response {
+    // `NAME~S` views the scene as it was at sequence S (`past_views`).
+    if let Some(past) = past_views::split_past(&path_name) {
+        return past_websocket(past, app, peer, ws).await;
+    }
     // `NAME@K` views level K of the scene's levels of detail (`scene::levels`).
     let (name, level) = match split_level(&path_name) {
         Ok(split) => split,
@@ -815,7 +878,61 @@ async fn websocket(
         .read_buffer_size(16 << 10)
         .on_upgrade(move |socket| async move {
             let link = using.link.clone();
-            session::run(socket, scene, link, app, peer.ip(), level).await;
+            session::run(socket, scene, link, app, peer.ip(), level, false).await;
+            drop((admitted, using));
+        })
+}
+
+/// A websocket to a view of a scene's past (`NAME~S`, `past_views`): its sessions view.
+async fn past_websocket(
+    past: Result<(&str, u64), String>,
+    app: Arc<App>,
+    peer: SocketAddr,
+    ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
+) -> Response {
+    let (name, seq) = match past {
+        Ok(split) => split,
+        Err(why) => return (StatusCode::NOT_FOUND, format!("{why}\n")).into_response(),
+    };
+    if !app.has_scene(name).await {
+        return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
+    }
+    // A sequence the store does not keep is a 404 whether or not the request is a websocket.
+    if let Err(e) = app.past.check(&app, name, seq) {
+        let status = if e.not_found() {
+            StatusCode::NOT_FOUND
+        } else {
+            StatusCode::SERVICE_UNAVAILABLE
+        };
+        return (status, format!("{e}\n")).into_response();
+    }
+    let ws = match ws {
+        Ok(ws) => ws,
+        Err(rejection) => return rejection.into_response(),
+    };
+    if app.shutdown.is_cancelled() {
+        return (StatusCode::SERVICE_UNAVAILABLE, "shutting down\n").into_response();
+    }
+    let admitted = match app.connections.admit(peer.ip(), &app.connection_limits) {
+        Ok(admitted) => admitted,
+        Err(refusal) => {
+            Metrics::add(&app.metrics.refused_connections, 1);
+            return (StatusCode::SERVICE_UNAVAILABLE, format!("{refusal}\n")).into_response();
+        }
+    };
+    let (scene, using) = match app.past.open(&app, name, seq).await {
+        Ok(found) => found,
+        Err(e) if e.not_found() => {
+            return (StatusCode::NOT_FOUND, format!("{e}\n")).into_response();
+        }
+        Err(e) => return (StatusCode::SERVICE_UNAVAILABLE, format!("{e}\n")).into_response(),
+    };
+    let max = scene.limits.max_frame_bytes as usize + (64 << 10);
+    ws.max_message_size(max)
+        .max_frame_size(max)
+        .read_buffer_size(16 << 10)
+        .on_upgrade(move |socket| async move {
+            session::run(socket, scene, None, app, peer.ip(), 0, true).await;
             drop((admitted, using));
         })
 }

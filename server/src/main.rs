@@ -428,6 +428,10 @@ struct ServeArgs {
     /// the users idle longest go first (guests before users the auth file names).
     #[arg(long, default_value_t = 256 << 20)]
     max_history_bytes: u64,
+    /// Sequences of each scene's past kept for its timeline and for views of it
+    /// (`/scenes/NAME~SEQ`, restores), at least (older ones go at snapshots); 0 keeps none.
+    #[arg(long, default_value_t = brickcast_server::store::DEFAULT_KEEP)]
+    keep_history: u64,
     /// Bytes queued to all clients together before slow clients stop getting deltas (they
     /// resync once they catch up) and syncs pause.
     #[arg(long, default_value_t = 1 << 30)]
@@ -493,6 +497,7 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
         config.owner.budget.max_work_per_second = args.max_work_per_second;
         config.owner.max_queued_total = args.max_queued_bytes;
         config.owner.max_history_bytes = args.max_history_bytes;
+        config.keep_history = args.keep_history;
         config.connections.max_total = args.max_connections;
         config.connections.max_per_ip = args.max_connections_per_ip;
         config.ids_per_address = args.ids_per_address;

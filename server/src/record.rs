@@ -6,10 +6,11 @@
 //! [`LogRecord::Revert`]; in version 5 ops may be the editing tools (protocol 6: fills,
 //! extrudes, spans; appended variants, so older records read as before); in version 7 they may
 //! set a swatch of the scene's palette or copy (protocol 7, `EditOp::Swatch`, `EditOp::Copy`),
-//! and a paste is its own record, [`LogRecord::Paste`]; version 2 records
-//! (no `Revert`) read as before too. (4 and 6 are not versions: they tag the turn rows below
-//! as they were before versions 5 and 7, now tagged 8, so a build from before refuses the new
-//! rows by their version instead of failing inside one.) Stores written by brickcast 0.1
+//! and a paste is its own record, [`LogRecord::Paste`]; version 9 adds [`LogRecord::Rewind`]
+//! (a restore to an earlier sequence); version 2 records
+//! (no `Revert`) read as before too. (4, 6 and 8 are not versions: they tag the turn rows below
+//! as they were before versions 5, 7 and 9, now tagged 10, so a build from before refuses the
+//! new rows by their version instead of failing inside one.) Stores written by brickcast 0.1
 //! hold a bare bincode `Vec<EditOp>`; those are read as [`LogRecord::Ops`] with no user. They
 //! never start with a 0 byte followed by more bytes (a 0 length prefix is an empty list, and
 //! only batches that applied something were logged), so the two cannot be confused.
@@ -36,11 +37,13 @@ use crate::scene::history::{Image, Step, apply_after, write_bricks};
 pub const REVERT_BRICK_OPS: u64 = 16;
 
 /// The version of [`LogRecord`] written now.
-const VERSION: u8 = 7;
+const VERSION: u8 = 9;
 /// The oldest version read (an older `[0, v]` prefix is not a record of this format).
 const FIRST_VERSION: u8 = 2;
 /// The prefix of a row holding a turn's records (records of version [`VERSION`]).
-const BATCH: u8 = 8;
+const BATCH: u8 = 10;
+/// The prefix such rows had with records of version 7.
+const BATCH_V7: u8 = 8;
 /// The prefix such rows had with records of version 5.
 const BATCH_V5: u8 = 6;
 /// The prefix such rows had with records of version 3.
@@ -78,6 +81,14 @@ pub enum LogRecord {
         bricks: u32,
         step: Vec<u8>,
     },
+    /// A restore of a box to how it was at sequence `to` (`EditOp::Restore`), as the step it
+    /// made: replayed like a `Paste`, so replay needs no past. Version 9.
+    Rewind {
+        user: UserId,
+        to: u64,
+        bricks: u32,
+        step: Vec<u8>,
+    },
 }
 
 impl LogRecord {
@@ -92,7 +103,8 @@ impl LogRecord {
             [0, version, body @ ..]
                 if (FIRST_VERSION..=VERSION).contains(version)
                     && *version != OLD_BATCH
-                    && *version != BATCH_V5 =>
+                    && *version != BATCH_V5
+                    && *version != BATCH_V7 =>
             {
                 RECORD.decode_body(body).map_err(|e| e.to_string())
             }
@@ -129,7 +141,7 @@ impl LogRecord {
     /// How many sequences the row holds (1 for a single record), without decoding it.
     pub fn row_len(bytes: &[u8]) -> u64 {
         match bytes {
-            [0, BATCH | BATCH_V5 | OLD_BATCH, a, b, c, d, ..] => {
+            [0, BATCH | BATCH_V7 | BATCH_V5 | OLD_BATCH, a, b, c, d, ..] => {
                 u64::from(u32::from_le_bytes([*a, *b, *c, *d]))
             }
             _ => 1,
@@ -138,7 +150,16 @@ impl LogRecord {
 
     /// The records of the log row keyed `key`, with their sequences, in order.
     pub fn read_row(key: u64, bytes: &[u8]) -> Result<Vec<(u64, LogRecord)>, String> {
-        let [0, BATCH | BATCH_V5 | OLD_BATCH, a, b, c, d, body @ ..] = bytes else {
+        let [
+            0,
+            BATCH | BATCH_V7 | BATCH_V5 | OLD_BATCH,
+            a,
+            b,
+            c,
+            d,
+            body @ ..,
+        ] = bytes
+        else {
             return Ok(vec![(key, LogRecord::decode(bytes)?)]);
         };
         let mut body: &[u8] = body;
@@ -180,9 +201,9 @@ impl LogRecord {
                     .map_err(|e| e.to_string())
             }),
             LogRecord::Restore { bricks, .. } => write_bricks(map, bricks),
-            LogRecord::Revert { step, .. } | LogRecord::Paste { step, .. } => {
-                apply_after(map, &Step::decode(step)?)
-            }
+            LogRecord::Revert { step, .. }
+            | LogRecord::Paste { step, .. }
+            | LogRecord::Rewind { step, .. } => apply_after(map, &Step::decode(step)?),
         }
     }
 
@@ -191,9 +212,20 @@ impl LogRecord {
         match self {
             LogRecord::Ops { ops, .. } => ops.len(),
             LogRecord::Restore { bricks, .. } => bricks.len(),
-            LogRecord::Revert { bricks, .. } | LogRecord::Paste { bricks, .. } => {
-                (u64::from(*bricks) * REVERT_BRICK_OPS) as usize
-            }
+            LogRecord::Revert { bricks, .. }
+            | LogRecord::Paste { bricks, .. }
+            | LogRecord::Rewind { bricks, .. } => (u64::from(*bricks) * REVERT_BRICK_OPS) as usize,
+        }
+    }
+
+    /// Who it was.
+    pub fn user(&self) -> UserId {
+        match self {
+            LogRecord::Ops { user, .. }
+            | LogRecord::Restore { user, .. }
+            | LogRecord::Revert { user, .. }
+            | LogRecord::Paste { user, .. }
+            | LogRecord::Rewind { user, .. } => *user,
         }
     }
 }
@@ -248,12 +280,12 @@ mod tests {
             }
         );
         assert!(
-            LogRecord::decode(&[0, 9, 1])
+            LogRecord::decode(&[0, 11, 1])
                 .unwrap_err()
-                .contains("version 9")
+                .contains("version 11")
         );
         // The tags of turn rows are not record versions.
-        for tag in [OLD_BATCH, BATCH_V5, BATCH] {
+        for tag in [OLD_BATCH, BATCH_V5, BATCH_V7, BATCH] {
             assert!(LogRecord::decode(&[0, tag, 1]).is_err(), "{tag}");
         }
         // A swatch (version 7) round-trips.
@@ -265,7 +297,10 @@ mod tests {
             }],
         };
         swatch.encode(&mut buf).unwrap();
-        assert_eq!(&buf[..2], &[0, 7]);
+        assert_eq!(&buf[..2], &[0, VERSION]);
+        assert_eq!(LogRecord::decode(&buf).unwrap(), swatch);
+        // Written by version 7, it reads the same.
+        buf[1] = 7;
         assert_eq!(LogRecord::decode(&buf).unwrap(), swatch);
         // A paste (version 7) is its step: it round-trips, and replays to the pasted scene.
         let mut map = BrickMap::new([32, 32, 32]).unwrap();
@@ -282,11 +317,26 @@ mod tests {
         paste.encode(&mut buf).unwrap();
         let back = LogRecord::decode(&buf).unwrap();
         assert_eq!(back, paste);
-        let mut replayed = before;
+        let mut replayed = before.clone();
         back.replay(&mut replayed, &LogRecord::replay_limits())
             .unwrap();
         assert_eq!(replayed.content_hash(), map.content_hash());
         assert_eq!(back.op_count(), 2 * REVERT_BRICK_OPS as usize);
+        // A restore (version 9) is its step too, and names the sequence it went back to.
+        let rewind = LogRecord::Rewind {
+            user: 5,
+            to: 17,
+            bricks: step.bricks.len() as u32,
+            step: step.encode(),
+        };
+        rewind.encode(&mut buf).unwrap();
+        let back = LogRecord::decode(&buf).unwrap();
+        assert_eq!(back, rewind);
+        assert_eq!(back.user(), 5);
+        let mut replayed = before;
+        back.replay(&mut replayed, &LogRecord::replay_limits())
+            .unwrap();
+        assert_eq!(replayed.content_hash(), map.content_hash());
         // A version-3 record of an op that version 5 also has reads the same.
         LogRecord::Ops {
             user: 9,
@@ -320,10 +370,10 @@ mod tests {
         LogRecord::encode_batch(&turn, &mut row).unwrap();
         assert_eq!(LogRecord::row_len(&row), 5);
         assert_eq!(LogRecord::read_row(45, &row).unwrap(), turn);
-        // Rows written before record versions 5 and 7 (tagged 4 and 6) read the same; a build
-        // from before reads the new tag as a record version it does not know.
+        // Rows written before record versions 5, 7 and 9 (tagged 4, 6 and 8) read the same; a
+        // build from before reads the new tag as a record version it does not know.
         assert_eq!(&row[..2], &[0, BATCH]);
-        for tag in [OLD_BATCH, BATCH_V5] {
+        for tag in [OLD_BATCH, BATCH_V5, BATCH_V7] {
             let mut old = row.clone();
             old[1] = tag;
             assert_eq!(LogRecord::read_row(45, &old).unwrap(), turn);

@@ -12,9 +12,10 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
+use brickcast_protocol::rewind::PastBox;
 use brickcast_protocol::wire::{
-    ClientMsg, Cursor, ErrorCode, Limits, OpRejection, PROTOCOL_VERSION, Peer, Refusal, Rejection,
-    Role, Selection, ServerMsg, View, check_display_name, decode_client, hello_version,
+    ClientMsg, Cursor, EditOp, ErrorCode, Limits, OpRejection, PROTOCOL_VERSION, Peer, Refusal,
+    Rejection, Role, Selection, ServerMsg, View, check_display_name, decode_client, hello_version,
 };
 use futures_util::{SinkExt, StreamExt};
 
@@ -71,7 +72,8 @@ const RESUME_INTERVAL: Duration = Duration::from_secs(5);
 /// `crate::cluster::forward`); `None` on a single node, where they go to the owner thread.
 /// `level`: the level of detail it views (`/scenes/NAME@K`, see `scene::levels`): above 0 the
 /// session is a viewer of a coarser copy and takes no part in presence (its coordinates are not
-/// the scene's).
+/// the scene's). `past`: the scene is a view of a scene's past (`crate::past_views`), which
+/// everyone views.
 pub async fn run(
     socket: WebSocket,
     scene: SceneHandle,
@@ -79,6 +81,7 @@ pub async fn run(
     app: Arc<App>,
     from: IpAddr,
     level: u32,
+    past: bool,
 ) {
     let id = app.next_session_id();
     app.metrics.connected_clients.fetch_add(1, Relaxed);
@@ -97,7 +100,11 @@ pub async fn run(
     let unread = std::sync::atomic::AtomicBool::new(false);
     match handshake(&mut stream, &scene, &app, &out, id, from, &unread).await {
         Some((role, resume_from, budget, who)) => {
-            let role = if level > 0 { Role::Viewer } else { role };
+            let role = if level > 0 || past {
+                Role::Viewer
+            } else {
+                role
+            };
             let peer = Peer {
                 id,
                 user: who.user,
@@ -355,6 +362,7 @@ async fn read_loop(
         out,
         id,
         role,
+        who,
         ..
     } = session;
     let limits: &Limits = &scene.limits;
@@ -512,6 +520,25 @@ async fn read_loop(
                     () = shutdown.cancelled() => return,
                     _ = out.closed() => return,
                 };
+                // A restore's past is rebuilt here, off the owner (`scene::rewind`).
+                if let (None, Some(store), [op @ EditOp::Restore { to, min, max }]) =
+                    (&forwarder, &app.store, &ops[..])
+                {
+                    let (store, name, (to, min, max)) =
+                        (store.clone(), scene.name.clone(), (*to, *min, *max));
+                    // The box then against the scene as the store holds it now: only the
+                    // bricks that differ go to the owner.
+                    let fetch = tokio::task::spawn_blocking(move || {
+                        let then = store.scene_at(&name, to)?;
+                        let now = store.scene_at(&name, store.past_span(&name)?.newest)?;
+                        Ok::<_, crate::store::StoreError>(PastBox::diff(&then, &now, min, max))
+                    });
+                    let past = match fetch.await {
+                        Ok(fetched) => fetched.map_err(|e| e.to_string()),
+                        Err(e) => Err(format!("rebuilding the past failed: {e}")),
+                    };
+                    app.owner_config.pasts.put(&scene.name, who.user, *op, past);
+                }
                 let sent = match &forwarder {
                     // The turn is held while the forwarder takes it; the owner node's own
                     // sessions take turns there (a cluster shares one gate per node).

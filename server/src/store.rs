@@ -33,8 +33,10 @@ use crate::store_rows::{self, decode_row, encode_row};
 
 mod committer;
 mod history_rows;
+mod past;
 mod streamed;
 mod trash;
+pub use past::{Change, DEFAULT_KEEP, Span};
 pub use streamed::SceneWriter;
 pub use trash::Deleted;
 
@@ -69,6 +71,16 @@ pub enum StoreError {
     Corrupt { scene: String, detail: String },
     #[error("scene {0} does not exist")]
     UnknownScene(String),
+    /// A sequence of a scene's past that the store does not keep (`store::past`).
+    #[error(
+        "scene {scene} keeps its history from sequence {oldest} to {newest}; sequence {seq} is not in it"
+    )]
+    NotKept {
+        scene: String,
+        seq: u64,
+        oldest: u64,
+        newest: u64,
+    },
     #[error("scene {0} already exists")]
     SceneExists(String),
     /// A brick handed to a [`SceneWriter`] that the scene cannot hold.
@@ -172,6 +184,49 @@ fn palette_table(name: &str) -> String {
 }
 const PALETTE_ROW: u32 = 0;
 
+/// Puts stored brick rows into a map (a scene's load, a view of its past), reusing its buffers.
+#[derive(Default)]
+struct RowReader {
+    words: Vec<u16>,
+}
+
+impl RowReader {
+    /// Puts the row of linear cell `cell` into `map`; why not, when the row is damaged.
+    fn put(&mut self, map: &mut BrickMap, cell: u32, bytes: &[u8]) -> Result<(), String> {
+        let coords = map.cell_coords(cell);
+        // A coded row's block goes into the map as it is (decoded once, to check it).
+        if let Some(mask) = store_rows::coded_row(bytes, &mut self.words) {
+            let n = popcount(&mask) as usize;
+            let mut colours = [Colour::BLACK; 512];
+            let colours = match palette::decode_words(&self.words, &mut colours[..n]) {
+                Ok(used) if used == self.words.len() => &colours[..n],
+                _ => return Err(format!("brick row {cell}")),
+            };
+            return map
+                .put_coded(coords, mask, colours, &self.words)
+                .map_err(|e| e.to_string());
+        }
+        let brick = decode_row(coords, bytes).ok_or_else(|| format!("brick row {cell}"))?;
+        map.put_brick(&brick).map_err(|e| e.to_string())
+    }
+}
+
+/// The palette stored with a scene's snapshot (none: the default palette).
+fn stored_palette(txn: &redb::ReadTransaction, name: &str) -> Result<Option<Swatches>, StoreError> {
+    let Some(table) = open_optional::<u32, &[u8]>(txn, &palette_table(name))? else {
+        return Ok(None);
+    };
+    let Some(row) = table.get(PALETTE_ROW)? else {
+        return Ok(None);
+    };
+    Swatches::from_bytes(row.value())
+        .map(Some)
+        .ok_or_else(|| StoreError::Corrupt {
+            scene: name.into(),
+            detail: format!("the palette row is {} bytes", row.value().len()),
+        })
+}
+
 /// A table that may not exist yet (scenes created before history was stored): reads see an
 /// empty table.
 fn open_optional<K: redb::Key + 'static, V: redb::Value + 'static>(
@@ -233,6 +288,8 @@ pub struct Store {
     /// Per scene, the live steps of each history pack (built from the tables at a scene's
     /// first append, kept only for transactions that commit).
     packs: std::sync::Mutex<std::collections::HashMap<String, history_rows::PackState>>,
+    /// Sequences of each scene's past kept for its timeline and views of it (`past.rs`).
+    keep_history: std::sync::atomic::AtomicU64,
 }
 
 /// A scene as recovered from the store.
@@ -308,7 +365,15 @@ impl Store {
             db,
             path,
             packs: Default::default(),
+            keep_history: past::DEFAULT_KEEP.into(),
         })
+    }
+
+    /// Keeps at least the last `seqs` sequences of each scene's past (0: none), from the next
+    /// snapshot on.
+    pub fn set_keep_history(&self, seqs: u64) {
+        self.keep_history
+            .store(seqs, std::sync::atomic::Ordering::Relaxed);
     }
 
     pub fn path(&self) -> &Path {
@@ -401,6 +466,7 @@ impl Store {
             txn.delete_table(TableDefinition::<u64, &[u8]>::new(&log_table(name)))?;
             txn.delete_table(TableDefinition::<u32, &[u8]>::new(&palette_table(name)))?;
             history_rows::delete_all(&txn, name)?;
+            past::delete_all(&txn, name)?;
         }
         self.forget_packs(name);
         txn.commit()?;
@@ -449,34 +515,14 @@ impl Store {
         // The clearance is built once, after the snapshot's bricks: the log's ray edits are
         // traced again as they replay, and a trace needs it.
         map.begin_bulk_load();
-        let (mut words, mut colours) = (Vec::new(), [Colour::BLACK; 512]);
+        let mut rows = RowReader::default();
         for row in bricks.iter()? {
             let (cell, bytes) = row?;
-            let cell = cell.value();
-            let coords = map.cell_coords(cell);
-            let bytes = bytes.value();
-            // A coded row's block goes into the map as it is (decoded once, to check it).
-            if let Some(mask) = store_rows::coded_row(bytes, &mut words) {
-                let n = popcount(&mask) as usize;
-                let colours = match palette::decode_words(&words, &mut colours[..n]) {
-                    Ok(used) if used == words.len() => &colours[..n],
-                    _ => return Err(corrupt(format!("brick row {cell}"))),
-                };
-                map.put_coded(coords, mask, colours, &words)
-                    .map_err(|e| corrupt(e.to_string()))?;
-                continue;
-            }
-            let brick =
-                decode_row(coords, bytes).ok_or_else(|| corrupt(format!("brick row {cell}")))?;
-            map.put_brick(&brick).map_err(|e| corrupt(e.to_string()))?;
+            rows.put(&mut map, cell.value(), bytes.value())
+                .map_err(corrupt)?;
         }
         map.end_bulk_load();
-        if let Some(table) = open_optional::<u32, &[u8]>(&txn, &palette_table(name))?
-            && let Some(row) = table.get(PALETTE_ROW)?
-        {
-            let swatches = Swatches::from_bytes(row.value()).ok_or_else(|| {
-                corrupt(format!("the palette row is {} bytes", row.value().len()))
-            })?;
+        if let Some(swatches) = stored_palette(&txn, name)? {
             map.set_swatches(swatches);
         }
         // The snapshot keeps bricks, not the tombstones of bricks removed before it: a client
@@ -624,6 +670,14 @@ impl Store {
                 history_rows::write(&txn, scene, &mut packs, history)?;
             }
         }
+        if let Some(last) = turns
+            .iter()
+            .filter_map(|(r, _)| r.last())
+            .map(|r| r.0)
+            .max()
+        {
+            past::note_time(&txn, scene, last)?;
+        }
         txn.commit()?;
         self.packs
             .lock()
@@ -697,6 +751,8 @@ impl Store {
                     old.snapshot_seq
                 )));
             }
+            let keep = self.keep_history.load(std::sync::atomic::Ordering::Relaxed);
+            past::archive(&txn, scene, old.snapshot_seq, seq, cells, keep)?;
             let bricks_name = bricks_table(scene);
             let mut bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;
             let mut row = Vec::with_capacity(64 + 1024);
@@ -735,6 +791,7 @@ impl Store {
                 detail: e.to_string(),
             })?;
             scenes.insert(scene, bytes.as_slice())?;
+            past::trim(&txn, scene, seq, keep)?;
         }
         txn.commit()?;
         Ok(())

@@ -20,8 +20,10 @@ use crate::store::decode_brick;
 /// record of its format); 2 adds palette-coded rows; 3 adds log rows holding a turn's records
 /// (`record.rs`) and history steps in packs with an index journal (`store/history_rows.rs`);
 /// 4 adds the scene's palette (`palette/<scene>`, written by snapshots) and log records that
-/// set a swatch (record version 7).
-pub const FORMAT: u32 = 4;
+/// set a swatch (record version 7); 5 keeps each scene's past (`store/past.rs`: the tables a
+/// build reading 4 would leave stale, trimming the log without keeping it) and log records of
+/// version 9 (a restore).
+pub const FORMAT: u32 = 5;
 
 /// The byte after the mask of a palette-coded row.
 const CODED: u8 = 2;

@@ -232,8 +232,12 @@ async fn index(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
 }
 
 async fn viewer(State(app): State<Arc<App>>, Path(name): Path<String>) -> Response {
-    // `NAME@K` is level K of the scene (the websocket checks K against the scene's size).
-    let scene = crate::split_level(&name).map_or(name.as_str(), |(scene, _)| scene);
+    // `NAME@K` is level K of the scene (the websocket checks K against the scene's size);
+    // `NAME~S` the scene at sequence S (the websocket checks S against what is kept).
+    let scene = match crate::past_views::split_past(&name) {
+        Some(past) => past.map_or(name.as_str(), |(scene, _)| scene),
+        None => crate::split_level(&name).map_or(name.as_str(), |(scene, _)| scene),
+    };
     if !app.has_scene(scene).await {
         let page = format!(
             "<!doctype html><meta charset=\"utf-8\"><title>No such scene · brickcast</title>\

@@ -466,3 +466,217 @@ async fn copy_and_paste_within_a_scene_and_into_another() {
     assert_eq!(fresh.map.content_hash(), hash);
     server.shutdown().await.unwrap();
 }
+
+/// The scene's history (issue #34, item 3): the timeline says who changed what where, across
+/// a restart (whose snapshot keeps the past); a view of an earlier sequence (`NAME~S`) shows
+/// the scene as it was and takes no edits; a restore of a box to that sequence writes it as
+/// it was, leaves the rest of the scene, is one undo step that others' later edits win over,
+/// orders with an edit Bob sends at the same time, and survives a restart. A sequence the
+/// store does not keep is refused, saying what it keeps.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_past_is_listed_viewed_and_restored() {
+    use common::http_get;
+    let data = tempfile::tempdir().unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    ok(&admin(server.addr, &["create", "h", "--size", "64,64,64"], None).await);
+    let url = server.url("h");
+    let mut alice = Client::as_user(&url, None, ALICE, "alice").await.unwrap();
+    let mut bob = Client::as_user(&url, None, BOB, "bob").await.unwrap();
+    alice.sync().await;
+    bob.sync().await;
+    let (red, blue, yellow) = (colour(1), colour(5), colour(3));
+    let wall = EditOp::Box {
+        min: [10, 1, 10],
+        max: [20, 8, 11],
+        mode: BrushMode::Fill,
+        colour: red,
+    };
+    seq_of(&alice.edit(vec![wall]).await);
+    let good = seq_of(
+        &bob.edit(vec![EditOp::Paint {
+            pos: [15, 8, 10],
+            colour: blue,
+        }])
+        .await,
+    );
+    alice.catch_up(good).await;
+    let then = alice.map.clone();
+    drop((alice, bob));
+    // A restart: the shutdown's snapshot keeps what it folds in.
+    server.shutdown().await.unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let mut alice = Client::as_user(&server.url("h"), None, ALICE, "alice")
+        .await
+        .unwrap();
+    let mut bob = Client::as_user(&server.url("h"), None, BOB, "bob")
+        .await
+        .unwrap();
+    alice.sync().await;
+    bob.sync().await;
+    // Alice knocks a hole in the wall; Bob builds a post elsewhere.
+    seq_of(
+        &alice
+            .edit(vec![EditOp::Box {
+                min: [12, 3, 10],
+                max: [17, 8, 11],
+                mode: BrushMode::Erase,
+                colour: red,
+            }])
+            .await,
+    );
+    let post = seq_of(
+        &bob.edit(vec![EditOp::Box {
+            min: [40, 1, 40],
+            max: [40, 6, 40],
+            mode: BrushMode::Fill,
+            colour: yellow,
+        }])
+        .await,
+    );
+    alice.catch_up(post).await;
+
+    // The timeline: the wall (Alice), the paint (Bob), the hole (Alice), the post (Bob).
+    let (status, body) = http_get(server.addr, "/scenes/h/history").await;
+    assert_eq!(status, 200, "{body}");
+    let timeline: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(timeline["oldest"], 0, "{body}");
+    assert_eq!(timeline["newest"], post, "{body}");
+    let changes = timeline["changes"].as_array().unwrap();
+    let who: Vec<(u64, u64)> = changes
+        .iter()
+        .map(|c| {
+            let user = c["user"].as_str().unwrap().parse().unwrap();
+            (c["first"].as_u64().unwrap(), user)
+        })
+        .collect();
+    assert_eq!(
+        who,
+        vec![(1, ALICE), (2, BOB), (3, ALICE), (4, BOB)],
+        "{body}"
+    );
+    assert_eq!(changes[3]["min"], serde_json::json!([40, 0, 40]), "{body}");
+    assert!(changes.iter().all(|c| c["at_ms"].as_u64().is_some()));
+
+    // The scene as it was at `good`: read-only.
+    let mut past = Client::connect(&server.url(&format!("h~{good}")), None)
+        .await
+        .unwrap();
+    past.sync().await;
+    assert_eq!(past.map.content_hash(), then.content_hash());
+    let refused = past.edit(vec![EditOp::Set {
+        pos: [1, 1, 1],
+        colour: red,
+    }]);
+    let ServerMsg::Ack {
+        seq: None,
+        rejected,
+        ..
+    } = refused.await
+    else {
+        panic!("a view of the past took an edit")
+    };
+    assert_eq!(rejected[0].reason, Rejection::NotAllowed);
+    // Not kept: a 404 that says what is.
+    let (status, body) = http_get(server.addr, "/scenes/h~999/ws").await;
+    assert_eq!(status, 404);
+    assert!(body.contains("from sequence 0 to 4"), "{body}");
+
+    // Alice restores the wall's box to `good` while Bob paints inside it at the same time.
+    let region = ([10, 0, 10], [20, 10, 11]);
+    let restore = EditOp::Restore {
+        to: good,
+        min: region.0,
+        max: region.1,
+    };
+    let now = alice.map.clone();
+    let a = alice.send_edit(vec![restore]).await;
+    let paint = [13, 5, 10];
+    let b = bob
+        .send_edit(vec![EditOp::Set {
+            pos: paint,
+            colour: yellow,
+        }])
+        .await;
+    let restored = seq_of(&alice.ack(a).await);
+    let painted = seq_of(&bob.ack(b).await);
+    bob.catch_up(restored.max(painted)).await;
+    let inside = |p: [u32; 3]| (0..3).all(|i| region.0[i] <= p[i] && p[i] <= region.1[i]);
+    for p in near_the_wall() {
+        // In the box: as it was, unless Bob's paint came after the restore.
+        let want = if p == paint && painted > restored {
+            Some(yellow)
+        } else if inside(p) {
+            then.get(p)
+        } else {
+            now.get(p)
+        };
+        assert_eq!(
+            bob.map.get(p),
+            want,
+            "{p:?} (restored {restored}, painted {painted})"
+        );
+    }
+    assert_eq!(
+        bob.map.get([40, 6, 40]),
+        Some(yellow),
+        "outside the box: kept"
+    );
+
+    // Bob paints in the restored wall; Alice's undo takes the restore back, his paint stays.
+    let later = seq_of(
+        &bob.edit(vec![EditOp::Paint {
+            pos: [12, 8, 11],
+            colour: blue,
+        }])
+        .await,
+    );
+    alice.catch_up(later).await;
+    let undone = seq_of(&alice.undo(false).await);
+    bob.catch_up(undone).await;
+    assert_eq!(bob.map.get([14, 6, 10]), None, "the hole is back");
+    assert_eq!(
+        bob.map.get([12, 8, 11]),
+        Some(blue),
+        "Bob's later paint wins"
+    );
+    let redone = seq_of(&alice.undo(true).await);
+    bob.catch_up(redone).await;
+    assert_eq!(bob.map.get([14, 6, 10]), Some(red), "redone");
+
+    // A sequence the store does not keep: refused, saying what it keeps.
+    let far = alice
+        .edit(vec![EditOp::Restore {
+            to: 9_999,
+            min: region.0,
+            max: region.1,
+        }])
+        .await;
+    let ServerMsg::Ack {
+        seq: None,
+        rejected,
+        ..
+    } = &far
+    else {
+        panic!("{far:?}")
+    };
+    assert!(
+        matches!(&rejected[0].reason, Rejection::Malformed(m) if m.contains("keeps its history from sequence 0")),
+        "{far:?}"
+    );
+    // The timeline names the restore; a restart keeps the restored scene.
+    let (_, body) = http_get(server.addr, "/scenes/h/history").await;
+    assert!(body.contains("\"restore\""), "{body}");
+    let hash = bob.map.content_hash();
+    drop((alice, bob, past));
+    server.shutdown().await.unwrap();
+    let server = TestServer::start(data.path(), |_| {}).await;
+    let mut fresh = Client::connect(&server.url("h"), None).await.unwrap();
+    fresh.sync().await;
+    assert_eq!(fresh.map.content_hash(), hash);
+    server.shutdown().await.unwrap();
+}
+
+/// The voxels around the wall of the history test.
+fn near_the_wall() -> impl Iterator<Item = [u32; 3]> {
+    (0..12).flat_map(|y| (8..24).flat_map(move |z| (8..24).map(move |x| [x, y, z])))
+}

@@ -474,6 +474,41 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
         shown,
         "the page's centre pixel hits the natively placed voxel {pos:?}: {seen:?}"
     );
+    // The history panel lists the paste (newest first); with nothing selected (a right click
+    // of the select tool clears it), its restore puts the whole scene back as it was after
+    // the paste (the pasted voxels again, the red voxel gone), as one undo step.
+    browser.call(serde_json::json!({"op": "key", "key": "v"}))?;
+    browser.click_with(200.0, 100.0, "right", &[])?;
+    browser.wait_state("s.selection === null", 10_000)?;
+    let before_restore = fetch(&server.url("demo"))?.map.solid_voxels();
+    browser.eval("document.getElementById('history-button').click()")?;
+    browser.wait(
+        "[...document.querySelectorAll('#changes li')].some(li => li.textContent.includes(' paste by '))",
+        20_000,
+    )?;
+    let view = browser.eval(
+        "[...document.querySelectorAll('#changes li')].find(li => li.textContent.includes(' paste by ')).querySelector('a').getAttribute('href')",
+    )?;
+    assert!(
+        view.as_str()
+            .is_some_and(|h| h.starts_with("/scenes/demo~")),
+        "{view}"
+    );
+    browser.eval(
+        "[...document.querySelectorAll('#changes li')].find(li => li.textContent.includes(' paste by ')).querySelector('button').click()",
+    )?;
+    let restored = wait_until(Duration::from_secs(20), || {
+        fetch(&server.url("demo")).is_ok_and(|r| r.map.solid_voxels() == now)
+    });
+    assert!(
+        restored,
+        "the restore put the pasted voxels back ({now} wanted)"
+    );
+    browser.call(serde_json::json!({"op": "key", "key": "Control+z"}))?;
+    let unrestored = wait_until(Duration::from_secs(20), || {
+        fetch(&server.url("demo")).is_ok_and(|r| r.map.solid_voxels() == before_restore)
+    });
+    assert!(unrestored, "Ctrl+Z took the restore back");
     server.stop()
 }
 

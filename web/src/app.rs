@@ -588,6 +588,19 @@ impl App {
         self.note(action.note());
     }
 
+    /// Restores the selection (the whole scene when nothing is selected) to sequence `to`
+    /// (the history panel's "restore": `client_core::history`).
+    pub fn restore(&mut self, to: u64) {
+        let Some(size) = self.session.replica.as_ref().map(|r| r.map.size()) else {
+            self.note("the scene is not here yet".into());
+            return;
+        };
+        let (op, note) = brickcast_client_core::history::restore(self.selection, size, to);
+        let msg = self.seq.edit(vec![op]);
+        self.send(&msg);
+        self.note(note);
+    }
+
     /// Paints the page's swatches when the scene's palette is not what they show.
     fn show_swatches(&mut self) {
         let swatches = self.session.swatches();
@@ -957,6 +970,10 @@ impl App {
             "rejected": self.session.rejected,
             "last_undo": self.session.last_undo,
             "others": self.session.roster.others.values().map(|o| o.peer.name.clone()).collect::<Vec<_>>(),
+            // User id (a string: ids are 64-bit) → name, for whoever is here (the history panel).
+            "names": self.session.roster.you.iter().chain(self.session.roster.others.values().map(|o| &o.peer))
+                .map(|p| (p.user.to_string(), p.name.clone()))
+                .collect::<std::collections::BTreeMap<_, _>>(),
             "bytes_in": self.bytes_in,
             "camera": self.camera.map(|c| c.eye),
             "budget": self.session.budget,

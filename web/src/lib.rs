@@ -97,6 +97,11 @@ impl Viewer {
         self.app.borrow().tools.tool.name().to_string()
     }
 
+    /// Restores the selection (or the whole scene) to how it was at sequence `to`.
+    pub fn restore(&self, to: f64) {
+        self.app.borrow_mut().restore(to as u64);
+    }
+
     /// Traces at 1/`divisor` of the canvas's resolution from now on; 0 lets it adapt again.
     pub fn set_scale(&self, divisor: u32) {
         self.app.borrow_mut().scale.pin(divisor);

@@ -15,6 +15,7 @@ pub mod budget;
 pub mod camera;
 pub mod follow;
 pub mod gpu;
+pub mod history;
 pub mod overlay;
 pub mod paste;
 pub mod present;

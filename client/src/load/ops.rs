@@ -248,8 +248,9 @@ mod tests {
                     | EditOp::Span { .. }
                     | EditOp::Swatch { .. }
                     | EditOp::Copy { .. }
-                    | EditOp::Paste { .. } => {
-                        panic!("no box, span, swatch, copy or paste ops are generated")
+                    | EditOp::Paste { .. }
+                    | EditOp::Restore { .. } => {
+                        panic!("no box, span, swatch, copy, paste or restore ops are generated")
                     }
                 }
                 // Every generated op is valid; rays may miss only if the area were empty.

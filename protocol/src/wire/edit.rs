@@ -115,6 +115,16 @@ pub enum EditOp {
         turns: u8,
         mirror: bool,
     },
+    /// Restores the box `min..=max` (inclusive) to how it was at sequence `to` of the scene
+    /// ([`crate::rewind`]): every voxel of the box as it was then, solid or empty; nothing
+    /// outside it. Only a server that keeps the scene's past serves it (refused otherwise,
+    /// saying which sequences it keeps). Alone in its message; one undo step, which others'
+    /// later edits win over like any other; logged as the voxels it changed.
+    Restore {
+        to: u64,
+        min: [u32; 3],
+        max: [u32; 3],
+    },
 }
 
 impl EditOp {
@@ -231,6 +241,15 @@ impl EditOp {
                     Err(Rejection::TooLarge)
                 }
             }
+            EditOp::Restore { min, max, .. } => {
+                if !per_axis(min, max, |lo, hi| lo <= hi) {
+                    return Err(Rejection::malformed("a restore's min is above its max"));
+                }
+                if !per_axis(max, scene_size, |hi, s| hi < s) {
+                    return Err(Rejection::OutOfBounds);
+                }
+                Ok(())
+            }
             EditOp::Swatch { index, .. } => {
                 if usize::from(index) < crate::swatches::SWATCHES {
                     Ok(())
@@ -249,7 +268,11 @@ impl EditOp {
     pub fn reads_map(&self) -> bool {
         matches!(
             self,
-            EditOp::Ray { .. } | EditOp::Span { .. } | EditOp::Copy { .. } | EditOp::Paste { .. }
+            EditOp::Ray { .. }
+                | EditOp::Span { .. }
+                | EditOp::Copy { .. }
+                | EditOp::Paste { .. }
+                | EditOp::Restore { .. }
         )
     }
 
@@ -282,6 +305,16 @@ fn check_ray(origin: [f32; 3], dir: [f32; 3]) -> Result<(), Rejection> {
 /// changing a region costs about 33 times what painting the same voxels with a box brush does
 /// (`cargo bench -p brickcast-protocol --bench protocol -- tools/`, BENCHMARKS.md).
 pub const TOOL_VOXEL_WORK: u64 = 32;
+
+/// Bricks a box of voxels touches (clipped to the scene).
+fn bricks_of(min: [u32; 3], max: [u32; 3], scene_size: [u32; 3]) -> u64 {
+    (0..3)
+        .map(|i| {
+            let hi = max[i].min(scene_size[i].saturating_sub(1)) / 8;
+            u64::from(hi.saturating_sub(min[i] / 8)) + 1
+        })
+        .product()
+}
 
 /// Whether `f` holds on every axis.
 fn per_axis<A: Copy, B: Copy>(a: [A; 3], b: [B; 3], f: impl Fn(A, B) -> bool) -> bool {
@@ -330,13 +363,10 @@ impl EditOp {
                 })
                 .product(),
             // Every brick the box touches is read whole.
-            EditOp::Copy { min, max } => (0..3)
-                .map(|i| {
-                    let hi = max[i].min(scene_size[i].saturating_sub(1)) / 8;
-                    u64::from(hi.saturating_sub(min[i] / 8)) + 1
-                })
-                .product::<u64>()
-                .saturating_mul(512),
+            EditOp::Copy { min, max } => bricks_of(min, max, scene_size).saturating_mul(512),
+            // The owner looks up each brick of the box's version; the bricks it rewrites (those
+            // that differ from then) are bounded by the server apart (`server::scene::rewind`).
+            EditOp::Restore { min, max, .. } => bricks_of(min, max, scene_size),
             // Every voxel of the clipboard is placed, even those that land past the scene.
             EditOp::Paste { size, .. } => size.iter().map(|&s| u64::from(s.max(1))).product(),
             EditOp::Ray { action, .. } => {

@@ -58,8 +58,9 @@ pub use names::{MAX_MARKS_PER_LETTER, check_display_name, clean_display_name};
 /// between two rays ([`EditOp::Span`]) and `Limits::max_tool_voxels`. 7 added the scene's
 /// shared palette: [`EditOp::Swatch`] and `Palette` ([`crate::swatches`]), selections in
 /// presence ([`Selection`]: `Presence.selection`, `PeerState.selection`) and copy and paste
-/// ([`EditOp::Copy`], [`EditOp::Paste`]: [`crate::clipboard`]).
-pub const PROTOCOL_VERSION: u32 = 7;
+/// ([`EditOp::Copy`], [`EditOp::Paste`]: [`crate::clipboard`]). 8 added the scene's history:
+/// [`EditOp::Restore`] ([`crate::rewind`]).
+pub const PROTOCOL_VERSION: u32 = 8;
 
 /// Largest frame either side will ever encode or decode, whatever a server announces. It is also
 /// bincode's decode limit, the ceiling on what a length prefix can make the decoder reserve.

@@ -44,6 +44,7 @@ mod owner;
 pub mod paste;
 mod replica;
 pub mod request;
+pub mod rewind;
 pub mod step;
 mod sync;
 mod undo_job;
@@ -297,6 +298,9 @@ pub struct OwnerConfig {
     /// The node's users' clipboards (`paste.rs`): one for every scene of the node (the
     /// config is cloned per scene, the clipboards shared).
     pub clipboards: std::sync::Arc<paste::Clipboards>,
+    /// Past boxes fetched for restores, waiting for their scene's owner (`rewind.rs`): one
+    /// for every scene of the node.
+    pub pasts: std::sync::Arc<rewind::Pasts>,
 }
 
 impl Default for OwnerConfig {
@@ -314,6 +318,7 @@ impl Default for OwnerConfig {
             slice_bricks: 2048,
             eager_levels_bytes: levels::EAGER_ABOVE_BYTES,
             clipboards: Default::default(),
+            pasts: Default::default(),
         }
     }
 }

@@ -695,6 +695,9 @@ impl Owner {
         if let [op @ EditOp::Paste { .. }] = ops[..] {
             return self.apply_paste(to, client_seq, user, op, log);
         }
+        if let [op @ EditOp::Restore { .. }] = ops[..] {
+            return self.apply_restore(to, client_seq, user, op, log);
+        }
         let seq = self.seq + 1;
         self.map.begin_journal();
         let size = self.map.size();

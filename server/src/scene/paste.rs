@@ -19,6 +19,7 @@
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
+use brickcast_protocol::brick::BrickData;
 use brickcast_protocol::clipboard::Clipboard;
 use brickcast_protocol::wire::{EditOp, OpRejection, Rejection, UserId};
 
@@ -164,13 +165,34 @@ impl Owner {
             );
         }
         let bricks = clipboard.paste(&self.map, at, turns, mirror);
+        let work = op.work(self.map.size());
+        let seq = self.write_step(user, &bricks, work, log, |bricks, step| LogRecord::Paste {
+            user,
+            bricks,
+            step,
+        });
+        ack(to, client_seq, Some(seq), 1, Vec::new())
+    }
+
+    /// Writes whole bricks (made from the map's own and a paste's or a past's voxels, inside
+    /// the scene; one with no voxel left is removed) as one turn's message of `user`: the
+    /// sequence it takes, journaled as the user's step, logged as `record(bricks, step)`.
+    pub(super) fn write_step(
+        &mut self,
+        user: UserId,
+        bricks: &[BrickData],
+        work: u64,
+        log: &mut Log,
+        record: impl FnOnce(u32, Vec<u8>) -> LogRecord,
+    ) -> u64 {
         let seq = self.seq + 1;
         self.map.begin_journal();
         self.map.set_sequence(seq);
-        for brick in &bricks {
-            // Made from the map's own bricks and the clipboard's voxels, inside the scene.
-            if let Err(e) = self.map.put_brick(brick) {
-                tracing::error!(scene = %self.name, error = %e, cell = ?brick.cell, "a pasted brick does not fit");
+        for brick in bricks {
+            if brick.colours.is_empty() {
+                self.map.remove_brick(brick.cell);
+            } else if let Err(e) = self.map.put_brick(brick) {
+                tracing::error!(scene = %self.name, error = %e, cell = ?brick.cell, "a written brick does not fit");
             }
         }
         let step = Step::from_journal(&mut self.map);
@@ -178,19 +200,12 @@ impl Owner {
         self.history.record_edit(user, &step);
         self.seq = seq;
         self.log_ops += 1;
-        self.log_work = self.log_work.saturating_add(op.work(self.map.size()));
+        self.log_work = self.log_work.saturating_add(work);
         Metrics::add(&self.metrics.ops_applied, 1);
         Metrics::add(&self.metrics.voxels_changed, voxels);
         Metrics::add(&self.metrics.edit_batches, 1);
-        log.push((
-            seq,
-            LogRecord::Paste {
-                user,
-                bricks: step.bricks.len() as u32,
-                step: step.encode(),
-            },
-        ));
-        ack(to, client_seq, Some(seq), 1, Vec::new())
+        log.push((seq, record(step.bricks.len() as u32, step.encode())));
+        seq
     }
 }
 

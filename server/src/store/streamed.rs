@@ -59,6 +59,7 @@ impl Store {
             name,
         )))?;
         super::history_rows::delete_all(&txn, name)?;
+        super::past::delete_all(&txn, name)?;
         self.forget_packs(name);
         txn.commit()?;
         Ok(SceneWriter {

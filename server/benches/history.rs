@@ -1,0 +1,108 @@
+//! The scene's history (issue #34): opening the timeline and a view of an earlier sequence on
+//! a scene with a million logged ops (`store/past.rs`).
+//!
+//! `cargo bench -p brickcast-server --bench history`
+//!
+//! A 256³ demo scene takes 1,000,000 one-voxel messages from eight users, written a thousand
+//! to a turn, with a snapshot every 250,000 sequences (the points the past rebuilds from), the
+//! last 100,000 left in the live log. Timed: the timeline of everything kept (the latest 1,000
+//! changes), a view of the sequence halfway (rebuilt from the snapshot before it plus up to
+//! 250,000 ops), and the present loaded the way a restart loads it, for scale.
+
+use std::hint::black_box;
+
+use brickcast_protocol::wire::EditOp;
+use brickcast_protocol::{BrickMap, Colour, demo};
+use brickcast_server::record::LogRecord;
+use brickcast_server::scene::history::HistoryWrites;
+use brickcast_server::store::Store;
+use criterion::{Criterion, criterion_group, criterion_main};
+
+const OPS: u64 = 1_000_000;
+const TURN: u64 = 1_000;
+const SNAPSHOT_EVERY: u64 = 250_000;
+
+fn op(seq: u64) -> EditOp {
+    // A walk over the scene's top half: every message changes a voxel somewhere new.
+    let h = seq.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    let pos = [
+        (h % 256) as u32,
+        128 + ((h >> 8) % 128) as u32,
+        ((h >> 16) % 256) as u32,
+    ];
+    EditOp::Set {
+        pos,
+        colour: Colour((h >> 32) as u16),
+    }
+}
+
+fn build(store: &Store) -> BrickMap {
+    let mut map = demo::demo_scene([256; 3]).expect("the demo scene builds");
+    store.create_scene("h", &map).expect("created");
+    map.record_touched(true);
+    let mut turn = Vec::with_capacity(TURN as usize);
+    for seq in 1..=OPS {
+        let op = op(seq);
+        map.set_sequence(seq);
+        brickcast_protocol::apply::apply_op(&mut map, &op, &Default::default()).expect("applies");
+        turn.push((
+            seq,
+            LogRecord::Ops {
+                user: seq % 8 + 1,
+                ops: vec![op],
+            },
+        ));
+        if seq % TURN == 0 {
+            store
+                .append("h", &turn, &HistoryWrites::default())
+                .expect("appended");
+            turn.clear();
+        }
+        if seq % SNAPSHOT_EVERY == 0 && seq < OPS {
+            let cells = map.take_touched();
+            store.snapshot("h", &map, &cells, seq).expect("snapshot");
+        }
+    }
+    map
+}
+
+fn history(c: &mut Criterion) {
+    let dir = tempfile::tempdir().expect("a temporary folder");
+    let store = Store::open(dir.path()).expect("the store opens");
+    let started = std::time::Instant::now();
+    let map = build(&store);
+    let span = store.past_span("h").expect("a span");
+    eprintln!(
+        "{OPS} ops logged in {:.1} s; {} bricks; kept {}..={}",
+        started.elapsed().as_secs_f64(),
+        map.brick_count(),
+        span.oldest,
+        span.newest
+    );
+    assert_eq!(
+        store.scene_at("h", OPS).expect("now").content_hash(),
+        map.content_hash()
+    );
+    let mut g = c.benchmark_group("history");
+    g.sample_size(10);
+    g.bench_function("timeline_1m", |b| {
+        b.iter(|| black_box(store.timeline("h", 1000).expect("timeline").len()))
+    });
+    g.bench_function("view_halfway", |b| {
+        b.iter(|| {
+            black_box(
+                store
+                    .scene_at("h", OPS / 2 + 1)
+                    .expect("past")
+                    .brick_count(),
+            )
+        })
+    });
+    g.bench_function("load_now", |b| {
+        b.iter(|| black_box(store.load_scene("h").expect("loads").seq))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, history);
+criterion_main!(benches);

@@ -1,0 +1,130 @@
+//! Restoring a box to an earlier sequence (issue #34, `EditOp::Restore`): the owner's side.
+//!
+//! **Why the past is fetched before the owner sees the op:** rebuilding an earlier sequence
+//! reads the store (a snapshot and up to a snapshot interval of log, `store::past`): seconds
+//! for a large scene, which the owner thread must not spend while everyone's edits wait. The
+//! session that receives the op rebuilds it off the owner (a blocking task), takes the box as a
+//! [`PastBox`] of the bricks that differ between then and the scene as the store holds it now,
+//! and leaves it here, keyed by scene, user and op, then sends the op on. What the box held at
+//! sequence `to` never changes, so nothing is lost by fetching it early: the owner then writes
+//! it in the scene's order, against the scene as it is in that turn, after checking that no
+//! brick of the box it was not given changed since (else it refuses: restore again).
+//!
+//! **A restore is one logged step,** like a paste: the bricks it changes are written in one
+//! turn, journaled, so its user can undo it (others' later changes win) and the log holds the
+//! voxels it changed (`LogRecord::Rewind`): replay needs no past.
+//!
+//! Only a single node keeps the past (its redb store); a cluster's owner finds nothing here
+//! and refuses, saying so.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use brickcast_protocol::rewind::PastBox;
+use brickcast_protocol::wire::{EditOp, OpRejection, Rejection, UserId};
+
+use super::owner::{AckTo, Log, Owner, PendingAck, ack};
+use crate::metrics::Metrics;
+use crate::record::LogRecord;
+
+/// Most bytes of the past one restore may bring (the bricks of its box that differ now from
+/// then, as they were then): more is refused, saying to restore the box in parts. The owner
+/// rewrites each in its turn (about as many bricks as a 256³ paste at most).
+pub const MAX_PAST_BYTES: usize = 64 << 20;
+
+/// What a restore's box held then (or why it cannot be had), keyed by what it was asked for.
+type Prepared = (EditOp, Result<Arc<PastBox>, String>);
+
+/// Past boxes fetched by sessions for their users' restores, waiting for the scene's owner.
+/// One per scene and user at a time: a session fetches and sends one op at a time.
+#[derive(Debug, Default)]
+pub struct Pasts {
+    by: Mutex<HashMap<(String, UserId), Prepared>>,
+}
+
+impl Pasts {
+    /// Leaves the past a restore asked for, or why it cannot be had.
+    pub fn put(&self, scene: &str, user: UserId, op: EditOp, past: Result<PastBox, String>) {
+        let past = past.and_then(|p| {
+            if p.bytes() > MAX_PAST_BYTES {
+                Err(format!(
+                    "the box held {} MiB then, more than one restore takes ({} MiB): restore it in parts",
+                    p.bytes() >> 20,
+                    MAX_PAST_BYTES >> 20
+                ))
+            } else {
+                Ok(Arc::new(p))
+            }
+        });
+        self.by
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert((scene.to_string(), user), (op, past));
+    }
+
+    /// Takes what was fetched for `op` of `user` in `scene`: `None` when nothing was.
+    fn take(&self, scene: &str, user: UserId, op: &EditOp) -> Option<Result<Arc<PastBox>, String>> {
+        let mut by = self.by.lock().unwrap_or_else(|e| e.into_inner());
+        let key = (scene.to_string(), user);
+        match by.get(&key) {
+            Some((asked, _)) if asked == op => by.remove(&key).map(|(_, past)| past),
+            _ => None,
+        }
+    }
+}
+
+impl Owner {
+    /// A message of one `EditOp::Restore` from `user` (an editor): its past taken from what the
+    /// session fetched, applied as one turn's brick writes, journaled as the user's step and
+    /// logged as it.
+    pub(super) fn apply_restore(
+        &mut self,
+        to_ack: AckTo,
+        client_seq: u64,
+        user: UserId,
+        op: EditOp,
+        log: &mut Log,
+    ) -> PendingAck {
+        let refuse = |metrics: &Metrics, reason: Rejection| {
+            Metrics::add(&metrics.ops_rejected, 1);
+            ack(
+                to_ack,
+                client_seq,
+                None,
+                0,
+                vec![OpRejection { index: 0, reason }],
+            )
+        };
+        let EditOp::Restore { to, .. } = op else {
+            return refuse(&self.metrics, Rejection::malformed("not a restore"));
+        };
+        if let Err(reason) = op.validate(self.map.size(), &self.config.limits) {
+            return refuse(&self.metrics, reason);
+        }
+        let past = match self.config.pasts.take(&self.name, user, &op) {
+            Some(Ok(past)) => past,
+            Some(Err(why)) => return refuse(&self.metrics, Rejection::malformed(why)),
+            None => {
+                return refuse(
+                    &self.metrics,
+                    Rejection::malformed(
+                        "no past was fetched for this restore: a cluster keeps no history yet (a single node does), \
+                         or another restore of yours in this scene took its place",
+                    ),
+                );
+            }
+        };
+        if let Err(stale) = past.check(&self.map) {
+            return refuse(&self.metrics, Rejection::malformed(stale.to_string()));
+        }
+        let bricks = past.restore(&self.map);
+        let work = op.work(self.map.size());
+        let seq = self.write_step(user, &bricks, work, log, |bricks, step| LogRecord::Rewind {
+            user,
+            to,
+            bricks,
+            step,
+        });
+        ack(to_ack, client_seq, Some(seq), 1, Vec::new())
+    }
+}
