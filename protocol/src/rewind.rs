@@ -26,9 +26,13 @@ pub enum Stale {
     Changed,
 }
 
-/// Brick coordinates of the cells `min..=max` (voxels) touches, in cell order (z, y, x).
-fn cells_of(min: [u32; 3], max: [u32; 3]) -> impl Iterator<Item = [u32; 3]> {
-    let (lo, hi) = (min.map(|c| c / BRICK_EDGE), max.map(|c| c / BRICK_EDGE));
+/// Brick coordinates of the cells of `map` that `min..=max` (voxels) touches, in cell order
+/// (z, y, x): none past the map, whatever the box.
+fn cells_of(map: &BrickMap, min: [u32; 3], max: [u32; 3]) -> impl Iterator<Item = [u32; 3]> {
+    let dims = map.cell_dims();
+    let lo = min.map(|c| c / BRICK_EDGE);
+    let hi: [u32; 3] =
+        std::array::from_fn(|i| (max[i] / BRICK_EDGE).min(dims[i].saturating_sub(1)));
     (lo[2]..=hi[2]).flat_map(move |z| {
         (lo[1]..=hi[1]).flat_map(move |y| (lo[0]..=hi[0]).map(move |x| [x, y, z]))
     })
@@ -47,11 +51,16 @@ fn voxels(brick: Option<&BrickData>) -> [Option<Colour>; 512] {
     out
 }
 
+/// About what one listed cell weighs in memory.
+fn brick_bytes(brick: Option<&BrickData>) -> usize {
+    24 + brick.map_or(0, |b| 64 + 2 * b.colours.len())
+}
+
 impl PastBox {
     /// The box `min..=max` of `past` (corners in order, inside the map: the op's check), every
     /// cell it touches.
     pub fn take(past: &BrickMap, min: [u32; 3], max: [u32; 3]) -> PastBox {
-        let bricks = cells_of(min, max)
+        let bricks = cells_of(past, min, max)
             .map(|cell| (cell, past.brick(cell)))
             .collect();
         PastBox {
@@ -64,19 +73,32 @@ impl PastBox {
 
     /// The box of `past` where it differs from `now` (the same scene at a later sequence):
     /// what a restore writes, if the box does not change after `now` (see [`PastBox::check`]).
-    pub fn diff(past: &BrickMap, now: &BrickMap, min: [u32; 3], max: [u32; 3]) -> PastBox {
-        let bricks = cells_of(min, max)
-            .filter_map(|cell| {
-                let then = past.brick(cell);
-                (then != now.brick(cell)).then_some((cell, then))
-            })
-            .collect();
-        PastBox {
+    /// `Err(bytes)` as soon as it would weigh more than `max_bytes` ([`PastBox::bytes`]).
+    pub fn diff(
+        past: &BrickMap,
+        now: &BrickMap,
+        min: [u32; 3],
+        max: [u32; 3],
+        max_bytes: usize,
+    ) -> Result<PastBox, usize> {
+        let mut bricks = Vec::new();
+        let mut bytes = 0;
+        for cell in cells_of(past, min, max) {
+            let then = past.brick(cell);
+            if then != now.brick(cell) {
+                bytes += brick_bytes(then.as_ref());
+                if bytes > max_bytes {
+                    return Err(bytes);
+                }
+                bricks.push((cell, then));
+            }
+        }
+        Ok(PastBox {
             min,
             max,
             against: Some(now.sequence()),
             bricks,
-        }
+        })
     }
 
     /// Whether it still describes the box on `now`: no cell of the box it does not list changed
@@ -109,7 +131,7 @@ impl PastBox {
     pub fn bytes(&self) -> usize {
         self.bricks
             .iter()
-            .map(|(_, b)| 24 + b.as_ref().map_or(0, |b| 64 + 2 * b.colours.len()))
+            .map(|(_, b)| brick_bytes(b.as_ref()))
             .sum()
     }
 
@@ -203,7 +225,12 @@ mod tests {
         // Compared against the present, it lists only the bricks that differ, and writes the
         // same; a change inside the box after the present makes it stale, one outside not.
         now.set_sequence(5);
-        let diff = PastBox::diff(&then, &now, [0, 0, 0], [12, 15, 12]);
+        let diff = PastBox::diff(&then, &now, [0, 0, 0], [12, 15, 12], usize::MAX).unwrap();
+        // Bounded: past the bound it stops, saying how far it got.
+        assert!(PastBox::diff(&then, &now, [0, 0, 0], [12, 15, 12], 100).is_err());
+        // A box past the scene touches only the scene's cells.
+        let huge = PastBox::take(&then, [0, 0, 0], [u32::MAX; 3]);
+        assert_eq!(huge.bricks.len(), 4 * 2 * 4);
         assert!(diff.bricks.len() < past.bricks.len());
         assert_eq!(diff.restore(&now), bricks);
         assert_eq!(diff.check(&now), Ok(()));

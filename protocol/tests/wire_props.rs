@@ -619,7 +619,7 @@ fn raw_frame<T: serde::Serialize>(value: &T) -> Vec<u8> {
 
 #[test]
 fn hello_carries_the_protocol_version() {
-    assert_eq!(PROTOCOL_VERSION, 7);
+    assert_eq!(PROTOCOL_VERSION, 8);
     let bytes = encode_client(&hello()).expect("encode");
     match decode_client(&bytes, &Limits::default()).expect("decode") {
         ClientMsg::Hello { protocol, .. } => assert_eq!(protocol, PROTOCOL_VERSION),

@@ -86,7 +86,7 @@ fn history(c: &mut Criterion) {
     let mut g = c.benchmark_group("history");
     g.sample_size(10);
     g.bench_function("timeline_1m", |b| {
-        b.iter(|| black_box(store.timeline("h", 1000).expect("timeline").len()))
+        b.iter(|| black_box(store.timeline("h", 1000).expect("timeline").1.len()))
     });
     g.bench_function("view_halfway", |b| {
         b.iter(|| {

@@ -110,6 +110,8 @@ pub struct ServerConfig {
     /// Sequences of each scene's past the redb store keeps for its timeline and views of it
     /// (`serve --keep-history`, `store::past`; 0: none).
     pub keep_history: u64,
+    /// Bytes of each scene's past kept at most (`serve --keep-history-bytes`).
+    pub keep_history_bytes: u64,
 }
 
 /// `serve --nats URL [--node NAME]`.
@@ -141,6 +143,7 @@ impl ServerConfig {
             http: http::HttpConfig::default(),
             cluster: None,
             keep_history: store::DEFAULT_KEEP,
+            keep_history_bytes: store::DEFAULT_KEEP_BYTES,
         }
     }
 }
@@ -397,6 +400,7 @@ impl Server {
             })?;
         let store = Arc::new(Store::open(&config.data)?);
         store.set_keep_history(config.keep_history);
+        store.set_keep_history_bytes(config.keep_history_bytes);
         let demo_size = config.demo_size;
         let store2 = store.clone();
         let loaded = tokio::task::spawn_blocking(move || -> anyhow::Result<Vec<(String, store::Loaded)>> {
@@ -653,33 +657,26 @@ async fn history(
     Path(name): Path<String>,
     axum::extract::Query(query): axum::extract::Query<HistoryQuery>,
 ) -> Response {
-    let Some(store) = app.store.clone() else {
+    if app.store.is_none() {
         return (
             StatusCode::NOT_IMPLEMENTED,
             "this server keeps no history of its scenes (a cluster node): a single node does\n",
         )
             .into_response();
-    };
+    }
     if app.scene(&name).is_none() {
         return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
     }
     let limit = query.limit.unwrap_or(1000).clamp(1, MAX_TIMELINE);
-    let scene = name.clone();
-    let read = tokio::task::spawn_blocking(move || {
-        let span = store.past_span(&scene)?;
-        let changes = store.timeline(&scene, limit)?;
-        Ok::<_, store::StoreError>((span, changes))
-    })
-    .await;
-    match read {
-        Ok(Ok((span, changes))) => axum::Json(serde_json::json!({
+    match app.past.timeline(&app, &name, limit).await {
+        Ok((span, changes)) => axum::Json(serde_json::json!({
             "scene": name,
             "oldest": span.oldest,
             "newest": span.newest,
             "changes": changes,
         }))
         .into_response(),
-        Ok(Err(e)) => (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response(),
+        Err(e) if e.not_found() => (StatusCode::NOT_FOUND, format!("{e}\n")).into_response(),
         Err(e) => (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response(),
     }
 }
@@ -898,7 +895,7 @@ async fn past_websocket(
         return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
     }
     // A sequence the store does not keep is a 404 whether or not the request is a websocket.
-    if let Err(e) = app.past.check(&app, name, seq) {
+    if let Err(e) = app.past.check(&app, name, seq).await {
         let status = if e.not_found() {
             StatusCode::NOT_FOUND
         } else {
@@ -920,7 +917,7 @@ async fn past_websocket(
             return (StatusCode::SERVICE_UNAVAILABLE, format!("{refusal}\n")).into_response();
         }
     };
-    let (scene, using) = match app.past.open(&app, name, seq).await {
+    let (scene, using) = match app.past.open(&app, name, seq, peer.ip()).await {
         Ok(found) => found,
         Err(e) if e.not_found() => {
             return (StatusCode::NOT_FOUND, format!("{e}\n")).into_response();

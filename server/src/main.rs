@@ -63,6 +63,12 @@ enum Cmd {
         /// rejected, and the server refuses to serve the scene until they are folded in.
         #[arg(long)]
         repair: bool,
+        /// Sequences of the scene's past to keep, as `serve --keep-history` (0: none).
+        #[arg(long, default_value_t = brickcast_server::store::DEFAULT_KEEP)]
+        keep_history: u64,
+        /// Bytes of the scene's past kept at most, as `serve --keep-history-bytes`.
+        #[arg(long, default_value_t = brickcast_server::store::DEFAULT_KEEP_BYTES)]
+        keep_history_bytes: u64,
     },
     /// Import a mesh (OBJ with its MTL and textures) or a MagicaVoxel .vox as a new scene.
     ///
@@ -213,8 +219,12 @@ fn run() -> anyhow::Result<()> {
             scene,
             data,
             repair,
+            keep_history,
+            keep_history_bytes,
         } => {
             let store = open_store(&data)?;
+            store.set_keep_history(keep_history);
+            store.set_keep_history_bytes(keep_history_bytes);
             let loaded = if repair {
                 store.load_scene_repairing(&scene)?
             } else {
@@ -432,6 +442,10 @@ struct ServeArgs {
     /// (`/scenes/NAME~SEQ`, restores), at least (older ones go at snapshots); 0 keeps none.
     #[arg(long, default_value_t = brickcast_server::store::DEFAULT_KEEP)]
     keep_history: u64,
+    /// Bytes of each scene's past kept at most: beyond them its oldest goes first, whatever
+    /// --keep-history says.
+    #[arg(long, default_value_t = brickcast_server::store::DEFAULT_KEEP_BYTES)]
+    keep_history_bytes: u64,
     /// Bytes queued to all clients together before slow clients stop getting deltas (they
     /// resync once they catch up) and syncs pause.
     #[arg(long, default_value_t = 1 << 30)]
@@ -498,6 +512,7 @@ fn serve(args: ServeArgs) -> anyhow::Result<()> {
         config.owner.max_queued_total = args.max_queued_bytes;
         config.owner.max_history_bytes = args.max_history_bytes;
         config.keep_history = args.keep_history;
+        config.keep_history_bytes = args.keep_history_bytes;
         config.connections.max_total = args.max_connections;
         config.connections.max_per_ip = args.max_connections_per_ip;
         config.ids_per_address = args.ids_per_address;

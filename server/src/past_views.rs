@@ -12,6 +12,7 @@
 //! Only a single node keeps the past; a cluster node refuses views of it.
 
 use std::collections::HashMap;
+use std::net::IpAddr;
 use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -19,7 +20,7 @@ use std::time::Duration;
 use crate::scene::{
     Command, LogError, SceneHandle, SceneLog, SnapshotOf, TurnWrite, history::Stacks,
 };
-use crate::store::{Loaded, SceneMeta};
+use crate::store::{Change, Loaded, SceneMeta, Span};
 use crate::{App, scene};
 
 /// Views of the past a server holds open at once.
@@ -37,32 +38,81 @@ pub fn split_past(path: &str) -> Option<Result<(&str, u64), String>> {
     })
 }
 
+/// Rebuilds of a scene's past (`Store::scene_at`, `Store::timeline`) a server runs at once:
+/// each reads a snapshot and replays up to a snapshot interval of log (seconds for the largest
+/// scenes, on a blocking thread), so a flood of timeline requests, views and restores waits
+/// its turn instead of taking every core.
+pub const MAX_REBUILDS: usize = 2;
+
+/// Views of the past one address may hold open that nobody else opened (joining one already
+/// open is always allowed), so one client cannot take every view.
+pub const MAX_PER_ADDRESS: usize = 2;
+
 /// The views of the past open on this server.
-#[derive(Default)]
 pub struct PastViews {
-    open: Arc<Mutex<HashMap<String, Open>>>,
+    open: Arc<Mutex<Opened>>,
     /// Held while a view opens (rebuilding a scene is seconds for the largest).
     opening: tokio::sync::Mutex<()>,
+    /// Turns at rebuilding the past ([`MAX_REBUILDS`]).
+    rebuilds: tokio::sync::Semaphore,
+    /// Each scene's last timeline, with the span it covers and the most changes it lists: a
+    /// request for no more over the same span is answered from it.
+    timelines: Mutex<HashMap<String, Timeline>>,
+}
+
+type Timeline = (Span, usize, Arc<Vec<Change>>);
+
+impl Default for PastViews {
+    fn default() -> Self {
+        PastViews {
+            open: Arc::default(),
+            opening: tokio::sync::Mutex::default(),
+            rebuilds: tokio::sync::Semaphore::new(MAX_REBUILDS),
+            timelines: Mutex::default(),
+        }
+    }
+}
+
+#[derive(Default)]
+struct Opened {
+    views: HashMap<String, Open>,
+    /// Uses of views by address.
+    by_address: HashMap<IpAddr, usize>,
 }
 
 struct Open {
     handle: SceneHandle,
+    /// Its uses; a [`PastUse`] knows its view by this (not by name: a view that stopped and
+    /// opened again under the same name is another view).
     uses: Arc<AtomicUsize>,
 }
 
 /// One viewer of a view of the past: the view closes when the last one goes.
 pub struct PastUse {
     key: String,
-    open: Arc<Mutex<HashMap<String, Open>>>,
+    uses: Arc<AtomicUsize>,
+    from: IpAddr,
+    open: Arc<Mutex<Opened>>,
 }
 
 impl Drop for PastUse {
     fn drop(&mut self) {
         let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
-        let last = open
+        if let Some(n) = open.by_address.get_mut(&self.from) {
+            *n -= 1;
+            if *n == 0 {
+                open.by_address.remove(&self.from);
+            }
+        }
+        let last = self.uses.fetch_sub(1, Relaxed) == 1;
+        let ours = open
+            .views
             .get(&self.key)
-            .is_some_and(|o| o.uses.fetch_sub(1, Relaxed) == 1);
-        if last && let Some(gone) = open.remove(&self.key) {
+            .is_some_and(|o| Arc::ptr_eq(&o.uses, &self.uses));
+        if last
+            && ours
+            && let Some(gone) = open.views.remove(&self.key)
+        {
             // The owner stops on Shutdown (its log writes nothing), or once the last handle
             // is gone.
             let _ = gone.handle.try_send(Command::Shutdown);
@@ -81,6 +131,10 @@ pub enum PastError {
         "{0} views of the past are open on this server, the most it holds at once; try again when one closes"
     )]
     Busy(usize),
+    #[error(
+        "this address holds {0} views of the past already, the most one may open; close one first"
+    )]
+    BusyHere(usize),
     #[error("{0}")]
     Store(#[from] crate::store::StoreError),
     #[error("cannot serve the view: {0}")]
@@ -102,27 +156,42 @@ impl PastError {
 }
 
 impl PastViews {
-    /// The view of scene `name` at sequence `seq`, opened if none is.
+    fn lock(&self) -> std::sync::MutexGuard<'_, Opened> {
+        self.open.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The view of scene `name` at sequence `seq` for a viewer at `from`, opened if none is.
     pub async fn open(
         &self,
         app: &App,
         name: &str,
         seq: u64,
+        from: IpAddr,
     ) -> Result<(SceneHandle, PastUse), PastError> {
         let store = app.store.clone().ok_or(PastError::NoStore)?;
         let key = format!("{name}~{seq}");
-        let _opening = self.opening.lock().await;
-        if let Some(found) = self.take(&key) {
+        if let Some(found) = self.take(&key, from) {
             return Ok(found);
         }
-        let count = self.open.lock().unwrap_or_else(|e| e.into_inner()).len();
-        if count >= MAX_OPEN {
-            return Err(PastError::Busy(count));
+        let _opening = self.opening.lock().await;
+        if let Some(found) = self.take(&key, from) {
+            return Ok(found);
+        }
+        {
+            let open = self.lock();
+            if open.views.len() >= MAX_OPEN {
+                return Err(PastError::Busy(open.views.len()));
+            }
+            let here = open.by_address.get(&from).copied().unwrap_or(0);
+            if here >= MAX_PER_ADDRESS {
+                return Err(PastError::BusyHere(here));
+            }
         }
         let scene = name.to_string();
-        let map = tokio::task::spawn_blocking(move || store.scene_at(&scene, seq))
+        let map = self
+            .rebuild(move || store.scene_at(&scene, seq))
             .await
-            .map_err(|e| PastError::Failed(e.to_string()))??;
+            .map_err(PastError::Failed)??;
         let size = map.size();
         let loaded = Loaded {
             map,
@@ -147,21 +216,50 @@ impl PastViews {
         )
         .map_err(|e| PastError::Failed(e.to_string()))?;
         tracing::info!(scene = %name, seq, "opened a view of the past");
-        self.open.lock().unwrap_or_else(|e| e.into_inner()).insert(
+        let uses = Arc::new(AtomicUsize::new(1));
+        let mut open = self.lock();
+        open.views.insert(
             key.clone(),
             Open {
-                handle,
-                uses: Arc::default(),
+                handle: handle.clone(),
+                uses: uses.clone(),
             },
         );
-        self.take(&key)
-            .ok_or_else(|| PastError::Failed("it closed as it opened".into()))
+        *open.by_address.entry(from).or_default() += 1;
+        Ok((
+            handle,
+            PastUse {
+                key,
+                uses,
+                from,
+                open: self.open.clone(),
+            },
+        ))
+    }
+
+    /// Runs `work` (a rebuild of the past) on a blocking thread when its turn comes (at most
+    /// [`MAX_REBUILDS`] at once). `Err`: it panicked, or the server is going away.
+    pub async fn rebuild<T: Send + 'static>(
+        &self,
+        work: impl FnOnce() -> T + Send + 'static,
+    ) -> Result<T, String> {
+        let _turn = self
+            .rebuilds
+            .acquire()
+            .await
+            .map_err(|e| format!("rebuilding the past: {e}"))?;
+        tokio::task::spawn_blocking(work)
+            .await
+            .map_err(|e| format!("rebuilding the past failed: {e}"))
     }
 
     /// Whether this server can show scene `name` at `seq` (it keeps that sequence).
-    pub fn check(&self, app: &App, name: &str, seq: u64) -> Result<(), PastError> {
-        let store = app.store.as_ref().ok_or(PastError::NoStore)?;
-        let span = store.past_span(name)?;
+    pub async fn check(&self, app: &App, name: &str, seq: u64) -> Result<(), PastError> {
+        let store = app.store.clone().ok_or(PastError::NoStore)?;
+        let scene = name.to_string();
+        let span = tokio::task::spawn_blocking(move || store.past_span(&scene))
+            .await
+            .map_err(|e| PastError::Failed(e.to_string()))??;
         if seq < span.oldest || seq > span.newest {
             return Err(PastError::Store(crate::store::StoreError::NotKept {
                 scene: name.into(),
@@ -173,31 +271,96 @@ impl PastViews {
         Ok(())
     }
 
-    /// A use of the open view `key`.
-    fn take(&self, key: &str) -> Option<(SceneHandle, PastUse)> {
-        let open = self.open.lock().unwrap_or_else(|e| e.into_inner());
-        let found = open.get(key).filter(|o| !o.handle.is_closed())?;
+    /// A use of the open view `key` by a viewer at `from`.
+    fn take(&self, key: &str, from: IpAddr) -> Option<(SceneHandle, PastUse)> {
+        let mut open = self.lock();
+        let found = open.views.get(key).filter(|o| !o.handle.is_closed())?;
         found.uses.fetch_add(1, Relaxed);
+        let (handle, uses) = (found.handle.clone(), found.uses.clone());
+        *open.by_address.entry(from).or_default() += 1;
         Some((
-            found.handle.clone(),
+            handle,
             PastUse {
                 key: key.to_string(),
+                uses,
+                from,
                 open: self.open.clone(),
             },
         ))
     }
 
+    /// The latest `limit` changes of scene `name`'s timeline, and the span they cover: read
+    /// again only when the scene's kept span moved (an edit, a snapshot) or more are asked for.
+    pub async fn timeline(
+        &self,
+        app: &App,
+        name: &str,
+        limit: usize,
+    ) -> Result<(Span, Vec<Change>), PastError> {
+        let store = app.store.clone().ok_or(PastError::NoStore)?;
+        let (scene, reader) = (name.to_string(), store.clone());
+        let span = tokio::task::spawn_blocking(move || reader.past_span(&scene))
+            .await
+            .map_err(|e| PastError::Failed(e.to_string()))??;
+        let cached = |timelines: &HashMap<String, Timeline>| {
+            let (at, most, changes) = timelines.get(name)?;
+            (*at == span && *most >= limit).then(|| {
+                let from = changes.len().saturating_sub(limit);
+                (span, changes[from..].to_vec())
+            })
+        };
+        if let Some(hit) = cached(&self.timelines.lock().unwrap_or_else(|e| e.into_inner())) {
+            return Ok(hit);
+        }
+        let scene = name.to_string();
+        let (span, changes) = self
+            .rebuild(move || store.timeline(&scene, limit))
+            .await
+            .map_err(PastError::Failed)??;
+        let changes = Arc::new(changes);
+        self.timelines
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(name.to_string(), (span, limit, changes.clone()));
+        Ok((span, changes.to_vec()))
+    }
+
     /// Views open now (tests, metrics).
     pub fn count(&self) -> usize {
-        self.open.lock().unwrap_or_else(|e| e.into_inner()).len()
+        self.lock().views.len()
+    }
+
+    /// Closes the views of scene `name` (deleted, renamed, reset or replaced: its past is
+    /// another scene's now), telling their viewers `why`.
+    pub async fn close_scene(&self, name: &str, why: &str) {
+        self.timelines
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(name);
+        let prefix = format!("{name}~");
+        let gone: Vec<Open> = {
+            let mut open = self.lock();
+            let keys: Vec<String> = open
+                .views
+                .keys()
+                .filter(|k| k.starts_with(&prefix))
+                .cloned()
+                .collect();
+            keys.iter().filter_map(|k| open.views.remove(k)).collect()
+        };
+        for view in gone {
+            let farewell = Command::Farewell {
+                code: brickcast_protocol::wire::ErrorCode::UnknownScene,
+                text: why.to_string(),
+            };
+            let _ = view.handle.send(farewell).await;
+            let _ = view.handle.send(Command::Shutdown).await;
+        }
     }
 
     /// Closes every view (shutdown), waiting a little for their owners.
     pub async fn close_all(&self) {
-        let all: Vec<Open> = {
-            let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
-            open.drain().map(|(_, o)| o).collect()
-        };
+        let all: Vec<Open> = self.lock().views.drain().map(|(_, o)| o).collect();
         for view in all {
             let _ = view.handle.send(Command::Shutdown).await;
             let _ = tokio::time::timeout(Duration::from_secs(10), view.handle.closed()).await;

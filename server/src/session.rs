@@ -11,6 +11,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
+use crate::scene::rewind::MAX_PAST_BYTES;
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use brickcast_protocol::rewind::PastBox;
 use brickcast_protocol::wire::{
@@ -153,6 +154,7 @@ pub async fn run(
                     unread: &unread,
                 };
                 read_loop(&mut stream, session).await;
+                app.owner_config.pasts.forget(&scene.name, id);
                 let _ = scene.send(Command::Leave { session: id }).await;
                 if let Some(link) = &link
                     && !who.stable
@@ -362,7 +364,6 @@ async fn read_loop(
         out,
         id,
         role,
-        who,
         ..
     } = session;
     let limits: &Limits = &scene.limits;
@@ -520,24 +521,34 @@ async fn read_loop(
                     () = shutdown.cancelled() => return,
                     _ = out.closed() => return,
                 };
-                // A restore's past is rebuilt here, off the owner (`scene::rewind`).
+                // A restore's past is rebuilt here, off the owner (`scene::rewind`), for a box
+                // the op's own check accepts (else the owner refuses it, saying why).
                 if let (None, Some(store), [op @ EditOp::Restore { to, min, max }]) =
                     (&forwarder, &app.store, &ops[..])
+                    && op.validate(scene.size, limits).is_ok()
                 {
                     let (store, name, (to, min, max)) =
                         (store.clone(), scene.name.clone(), (*to, *min, *max));
                     // The box then against the scene as the store holds it now: only the
                     // bricks that differ go to the owner.
-                    let fetch = tokio::task::spawn_blocking(move || {
-                        let then = store.scene_at(&name, to)?;
-                        let now = store.scene_at(&name, store.past_span(&name)?.newest)?;
-                        Ok::<_, crate::store::StoreError>(PastBox::diff(&then, &now, min, max))
+                    let fetch = app.past.rebuild(move || {
+                        let (then, now) = store.then_and_now(&name, to).map_err(|e| e.to_string())?;
+                        PastBox::diff(&then, &now, min, max, MAX_PAST_BYTES).map_err(|bytes| {
+                            format!(
+                                "the box differs from then in more than {} MiB of bricks ({} MiB so far), more than one restore takes: restore it in parts",
+                                MAX_PAST_BYTES >> 20,
+                                bytes >> 20
+                            )
+                        })
                     });
-                    let past = match fetch.await {
-                        Ok(fetched) => fetched.map_err(|e| e.to_string()),
-                        Err(e) => Err(format!("rebuilding the past failed: {e}")),
+                    let past = tokio::select! {
+                        fetched = fetch => fetched.and_then(|f| f),
+                        () = shutdown.cancelled() => return,
+                        _ = out.closed() => return,
                     };
-                    app.owner_config.pasts.put(&scene.name, who.user, *op, past);
+                    app.owner_config
+                        .pasts
+                        .put(&scene.name, id, client_seq, *op, past);
                 }
                 let sent = match &forwarder {
                     // The turn is held while the forwarder takes it; the owner node's own

@@ -36,7 +36,7 @@ mod history_rows;
 mod past;
 mod streamed;
 mod trash;
-pub use past::{Change, DEFAULT_KEEP, Span};
+pub use past::{Change, DEFAULT_KEEP, DEFAULT_KEEP_BYTES, Span};
 pub use streamed::SceneWriter;
 pub use trash::Deleted;
 
@@ -290,6 +290,8 @@ pub struct Store {
     packs: std::sync::Mutex<std::collections::HashMap<String, history_rows::PackState>>,
     /// Sequences of each scene's past kept for its timeline and views of it (`past.rs`).
     keep_history: std::sync::atomic::AtomicU64,
+    /// Bytes of each scene's past kept at most (the oldest go first beyond them).
+    keep_history_bytes: std::sync::atomic::AtomicU64,
 }
 
 /// A scene as recovered from the store.
@@ -366,6 +368,7 @@ impl Store {
             path,
             packs: Default::default(),
             keep_history: past::DEFAULT_KEEP.into(),
+            keep_history_bytes: past::DEFAULT_KEEP_BYTES.into(),
         })
     }
 
@@ -374,6 +377,13 @@ impl Store {
     pub fn set_keep_history(&self, seqs: u64) {
         self.keep_history
             .store(seqs, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Keeps at most `bytes` of each scene's past (its oldest goes first), from the next
+    /// snapshot on.
+    pub fn set_keep_history_bytes(&self, bytes: u64) {
+        self.keep_history_bytes
+            .store(bytes, std::sync::atomic::Ordering::Relaxed);
     }
 
     pub fn path(&self) -> &Path {
@@ -751,7 +761,12 @@ impl Store {
                     old.snapshot_seq
                 )));
             }
-            let keep = self.keep_history.load(std::sync::atomic::Ordering::Relaxed);
+            let keep = past::Keep {
+                seqs: self.keep_history.load(std::sync::atomic::Ordering::Relaxed),
+                bytes: self
+                    .keep_history_bytes
+                    .load(std::sync::atomic::Ordering::Relaxed),
+            };
             past::archive(&txn, scene, old.snapshot_seq, seq, cells, keep)?;
             let bricks_name = bricks_table(scene);
             let mut bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_name))?;

@@ -643,6 +643,23 @@ async fn the_past_is_listed_viewed_and_restored() {
     bob.catch_up(redone).await;
     assert_eq!(bob.map.get([14, 6, 10]), Some(red), "redone");
 
+    // A box past the scene is refused as such, at once (its past is never fetched).
+    let huge = alice
+        .edit(vec![EditOp::Restore {
+            to: good,
+            min: [0; 3],
+            max: [u32::MAX; 3],
+        }])
+        .await;
+    let ServerMsg::Ack {
+        seq: None,
+        rejected,
+        ..
+    } = &huge
+    else {
+        panic!("{huge:?}")
+    };
+    assert_eq!(rejected[0].reason, Rejection::OutOfBounds);
     // A sequence the store does not keep: refused, saying what it keeps.
     let far = alice
         .edit(vec![EditOp::Restore {

@@ -662,6 +662,12 @@ pub(crate) async fn take_out(app: &App, name: &str, why: String) -> Result<(), A
         text: why,
     };
     let _ = handle.send(farewell).await;
+    app.past
+        .close_scene(
+            name,
+            &format!("scene {name} was changed by an administrator: its past is gone"),
+        )
+        .await;
     crate::served::close(name, entry, Closing::Admin, &app.scenes.still_closing).await;
     // A large scene's last snapshot may take longer than a close's patience: wait for it.
     handle.closed().await;

@@ -23,53 +23,80 @@ use std::sync::{Arc, Mutex};
 use brickcast_protocol::rewind::PastBox;
 use brickcast_protocol::wire::{EditOp, OpRejection, Rejection, UserId};
 
+use super::SessionId;
 use super::owner::{AckTo, Log, Owner, PendingAck, ack};
 use crate::metrics::Metrics;
 use crate::record::LogRecord;
 
 /// Most bytes of the past one restore may bring (the bricks of its box that differ now from
 /// then, as they were then): more is refused, saying to restore the box in parts. The owner
-/// rewrites each in its turn (about as many bricks as a 256³ paste at most).
+/// rewrites each in its turn (about as many bricks as a 256³ paste at most). The fetch stops
+/// as soon as it passes this, so a huge difference costs no more memory than this.
 pub const MAX_PAST_BYTES: usize = 64 << 20;
 
-/// What a restore's box held then (or why it cannot be had), keyed by what it was asked for.
-type Prepared = (EditOp, Result<Arc<PastBox>, String>);
+/// What a restore's box held then (or why it cannot be had), for the message `client_seq` of
+/// a session, and the op it was fetched for.
+type Prepared = (u64, EditOp, Result<Arc<PastBox>, String>);
 
-/// Past boxes fetched by sessions for their users' restores, waiting for the scene's owner.
-/// One per scene and user at a time: a session fetches and sends one op at a time.
+/// Past boxes fetched by sessions for their restores, waiting for the scene's owner: at most
+/// one per session (a session reads one message at a time, so a newer one replaces an older
+/// one the owner never took), forgotten when the session ends.
 #[derive(Debug, Default)]
 pub struct Pasts {
-    by: Mutex<HashMap<(String, UserId), Prepared>>,
+    by: Mutex<HashMap<(String, SessionId), Prepared>>,
 }
 
 impl Pasts {
-    /// Leaves the past a restore asked for, or why it cannot be had.
-    pub fn put(&self, scene: &str, user: UserId, op: EditOp, past: Result<PastBox, String>) {
-        let past = past.and_then(|p| {
-            if p.bytes() > MAX_PAST_BYTES {
-                Err(format!(
-                    "the box held {} MiB then, more than one restore takes ({} MiB): restore it in parts",
-                    p.bytes() >> 20,
-                    MAX_PAST_BYTES >> 20
-                ))
-            } else {
-                Ok(Arc::new(p))
-            }
-        });
-        self.by
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert((scene.to_string(), user), (op, past));
+    fn held(&self) -> std::sync::MutexGuard<'_, HashMap<(String, SessionId), Prepared>> {
+        self.by.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Takes what was fetched for `op` of `user` in `scene`: `None` when nothing was.
-    fn take(&self, scene: &str, user: UserId, op: &EditOp) -> Option<Result<Arc<PastBox>, String>> {
-        let mut by = self.by.lock().unwrap_or_else(|e| e.into_inner());
-        let key = (scene.to_string(), user);
+    /// Leaves the past of message `client_seq` of `session` in `scene` (a restore, `op`), or
+    /// why it cannot be had.
+    pub fn put(
+        &self,
+        scene: &str,
+        session: SessionId,
+        client_seq: u64,
+        op: EditOp,
+        past: Result<PastBox, String>,
+    ) {
+        let past = past.map(Arc::new);
+        self.held()
+            .insert((scene.to_string(), session), (client_seq, op, past));
+    }
+
+    /// Forgets what `session` left in `scene` (it ended).
+    pub fn forget(&self, scene: &str, session: SessionId) {
+        self.held().remove(&(scene.to_string(), session));
+    }
+
+    /// Takes what was fetched for message `client_seq` (`op`) of `session` in `scene`: `None`
+    /// when nothing was.
+    fn take(
+        &self,
+        scene: &str,
+        session: SessionId,
+        client_seq: u64,
+        op: &EditOp,
+    ) -> Option<Result<Arc<PastBox>, String>> {
+        let mut by = self.held();
+        let key = (scene.to_string(), session);
         match by.get(&key) {
-            Some((asked, _)) if asked == op => by.remove(&key).map(|(_, past)| past),
+            Some((seq, asked, _)) if *seq == client_seq && asked == op => {
+                by.remove(&key).map(|(_, _, past)| past)
+            }
             _ => None,
         }
+    }
+
+    /// Pasts held now (tests).
+    pub fn len(&self) -> usize {
+        self.held().len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
     }
 }
 
@@ -101,15 +128,18 @@ impl Owner {
         if let Err(reason) = op.validate(self.map.size(), &self.config.limits) {
             return refuse(&self.metrics, reason);
         }
-        let past = match self.config.pasts.take(&self.name, user, &op) {
+        let fetched = match to_ack {
+            AckTo::Session(session) => self.config.pasts.take(&self.name, session, client_seq, &op),
+            AckTo::Remote(_) => None,
+        };
+        let past = match fetched {
             Some(Ok(past)) => past,
             Some(Err(why)) => return refuse(&self.metrics, Rejection::malformed(why)),
             None => {
                 return refuse(
                     &self.metrics,
                     Rejection::malformed(
-                        "no past was fetched for this restore: a cluster keeps no history yet (a single node does), \
-                         or another restore of yours in this scene took its place",
+                        "no past was fetched for this restore: a cluster keeps no history yet (a single node does)",
                     ),
                 );
             }

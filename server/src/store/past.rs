@@ -4,8 +4,8 @@
 //! rewrote. Now, in the same transaction, it first keeps them (unless history is off):
 //! - `pastbricks/<scene>`: (P, cell) → the cell's row as it was at the old snapshot P (empty:
 //!   no brick), for every cell the new snapshot rewrites;
-//! - `pastpalette/<scene>`: P → the palette at P (a row for every snapshot kept, so its keys
-//!   are the **points** the past can be rebuilt from);
+//! - `pastpalette/<scene>`: P → the palette at P and the bytes kept with P (a row for every
+//!   snapshot kept, so its keys are the **points** the past can be rebuilt from);
 //! - `pastlog/<scene>`: the log rows the snapshot trims, as they were.
 //!
 //! and every commit notes its time: `times/<scene>`: the last sequence it made durable → Unix
@@ -15,11 +15,14 @@
 //! cell, the kept row of the *first* point at or after P that kept it (the cell's state just
 //! before the next snapshot rewrote it); then the log rows after P (kept ones, then the live
 //! log) replay up to s through the same `LogRecord::replay` as recovery. A view starts at the
-//! latest point at or before s, so it replays at most one snapshot interval.
+//! latest point at or before s (the snapshot itself from its sequence on), so it replays at
+//! most one snapshot interval of log; it reads every brick row kept after that point.
 //!
-//! **Retention.** The store keeps at least the last `keep` sequences: at each snapshot, the
-//! points older than the latest one at or before `head − keep`, their bricks, and the rows
-//! and times at or before that point go. `keep` 0 keeps nothing (as before #34).
+//! **Retention.** The store keeps at least the last `keep` sequences, unless they take more
+//! than `keep_bytes` (each point's row counts the bytes kept with it): at each snapshot, the
+//! points older than the latest one at or before `head − keep` (or than the oldest that fits
+//! the bytes, counting from the newest), their bricks, and the rows and times at or before
+//! that point go. `keep` 0 keeps nothing (as before #34).
 //!
 //! Single node only: a cluster's snapshots and log live in JetStream, and keep no past yet.
 
@@ -39,6 +42,10 @@ use crate::record::LogRecord;
 
 /// Sequences of history a store keeps unless told otherwise (`serve --keep-history`).
 pub const DEFAULT_KEEP: u64 = 1_000_000;
+/// Bytes of one scene's past a store keeps at most unless told otherwise (`serve
+/// --keep-history-bytes`): the oldest go first beyond them, so a scene rewritten whole at
+/// every snapshot cannot fill the disk.
+pub const DEFAULT_KEEP_BYTES: u64 = 1 << 30;
 
 type PastBricks<'a> = TableDefinition<'a, (u64, u32), &'static [u8]>;
 type Rows<'a> = TableDefinition<'a, u64, &'static [u8]>;
@@ -85,27 +92,35 @@ pub(super) fn archive(
     old: u64,
     new: u64,
     cells: &[u32],
-    keep: u64,
+    keep: Keep,
 ) -> Result<(), StoreError> {
-    if keep == 0 || new == old {
+    if keep.seqs == 0 || new == old {
         return Ok(());
     }
+    let mut bytes = 0u64;
     let bricks = txn.open_table(TableDefinition::<u32, &[u8]>::new(&bricks_table(name)))?;
     let mut past = txn.open_table(PastBricks::new(&past_bricks_table(name)))?;
     for &cell in cells {
         match bricks.get(cell)? {
-            Some(row) => past.insert((old, cell), row.value())?,
-            None => past.insert((old, cell), &[][..])?,
+            Some(row) => {
+                bytes += row.value().len() as u64 + 12;
+                past.insert((old, cell), row.value())?
+            }
+            None => {
+                bytes += 12;
+                past.insert((old, cell), &[][..])?
+            }
         };
     }
     drop(bricks);
     let log = txn.open_table(Rows::new(&log_table(name)))?;
     let mut past_log = txn.open_table(Rows::new(&past_log_table(name)))?;
     for row in log.range(..=new)? {
-        let (key, bytes) = row?;
-        past_log.insert(key.value(), bytes.value())?;
+        let (key, row) = row?;
+        bytes += row.value().len() as u64 + 8;
+        past_log.insert(key.value(), row.value())?;
     }
-    let palette = {
+    let mut point = {
         let table = txn.open_table(TableDefinition::<u32, &[u8]>::new(&palette_table(name)))?;
         let row = table.get(PALETTE_ROW)?;
         row.map_or_else(
@@ -113,42 +128,77 @@ pub(super) fn archive(
             |r| r.value().to_vec(),
         )
     };
+    point.extend_from_slice(&bytes.to_le_bytes());
     txn.open_table(Rows::new(&past_palette_table(name)))?
-        .insert(old, palette.as_slice())?;
+        .insert(old, point.as_slice())?;
     Ok(())
 }
 
-/// After a snapshot at `head`: drops what no sequence in the last `keep` needs.
+/// A point's row: the palette then, and the bytes kept with the point (its bricks and the log
+/// after it up to the next point).
+fn split_point(row: &[u8]) -> (&[u8], u64) {
+    match row.len().checked_sub(8) {
+        Some(at) => {
+            let (palette, bytes) = row.split_at(at);
+            let bytes: [u8; 8] = bytes.try_into().unwrap_or_default();
+            (palette, u64::from_le_bytes(bytes))
+        }
+        None => (row, 0),
+    }
+}
+
+/// How much of a scene's past a store keeps: at least the last `seqs` sequences, unless they
+/// take more than `bytes`, when the oldest go first (0 sequences: nothing).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Keep {
+    pub seqs: u64,
+    pub bytes: u64,
+}
+
+/// After a snapshot at `head`: drops what no sequence `keep` keeps needs.
 pub(super) fn trim(
     txn: &WriteTransaction,
     name: &str,
     head: u64,
-    keep: u64,
+    keep: Keep,
 ) -> Result<(), StoreError> {
-    let horizon = head.saturating_sub(keep);
     let mut points = txn.open_table(Rows::new(&past_palette_table(name)))?;
-    // The latest point at or before the horizon: every sequence after it rebuilds from it.
-    // With nothing to keep, even the snapshot's own point goes.
-    let cut = if keep == 0 {
-        head.saturating_add(1)
+    let kept: Vec<(u64, u64)> = points
+        .iter()?
+        .map(|r| r.map(|(k, v)| (k.value(), split_point(v.value()).1)))
+        .collect::<Result<_, _>>()?;
+    // Every point before `cut` goes, with its bricks, and the log and times up to it.
+    let everything = head.saturating_add(1);
+    let mut cut = 0;
+    if keep.seqs == 0 {
+        cut = everything;
     } else {
-        match points.range(..=horizon)?.next_back() {
-            Some(row) => row?.0.value(),
-            None => return Ok(()),
+        // The latest point at or before the horizon: every sequence after it rebuilds from it.
+        let horizon = head.saturating_sub(keep.seqs);
+        if let Some(&(p, _)) = kept.iter().rev().find(|(p, _)| *p <= horizon) {
+            cut = p;
         }
-    };
+        // Newest first, the points that fit in the bytes; the first that does not goes with
+        // every older one.
+        let mut total = 0u64;
+        for (i, &(_, bytes)) in kept.iter().enumerate().rev() {
+            total = total.saturating_add(bytes);
+            if total > keep.bytes {
+                cut = cut.max(kept.get(i + 1).map_or(everything, |&(p, _)| p));
+                break;
+            }
+        }
+    }
+    if cut == 0 {
+        return Ok(());
+    }
     points.retain_in(..cut, |_, _| false)?;
     txn.open_table(PastBricks::new(&past_bricks_table(name)))?
         .retain_in(..(cut, 0), |_, _| false)?;
     txn.open_table(Rows::new(&past_log_table(name)))?
         .retain_in(..=cut.min(head), |_, _| false)?;
-    if keep == 0 {
-        txn.open_table(Times::new(&times_table(name)))?
-            .retain_in(0.., |_, _| false)?;
-    } else {
-        txn.open_table(Times::new(&times_table(name)))?
-            .retain_in(..=cut, |_, _| false)?;
-    }
+    txn.open_table(Times::new(&times_table(name)))?
+        .retain_in(..=cut.min(head), |_, _| false)?;
     Ok(())
 }
 
@@ -212,13 +262,25 @@ impl Store {
 
     /// The scene as it was at sequence `seq` (read-only use: its undo history is not loaded).
     pub fn scene_at(&self, name: &str, seq: u64) -> Result<BrickMap, StoreError> {
-        self.replay_past(name, seq, false, |_, _, _| {})
+        let txn = self.db.begin_read()?;
+        self.replay_past(&txn, name, Some(seq), false, |_, _, _| {})
+    }
+
+    /// The scene at sequence `seq` and as the store holds it now, read together (what a
+    /// restore compares).
+    pub fn then_and_now(&self, name: &str, seq: u64) -> Result<(BrickMap, BrickMap), StoreError> {
+        let txn = self.db.begin_read()?;
+        let then = self.replay_past(&txn, name, Some(seq), false, |_, _, _| {})?;
+        let now = self.replay_past(&txn, name, None, false, |_, _, _| {})?;
+        Ok((then, now))
     }
 
     /// Who changed what region when over the sequences the store keeps: the latest `limit`
-    /// changes, oldest first.
-    pub fn timeline(&self, name: &str, limit: usize) -> Result<Vec<Change>, StoreError> {
+    /// changes, oldest first, and the span they were read from.
+    pub fn timeline(&self, name: &str, limit: usize) -> Result<(Span, Vec<Change>), StoreError> {
         let txn = self.db.begin_read()?;
+        let meta = self.meta(&txn, name)?;
+        let span = span(&txn, name, meta.snapshot_seq)?;
         let times: BTreeMap<u64, u64> = match open_optional::<u64, u64>(&txn, &times_table(name))? {
             Some(table) => table
                 .iter()?
@@ -226,10 +288,8 @@ impl Store {
                 .collect::<Result<_, _>>()?,
             None => BTreeMap::new(),
         };
-        drop(txn);
         let mut changes: VecDeque<Change> = VecDeque::new();
-        let head = self.past_span(name)?.newest;
-        let map = self.replay_past(name, head, true, |seq, record, cells: &[[u32; 3]]| {
+        let map = self.replay_past(&txn, name, None, true, |seq, record, cells: &[[u32; 3]]| {
             let kind = kind(record);
             if cells.is_empty() && kind != "palette" {
                 return; // a copy, or an edit that changed nothing
@@ -238,8 +298,8 @@ impl Store {
             let (mut min, mut max) = ([u32::MAX; 3], [0; 3]);
             for c in cells {
                 for i in 0..3 {
-                    min[i] = min[i].min(c[i] * 8);
-                    max[i] = max[i].max(c[i] * 8 + 7);
+                    min[i] = min[i].min(c[i].saturating_mul(8));
+                    max[i] = max[i].max(c[i].saturating_mul(8).saturating_add(7));
                 }
             }
             if cells.is_empty() {
@@ -251,12 +311,14 @@ impl Store {
                 && last.kind == kind
                 && last.last + 1 == seq
                 && match (last.at_ms, at_ms) {
+                    // Within the window of the row's latest change.
                     (Some(a), Some(b)) => b.saturating_sub(a) <= MERGE_MS,
                     (None, None) => true,
                     _ => false,
                 }
             {
                 last.last = seq;
+                last.at_ms = at_ms;
                 last.bricks += cells.len() as u64;
                 if !cells.is_empty() {
                     for i in 0..3 {
@@ -284,22 +346,24 @@ impl Store {
         for c in &mut changes {
             c.max = std::array::from_fn(|i| c.max[i].min(size[i].saturating_sub(1)));
         }
-        Ok(changes.into())
+        Ok((span, changes.into()))
     }
 
-    /// Rebuilds the scene at `seq` (from the oldest point when `from_oldest`, else the latest
-    /// point at or before it), calling `visit` with each record replayed on the way and the
-    /// cells (brick coordinates) it changed.
+    /// Rebuilds the scene at `seq` (`None`: the newest sequence) from the oldest point when
+    /// `from_oldest`, else from the latest point at or before it (the snapshot itself from its
+    /// sequence on), calling `visit` with each record replayed on the way and the cells (brick
+    /// coordinates) it changed.
     fn replay_past(
         &self,
+        txn: &redb::ReadTransaction,
         name: &str,
-        seq: u64,
+        seq: Option<u64>,
         from_oldest: bool,
         mut visit: impl FnMut(u64, &LogRecord, &[[u32; 3]]),
     ) -> Result<BrickMap, StoreError> {
-        let txn = self.db.begin_read()?;
-        let meta = self.meta(&txn, name)?;
-        let span = span(&txn, name, meta.snapshot_seq)?;
+        let meta = self.meta(txn, name)?;
+        let span = span(txn, name, meta.snapshot_seq)?;
+        let seq = seq.unwrap_or(span.newest);
         if seq < span.oldest || seq > span.newest {
             return Err(StoreError::NotKept {
                 scene: name.into(),
@@ -312,10 +376,11 @@ impl Store {
             scene: name.into(),
             detail,
         };
-        let points = open_optional::<u64, &[u8]>(&txn, &past_palette_table(name))?;
+        let points = open_optional::<u64, &[u8]>(txn, &past_palette_table(name))?;
         // The point the rebuild starts from, and the palette then.
         let (start, palette) = {
             let found = match &points {
+                Some(_) if !from_oldest && seq >= meta.snapshot_seq => None,
                 Some(points) if !from_oldest => points
                     .range(..=seq)?
                     .next_back()
@@ -327,18 +392,18 @@ impl Store {
                 None => None,
             };
             match found {
-                Some((point, bytes)) if point < meta.snapshot_seq => {
-                    let swatches = Swatches::from_bytes(&bytes)
+                Some((point, row)) if point < meta.snapshot_seq => {
+                    let swatches = Swatches::from_bytes(split_point(&row).0)
                         .ok_or_else(|| corrupt(format!("the palette kept at sequence {point}")))?;
                     (point, Some(swatches))
                 }
-                _ => (meta.snapshot_seq, stored_palette(&txn, name)?),
+                _ => (meta.snapshot_seq, stored_palette(txn, name)?),
             }
         };
         // Each cell's row at `start`: the first point at or after it that kept the cell.
         let mut overlay: HashMap<u32, Vec<u8>> = HashMap::new();
         if start < meta.snapshot_seq
-            && let Some(past) = open_optional::<(u64, u32), &[u8]>(&txn, &past_bricks_table(name))?
+            && let Some(past) = open_optional::<(u64, u32), &[u8]>(txn, &past_bricks_table(name))?
         {
             for row in past.range((start, 0)..)? {
                 let (key, bytes) = row?;
@@ -371,7 +436,7 @@ impl Store {
         }
         // The records after `start`: the kept rows, then the live log.
         let unlimited = LogRecord::replay_limits();
-        let kept = open_optional::<u64, &[u8]>(&txn, &past_log_table(name))?;
+        let kept = open_optional::<u64, &[u8]>(txn, &past_log_table(name))?;
         let log = txn.open_table(TableDefinition::<u64, &[u8]>::new(&log_table(name)))?;
         let mut at = start;
         map.record_touched(true);
@@ -624,18 +689,28 @@ mod tests {
         };
         s.check(35..=49);
 
-        // Keep nothing: the next snapshot drops it all.
+        // Bytes bound it too: with room for less than the newest point's, the next snapshot
+        // keeps none of the past, whatever the sequences.
         let mut s = s;
-        s.store.set_keep_history(0);
+        s.store.set_keep_history(1_000_000);
+        s.store.set_keep_history_bytes(1);
         s.edit_to(56);
+        assert_eq!(s.store.past_span("s").unwrap().oldest, 56);
+        s.store.set_keep_history_bytes(u64::MAX);
+        s.edit_to(63);
+        assert_eq!(s.store.past_span("s").unwrap().oldest, 56);
+        s.check(56..=63);
+        // Keep nothing: the next snapshot drops it all.
+        s.store.set_keep_history(0);
+        s.edit_to(70);
         assert_eq!(
             s.store.past_span("s").unwrap(),
             Span {
-                oldest: 56,
-                newest: 56
+                oldest: 70,
+                newest: 70
             }
         );
-        s.check(56..=56);
+        s.check(70..=70);
         // Deleting the scene deletes its past: a scene made again under the name has none.
         assert!(s.store.delete_scene("s").unwrap());
         s.store.create_scene("s", &s.states[0]).unwrap();
@@ -646,7 +721,7 @@ mod tests {
                 newest: 0
             }
         );
-        assert!(s.store.timeline("s", 10).unwrap().is_empty());
+        assert!(s.store.timeline("s", 10).unwrap().1.is_empty());
     }
 
     #[test]
@@ -658,7 +733,14 @@ mod tests {
             .unwrap()
             .as_millis() as u64;
         s.edit_to(20);
-        let changes = s.store.timeline("s", 1000).unwrap();
+        let (span, changes) = s.store.timeline("s", 1000).unwrap();
+        assert_eq!(
+            span,
+            Span {
+                oldest: 0,
+                newest: 20
+            }
+        );
         // Users alternate every sequence: one change per sequence that changed something.
         for c in &changes {
             assert_eq!(c.first, c.last, "{c:?}");
@@ -696,7 +778,7 @@ mod tests {
             .collect();
         assert_eq!(listed, changed);
         // The latest `limit` only.
-        let last3 = s.store.timeline("s", 3).unwrap();
+        let last3 = s.store.timeline("s", 3).unwrap().1;
         assert_eq!(last3, changes[changes.len() - 3..].to_vec());
     }
 }
