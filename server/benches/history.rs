@@ -36,7 +36,9 @@ fn op(seq: u64) -> EditOp {
     }
 }
 
-fn build(store: &Store) -> BrickMap {
+/// Writes the million ops; what each snapshot took.
+fn build(store: &Store) -> (BrickMap, Vec<f64>) {
+    let mut snapshots = Vec::new();
     let mut map = demo::demo_scene([256; 3]).expect("the demo scene builds");
     store.create_scene("h", &map).expect("created");
     map.record_touched(true);
@@ -60,17 +62,25 @@ fn build(store: &Store) -> BrickMap {
         }
         if seq % SNAPSHOT_EVERY == 0 && seq < OPS {
             let cells = map.take_touched();
+            let started = std::time::Instant::now();
             store.snapshot("h", &map, &cells, seq).expect("snapshot");
+            snapshots.push(started.elapsed().as_secs_f64());
         }
     }
-    map
+    (map, snapshots)
 }
 
 fn history(c: &mut Criterion) {
     let dir = tempfile::tempdir().expect("a temporary folder");
     let store = Store::open(dir.path()).expect("the store opens");
+    // What keeping the past costs a snapshot: the same ops into a store that keeps none.
+    let none = tempfile::tempdir().expect("a temporary folder");
+    let bare = Store::open(none.path()).expect("the store opens");
+    bare.set_keep_history(0);
+    let (_, bare_snapshots) = build(&bare);
+    drop(bare);
     let started = std::time::Instant::now();
-    let map = build(&store);
+    let (map, snapshots) = build(&store);
     let span = store.past_span("h").expect("a span");
     eprintln!(
         "{OPS} ops logged in {:.1} s; {} bricks; kept {}..={}",
@@ -78,6 +88,17 @@ fn history(c: &mut Criterion) {
         map.brick_count(),
         span.oldest,
         span.newest
+    );
+    let ms = |v: &[f64]| {
+        v.iter()
+            .map(|s| format!("{:.0}", s * 1e3))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    eprintln!(
+        "snapshots (ms) keeping the past: {}; keeping none: {}",
+        ms(&snapshots),
+        ms(&bare_snapshots)
     );
     assert_eq!(
         store.scene_at("h", OPS).expect("now").content_hash(),

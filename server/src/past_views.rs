@@ -44,8 +44,8 @@ pub fn split_past(path: &str) -> Option<Result<(&str, u64), String>> {
 /// its turn instead of taking every core.
 pub const MAX_REBUILDS: usize = 2;
 
-/// Views of the past one address may hold open that nobody else opened (joining one already
-/// open is always allowed), so one client cannot take every view.
+/// Views of the past one address may have open that it opened (joining one already open is
+/// always allowed), so one client cannot take every view.
 pub const MAX_PER_ADDRESS: usize = 2;
 
 /// The views of the past open on this server.
@@ -53,8 +53,11 @@ pub struct PastViews {
     open: Arc<Mutex<Opened>>,
     /// Held while a view opens (rebuilding a scene is seconds for the largest).
     opening: tokio::sync::Mutex<()>,
-    /// Turns at rebuilding the past ([`MAX_REBUILDS`]).
-    rebuilds: tokio::sync::Semaphore,
+    /// Turns at rebuilding the past ([`MAX_REBUILDS`]), each held by its rebuild until it ends.
+    rebuilds: Arc<tokio::sync::Semaphore>,
+    /// Each scene's generation: an admin command that changes a scene ([`PastViews::close_scene`])
+    /// moves it on, so a view or timeline read from the scene before is not kept after.
+    generations: Mutex<HashMap<String, u64>>,
     /// Each scene's last timeline, with the span it covers and the most changes it lists: a
     /// request for no more over the same span is answered from it.
     timelines: Mutex<HashMap<String, Timeline>>,
@@ -67,7 +70,8 @@ impl Default for PastViews {
         PastViews {
             open: Arc::default(),
             opening: tokio::sync::Mutex::default(),
-            rebuilds: tokio::sync::Semaphore::new(MAX_REBUILDS),
+            rebuilds: Arc::new(tokio::sync::Semaphore::new(MAX_REBUILDS)),
+            generations: Mutex::default(),
             timelines: Mutex::default(),
         }
     }
@@ -76,8 +80,23 @@ impl Default for PastViews {
 #[derive(Default)]
 struct Opened {
     views: HashMap<String, Open>,
-    /// Uses of views by address.
+    /// Views open now by the address that opened them.
     by_address: HashMap<IpAddr, usize>,
+}
+
+impl Opened {
+    /// Takes view `key` out (its last viewer left, or its scene changed), giving its opener's
+    /// count back.
+    fn remove(&mut self, key: &str) -> Option<Open> {
+        let gone = self.views.remove(key)?;
+        if let Some(n) = self.by_address.get_mut(&gone.opener) {
+            *n -= 1;
+            if *n == 0 {
+                self.by_address.remove(&gone.opener);
+            }
+        }
+        Some(gone)
+    }
 }
 
 struct Open {
@@ -85,25 +104,20 @@ struct Open {
     /// Its uses; a [`PastUse`] knows its view by this (not by name: a view that stopped and
     /// opened again under the same name is another view).
     uses: Arc<AtomicUsize>,
+    /// The address that opened it (counted against [`MAX_PER_ADDRESS`] while it is open).
+    opener: IpAddr,
 }
 
 /// One viewer of a view of the past: the view closes when the last one goes.
 pub struct PastUse {
     key: String,
     uses: Arc<AtomicUsize>,
-    from: IpAddr,
     open: Arc<Mutex<Opened>>,
 }
 
 impl Drop for PastUse {
     fn drop(&mut self) {
         let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(n) = open.by_address.get_mut(&self.from) {
-            *n -= 1;
-            if *n == 0 {
-                open.by_address.remove(&self.from);
-            }
-        }
         let last = self.uses.fetch_sub(1, Relaxed) == 1;
         let ours = open
             .views
@@ -111,7 +125,7 @@ impl Drop for PastUse {
             .is_some_and(|o| Arc::ptr_eq(&o.uses, &self.uses));
         if last
             && ours
-            && let Some(gone) = open.views.remove(&self.key)
+            && let Some(gone) = open.remove(&self.key)
         {
             // The owner stops on Shutdown (its log writes nothing), or once the last handle
             // is gone.
@@ -170,13 +184,14 @@ impl PastViews {
     ) -> Result<(SceneHandle, PastUse), PastError> {
         let store = app.store.clone().ok_or(PastError::NoStore)?;
         let key = format!("{name}~{seq}");
-        if let Some(found) = self.take(&key, from) {
+        if let Some(found) = self.take(&key) {
             return Ok(found);
         }
         let _opening = self.opening.lock().await;
-        if let Some(found) = self.take(&key, from) {
+        if let Some(found) = self.take(&key) {
             return Ok(found);
         }
+        let generation = self.generation(name);
         {
             let open = self.lock();
             if open.views.len() >= MAX_OPEN {
@@ -215,14 +230,24 @@ impl PastViews {
             tokio::runtime::Handle::current(),
         )
         .map_err(|e| PastError::Failed(e.to_string()))?;
+        // Checked under the views' lock: `close_scene` moves the generation on before it takes
+        // the scene's views out, so a view is either refused here or taken out there.
+        let mut open = self.lock();
+        if self.generation(name) != generation {
+            // An administrator changed the scene while it was read: that past is not its own.
+            let _ = handle.try_send(Command::Shutdown);
+            return Err(PastError::Failed(format!(
+                "scene {name} was changed by an administrator while its past was read; try again"
+            )));
+        }
         tracing::info!(scene = %name, seq, "opened a view of the past");
         let uses = Arc::new(AtomicUsize::new(1));
-        let mut open = self.lock();
         open.views.insert(
             key.clone(),
             Open {
                 handle: handle.clone(),
                 uses: uses.clone(),
+                opener: from,
             },
         );
         *open.by_address.entry(from).or_default() += 1;
@@ -231,7 +256,6 @@ impl PastViews {
             PastUse {
                 key,
                 uses,
-                from,
                 open: self.open.clone(),
             },
         ))
@@ -243,14 +267,20 @@ impl PastViews {
         &self,
         work: impl FnOnce() -> T + Send + 'static,
     ) -> Result<T, String> {
-        let _turn = self
+        let turn = self
             .rebuilds
-            .acquire()
+            .clone()
+            .acquire_owned()
             .await
             .map_err(|e| format!("rebuilding the past: {e}"))?;
-        tokio::task::spawn_blocking(work)
-            .await
-            .map_err(|e| format!("rebuilding the past failed: {e}"))
+        // The turn goes with the work: a caller that stops waiting (its client left) does not
+        // stop a blocking task, and the turn is not free until the task has ended.
+        tokio::task::spawn_blocking(move || {
+            let _turn = turn;
+            work()
+        })
+        .await
+        .map_err(|e| format!("rebuilding the past failed: {e}"))
     }
 
     /// Whether this server can show scene `name` at `seq` (it keeps that sequence).
@@ -271,22 +301,25 @@ impl PastViews {
         Ok(())
     }
 
-    /// A use of the open view `key` by a viewer at `from`.
-    fn take(&self, key: &str, from: IpAddr) -> Option<(SceneHandle, PastUse)> {
-        let mut open = self.lock();
+    /// A use of the open view `key`.
+    fn take(&self, key: &str) -> Option<(SceneHandle, PastUse)> {
+        let open = self.lock();
         let found = open.views.get(key).filter(|o| !o.handle.is_closed())?;
         found.uses.fetch_add(1, Relaxed);
-        let (handle, uses) = (found.handle.clone(), found.uses.clone());
-        *open.by_address.entry(from).or_default() += 1;
         Some((
-            handle,
+            found.handle.clone(),
             PastUse {
                 key: key.to_string(),
-                uses,
-                from,
+                uses: found.uses.clone(),
                 open: self.open.clone(),
             },
         ))
+    }
+
+    /// Scene `name`'s generation (see [`PastViews::close_scene`]).
+    fn generation(&self, name: &str) -> u64 {
+        let generations = self.generations.lock().unwrap_or_else(|e| e.into_inner());
+        generations.get(name).copied().unwrap_or(0)
     }
 
     /// The latest `limit` changes of scene `name`'s timeline, and the span they cover: read
@@ -313,16 +346,19 @@ impl PastViews {
             return Ok(hit);
         }
         let scene = name.to_string();
+        let generation = self.generation(name);
         let (span, changes) = self
             .rebuild(move || store.timeline(&scene, limit))
             .await
             .map_err(PastError::Failed)??;
-        let changes = Arc::new(changes);
-        self.timelines
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(name.to_string(), (span, limit, changes.clone()));
-        Ok((span, changes.to_vec()))
+        let mut timelines = self.timelines.lock().unwrap_or_else(|e| e.into_inner());
+        if self.generation(name) != generation {
+            return Err(PastError::Failed(format!(
+                "scene {name} was changed by an administrator while its history was read; try again"
+            )));
+        }
+        timelines.insert(name.to_string(), (span, limit, Arc::new(changes.clone())));
+        Ok((span, changes))
     }
 
     /// Views open now (tests, metrics).
@@ -333,10 +369,17 @@ impl PastViews {
     /// Closes the views of scene `name` (deleted, renamed, reset or replaced: its past is
     /// another scene's now), telling their viewers `why`.
     pub async fn close_scene(&self, name: &str, why: &str) {
-        self.timelines
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .remove(name);
+        {
+            // Under the cache's lock: a timeline read before the change is not cached after it.
+            let mut timelines = self.timelines.lock().unwrap_or_else(|e| e.into_inner());
+            *self
+                .generations
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .entry(name.to_string())
+                .or_default() += 1;
+            timelines.remove(name);
+        }
         let prefix = format!("{name}~");
         let gone: Vec<Open> = {
             let mut open = self.lock();
@@ -346,7 +389,7 @@ impl PastViews {
                 .filter(|k| k.starts_with(&prefix))
                 .cloned()
                 .collect();
-            keys.iter().filter_map(|k| open.views.remove(k)).collect()
+            keys.iter().filter_map(|k| open.remove(k)).collect()
         };
         for view in gone {
             let farewell = Command::Farewell {
@@ -360,7 +403,11 @@ impl PastViews {
 
     /// Closes every view (shutdown), waiting a little for their owners.
     pub async fn close_all(&self) {
-        let all: Vec<Open> = self.lock().views.drain().map(|(_, o)| o).collect();
+        let all: Vec<Open> = {
+            let mut open = self.lock();
+            open.by_address.clear();
+            open.views.drain().map(|(_, o)| o).collect()
+        };
         for view in all {
             let _ = view.handle.send(Command::Shutdown).await;
             let _ = tokio::time::timeout(Duration::from_secs(10), view.handle.closed()).await;

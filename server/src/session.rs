@@ -515,12 +515,6 @@ async fn read_loop(
                     );
                     continue;
                 }
-                // A heavy edit waits for its turn at the scene, its socket unread meanwhile.
-                let admitted = tokio::select! {
-                    admitted = scene.heavy.admit(work) => admitted,
-                    () = shutdown.cancelled() => return,
-                    _ = out.closed() => return,
-                };
                 // A restore's past is rebuilt here, off the owner (`scene::rewind`), for a box
                 // the op's own check accepts (else the owner refuses it, saying why).
                 if let (None, Some(store), [op @ EditOp::Restore { to, min, max }]) =
@@ -550,6 +544,13 @@ async fn read_loop(
                         .pasts
                         .put(&scene.name, id, client_seq, *op, past);
                 }
+                // (Fetched before: a restore does not hold the gate while it waits for a turn
+                // at rebuilding.) A heavy edit waits for its turn at the scene, its socket unread meanwhile.
+                let admitted = tokio::select! {
+                    admitted = scene.heavy.admit(work) => admitted,
+                    () = shutdown.cancelled() => return,
+                    _ = out.closed() => return,
+                };
                 let sent = match &forwarder {
                     // The turn is held while the forwarder takes it; the owner node's own
                     // sessions take turns there (a cluster shares one gate per node).

@@ -139,7 +139,8 @@ impl Owner {
                 return refuse(
                     &self.metrics,
                     Rejection::malformed(
-                        "no past was fetched for this restore: a cluster keeps no history yet (a single node does)",
+                        "no past was fetched for this restore (a cluster keeps no history yet; on a single node, \
+                         a later restore of yours took its place): restore again",
                     ),
                 );
             }

@@ -137,6 +137,9 @@ pub(super) fn archive(
 /// A point's row: the palette then, and the bytes kept with the point (its bricks and the log
 /// after it up to the next point).
 fn split_point(row: &[u8]) -> (&[u8], u64) {
+    if row.len() == 2 * brickcast_protocol::swatches::SWATCHES {
+        return (row, 0); // a palette alone
+    }
     match row.len().checked_sub(8) {
         Some(at) => {
             let (palette, bytes) = row.split_at(at);
