@@ -831,20 +831,9 @@ async fn websocket(
     if !app.has_scene(&name).await {
         return (StatusCode::NOT_FOUND, format!("no scene named {name:?}\n")).into_response();
     }
-    let ws = match ws {
-        Ok(ws) => ws,
-        Err(rejection) => return rejection.into_response(),
-    };
-    if app.shutdown.is_cancelled() {
-        return (StatusCode::SERVICE_UNAVAILABLE, "shutting down\n").into_response();
-    }
-    let admitted = match app.connections.admit(peer.ip(), &app.connection_limits) {
+    let (ws, admitted) = match admit(&app, peer, ws) {
         Ok(admitted) => admitted,
-        Err(refusal) => {
-            Metrics::add(&app.metrics.refused_connections, 1);
-            tracing::debug!(%peer, %refusal, "refused a connection");
-            return (StatusCode::SERVICE_UNAVAILABLE, format!("{refusal}\n")).into_response();
-        }
+        Err(refused) => return *refused,
     };
     // Only an admitted websocket opens a scene a cluster node does not serve yet.
     let (scene, using) = match app.open_scene(&name).await {
@@ -865,6 +854,40 @@ async fn websocket(
         )
             .into_response();
     }
+    sized(ws, &scene).on_upgrade(move |socket| async move {
+        let link = using.link.clone();
+        session::run(socket, scene, link, app, peer.ip(), level, false).await;
+        drop((admitted, using));
+    })
+}
+
+/// A websocket request for a scene that exists: upgraded if it is one, the server is not
+/// stopping and the connection limits take it (its place held while the session runs).
+fn admit(
+    app: &App,
+    peer: SocketAddr,
+    ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
+) -> Result<(WebSocketUpgrade, conns::Admitted), Box<Response>> {
+    let ws = ws.map_err(|rejection| Box::new(rejection.into_response()))?;
+    if app.shutdown.is_cancelled() {
+        return Err(Box::new(
+            (StatusCode::SERVICE_UNAVAILABLE, "shutting down\n").into_response(),
+        ));
+    }
+    match app.connections.admit(peer.ip(), &app.connection_limits) {
+        Ok(admitted) => Ok((ws, admitted)),
+        Err(refusal) => {
+            Metrics::add(&app.metrics.refused_connections, 1);
+            tracing::debug!(%peer, %refusal, "refused a connection");
+            Err(Box::new(
+                (StatusCode::SERVICE_UNAVAILABLE, format!("{refusal}\n")).into_response(),
+            ))
+        }
+    }
+}
+
+/// The upgrade sized for `scene`'s frames.
+fn sized(ws: WebSocketUpgrade, scene: &SceneHandle) -> WebSocketUpgrade {
     // Accept frames a little over the limit so the session can answer them with a clean
     // FrameTooLarge error instead of a dropped connection.
     let max = scene.limits.max_frame_bytes as usize + (64 << 10);
@@ -873,11 +896,6 @@ async fn websocket(
     ws.max_message_size(max)
         .max_frame_size(max)
         .read_buffer_size(16 << 10)
-        .on_upgrade(move |socket| async move {
-            let link = using.link.clone();
-            session::run(socket, scene, link, app, peer.ip(), level, false).await;
-            drop((admitted, using));
-        })
 }
 
 /// A websocket to a view of a scene's past (`NAME~S`, `past_views`): its sessions view.
@@ -903,19 +921,9 @@ async fn past_websocket(
         };
         return (status, format!("{e}\n")).into_response();
     }
-    let ws = match ws {
-        Ok(ws) => ws,
-        Err(rejection) => return rejection.into_response(),
-    };
-    if app.shutdown.is_cancelled() {
-        return (StatusCode::SERVICE_UNAVAILABLE, "shutting down\n").into_response();
-    }
-    let admitted = match app.connections.admit(peer.ip(), &app.connection_limits) {
+    let (ws, admitted) = match admit(&app, peer, ws) {
         Ok(admitted) => admitted,
-        Err(refusal) => {
-            Metrics::add(&app.metrics.refused_connections, 1);
-            return (StatusCode::SERVICE_UNAVAILABLE, format!("{refusal}\n")).into_response();
-        }
+        Err(refused) => return *refused,
     };
     let (scene, using) = match app.past.open(&app, name, seq, peer.ip()).await {
         Ok(found) => found,
@@ -924,14 +932,10 @@ async fn past_websocket(
         }
         Err(e) => return (StatusCode::SERVICE_UNAVAILABLE, format!("{e}\n")).into_response(),
     };
-    let max = scene.limits.max_frame_bytes as usize + (64 << 10);
-    ws.max_message_size(max)
-        .max_frame_size(max)
-        .read_buffer_size(16 << 10)
-        .on_upgrade(move |socket| async move {
-            session::run(socket, scene, None, app, peer.ip(), 0, true).await;
-            drop((admitted, using));
-        })
+    sized(ws, &scene).on_upgrade(move |socket| async move {
+        session::run(socket, scene, None, app, peer.ip(), 0, true).await;
+        drop((admitted, using));
+    })
 }
 
 #[cfg(test)]

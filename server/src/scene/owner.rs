@@ -242,6 +242,23 @@ pub(super) fn ack(
     }
 }
 
+/// The answer to a message of one op refused for `reason`, counted as a rejected op.
+pub(super) fn refuse_one(
+    metrics: &Metrics,
+    to: AckTo,
+    client_seq: u64,
+    reason: Rejection,
+) -> PendingAck {
+    Metrics::add(&metrics.ops_rejected, 1);
+    ack(
+        to,
+        client_seq,
+        None,
+        0,
+        vec![OpRejection { index: 0, reason }],
+    )
+}
+
 impl Owner {
     /// An owner for a scene recovered from the store. `clock` is where every decision that
     /// depends on time (when to snapshot) reads the time.

@@ -21,9 +21,9 @@ use std::sync::{Arc, Mutex};
 
 use brickcast_protocol::brick::BrickData;
 use brickcast_protocol::clipboard::Clipboard;
-use brickcast_protocol::wire::{EditOp, OpRejection, Rejection, UserId};
+use brickcast_protocol::wire::{EditOp, Rejection, UserId};
 
-use super::owner::{AckTo, Log, Owner, PendingAck, ack};
+use super::owner::{AckTo, Log, Owner, PendingAck, ack, refuse_one};
 use super::step::Step;
 use crate::metrics::Metrics;
 use crate::record::LogRecord;
@@ -125,16 +125,8 @@ impl Owner {
         op: EditOp,
         log: &mut Log,
     ) -> PendingAck {
-        let refuse = |metrics: &Metrics, reason: Rejection| {
-            Metrics::add(&metrics.ops_rejected, 1);
-            ack(
-                to,
-                client_seq,
-                None,
-                0,
-                vec![OpRejection { index: 0, reason }],
-            )
-        };
+        let refuse =
+            |metrics: &Metrics, reason: Rejection| refuse_one(metrics, to, client_seq, reason);
         let EditOp::Paste {
             at,
             size,

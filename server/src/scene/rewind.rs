@@ -21,10 +21,10 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use brickcast_protocol::rewind::PastBox;
-use brickcast_protocol::wire::{EditOp, OpRejection, Rejection, UserId};
+use brickcast_protocol::wire::{EditOp, Rejection, UserId};
 
 use super::SessionId;
-use super::owner::{AckTo, Log, Owner, PendingAck, ack};
+use super::owner::{AckTo, Log, Owner, PendingAck, ack, refuse_one};
 use crate::metrics::Metrics;
 use crate::record::LogRecord;
 
@@ -112,16 +112,8 @@ impl Owner {
         op: EditOp,
         log: &mut Log,
     ) -> PendingAck {
-        let refuse = |metrics: &Metrics, reason: Rejection| {
-            Metrics::add(&metrics.ops_rejected, 1);
-            ack(
-                to_ack,
-                client_seq,
-                None,
-                0,
-                vec![OpRejection { index: 0, reason }],
-            )
-        };
+        let refuse =
+            |metrics: &Metrics, reason: Rejection| refuse_one(metrics, to_ack, client_seq, reason);
         let EditOp::Restore { to, .. } = op else {
             return refuse(&self.metrics, Rejection::malformed("not a restore"));
         };
