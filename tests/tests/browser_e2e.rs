@@ -509,6 +509,18 @@ fn edits_cross_between_the_page_and_a_native_client() -> Result<()> {
         fetch(&server.url("demo")).is_ok_and(|r| r.map.solid_voxels() == before_restore)
     });
     assert!(unrestored, "Ctrl+Z took the restore back");
+    // The paste's view link opens the scene as it was then: read-only, and the page says so.
+    let view = view.as_str().context("the view link")?.to_string();
+    let past = view.trim_start_matches("/scenes/");
+    browser.goto(&viewer_url(&server, past))?;
+    let state = browser.wait_state("s.synced && s.frames > 0", 60_000)?;
+    assert_eq!(state["role"], serde_json::json!("Viewer"), "{state}");
+    let note = browser.eval("document.getElementById('note').textContent")?;
+    assert!(
+        note.as_str()
+            .is_some_and(|n| n.contains("as it was at sequence")),
+        "{note}"
+    );
     server.stop()
 }
 
