@@ -361,11 +361,6 @@ impl PastViews {
         Ok((span, changes))
     }
 
-    /// Views open now (tests, metrics).
-    pub fn count(&self) -> usize {
-        self.lock().views.len()
-    }
-
     /// Closes the views of scene `name` (deleted, renamed, reset or replaced: its past is
     /// another scene's now), telling their viewers `why`.
     pub async fn close_scene(&self, name: &str, why: &str) {

@@ -89,15 +89,6 @@ impl Pasts {
             _ => None,
         }
     }
-
-    /// Pasts held now (tests).
-    pub fn len(&self) -> usize {
-        self.held().len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
 }
 
 impl Owner {
